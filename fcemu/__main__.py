@@ -1,0 +1,5 @@
+import sys
+
+from fcemu.cli import main
+
+sys.exit(main())

@@ -1,0 +1,1 @@
+"""The simulated world: MuJoCo digital twin, lockstep link, Gymnasium environments."""

@@ -1,0 +1,179 @@
+"""Airframe data files and the MJCF model built from them.
+
+Numbers live in `airframes/<name>.json` (FRD body axes, Betaflight motor order);
+this module only turns them into a MuJoCo model. MuJoCo works in FLU body axes
+over a z-up world (x north, y west); `FLU_FROM_FRD` converts both, once, at the
+twin boundary.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+AIRFRAME_DIR = Path(__file__).parent / "airframes"
+FLU_FROM_FRD = np.array([1.0, -1.0, -1.0])  # also NED <-> (north, west, up)
+RIGS = ("rig", "free")
+
+
+@dataclass(frozen=True)
+class MotorModel:
+    max_rotor_speed: float  # rad/s at PWM max
+    kf: float  # thrust = kf * omega^2, N/(rad/s)^2
+    km: float  # yaw moment = km * thrust, m
+    tau_up: float  # s
+    tau_down: float  # s
+    pwm_min: float = 1000.0
+    pwm_max: float = 2000.0
+
+    def rotor_speed_command(self, pwm: np.ndarray) -> np.ndarray:
+        span = self.pwm_max - self.pwm_min
+        return (np.clip(pwm, self.pwm_min, self.pwm_max) - self.pwm_min) * (
+            self.max_rotor_speed / span
+        )
+
+    def pwm_for_rotor_speed(self, omega: float | np.ndarray) -> float | np.ndarray:
+        span = self.pwm_max - self.pwm_min
+        return self.pwm_min + span * np.asarray(omega) / self.max_rotor_speed
+
+
+@dataclass(frozen=True)
+class Airframe:
+    name: str
+    base_mass: float
+    base_inertia: tuple[float, float, float]
+    base_box: tuple[float, float, float]
+    rotor_mass: float
+    rotor_radius: float
+    rotor_positions: np.ndarray  # (4, 3) FRD, m
+    spin: np.ndarray  # (4,) +1 counter-clockwise, -1 clockwise, seen from above
+    motor: MotorModel
+    gear_half_height: float
+
+    @property
+    def mass(self) -> float:
+        return self.base_mass + 4 * self.rotor_mass
+
+    @property
+    def yaw_sign(self) -> np.ndarray:
+        """FRD yaw moment per unit thrust sign: a CW prop twists the body CCW (negative yaw)."""
+        return self.spin.astype(float)
+
+    def hover_rotor_speed(self, gravity: float = 9.81) -> float:
+        return float(np.sqrt(self.mass * gravity / (4 * self.motor.kf)))
+
+    def hover_pwm(self, gravity: float = 9.81) -> float:
+        return float(self.motor.pwm_for_rotor_speed(self.hover_rotor_speed(gravity)))
+
+    def scaled(self, mass: float = 1.0, inertia: float = 1.0, kf: float = 1.0,
+               km: float = 1.0) -> Airframe:
+        """A copy with mass, inertia and motor constants multiplied (airframe randomisation)."""
+        m = self.motor
+        motor = MotorModel(m.max_rotor_speed, m.kf * kf, m.km * km, m.tau_up, m.tau_down,
+                           m.pwm_min, m.pwm_max)
+        return Airframe(self.name, self.base_mass * mass,
+                        tuple(float(i) * inertia for i in self.base_inertia),  # type: ignore[arg-type]
+                        self.base_box, self.rotor_mass * mass, self.rotor_radius,
+                        self.rotor_positions, self.spin, motor, self.gear_half_height)
+
+
+def load_airframe(name_or_path: str | Path = "iris") -> Airframe:
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = AIRFRAME_DIR / f"{name_or_path}.json"
+    if not path.exists():
+        known = ", ".join(sorted(p.stem for p in AIRFRAME_DIR.glob("*.json")))
+        raise FileNotFoundError(f"no airframe file {path} (shipped airframes: {known})")
+    raw = json.loads(path.read_text())
+    motors = raw["motors"]
+    if len(motors) != 4:
+        raise ValueError(f"{path}: a Quad X airframe needs 4 motors, found {len(motors)}")
+    m = raw["motor"]
+    return Airframe(
+        name=raw["name"],
+        base_mass=float(raw["base_mass_kg"]),
+        base_inertia=tuple(float(v) for v in raw["base_inertia_kg_m2"]),  # type: ignore[arg-type]
+        base_box=tuple(float(v) for v in raw["base_box_m"]),  # type: ignore[arg-type]
+        rotor_mass=float(raw["rotor_mass_kg"]),
+        rotor_radius=float(raw["rotor_radius_m"]),
+        rotor_positions=np.array([mo["position_m"] for mo in motors], dtype=float),
+        spin=np.array([1 if mo["spin"] == "ccw" else -1 for mo in motors]),
+        motor=MotorModel(
+            max_rotor_speed=float(m["max_rotor_speed_rad_s"]),
+            kf=float(m["thrust_coefficient_N_per_rad_s2"]),
+            km=float(m["moment_constant_m"]),
+            tau_up=float(m["time_constant_up_s"]),
+            tau_down=float(m["time_constant_down_s"]),
+            pwm_min=float(m.get("pwm_min_us", 1000)),
+            pwm_max=float(m.get("pwm_max_us", 2000)),
+        ),
+        gear_half_height=float(raw["landing_gear_half_height_m"]),
+    )
+
+
+def _vec(v: np.ndarray | tuple[float, ...]) -> str:
+    return " ".join(f"{float(x):.9g}" for x in v)
+
+
+def build_mjcf(airframe: Airframe, rig: str, dt: float = 0.001) -> str:
+    """MJCF for one rig: `rig` pins the centre of mass on a ball joint, `free` flies over a floor."""
+    if rig not in RIGS:
+        raise ValueError(f"unknown rig {rig!r}; choose one of {RIGS}")
+    rotors_flu = airframe.rotor_positions * FLU_FROM_FRD
+    com = rotors_flu.sum(axis=0) * airframe.rotor_mass / airframe.mass
+    bx, by, bz = (s / 2 for s in airframe.base_box)
+    rotors = "\n".join(
+        f'      <body name="rotor{i + 1}" pos="{_vec(p)}">'
+        f'<inertial pos="0 0 0" mass="{airframe.rotor_mass}" diaginertia="1e-6 1e-6 2e-6"/>'
+        f'<geom type="cylinder" size="{airframe.rotor_radius} 0.003" contype="0" conaffinity="0"'
+        f' rgba="{".2 .2 .2" if airframe.spin[i] < 0 else ".7 .2 .2"} .5"/>'
+        f'<site name="rotor{i + 1}" pos="0 0 0"/></body>'
+        for i, p in enumerate(rotors_flu)
+    )
+    actuators = "\n".join(
+        f'    <general name="motor{i + 1}" site="rotor{i + 1}" ctrllimited="false"'
+        f' gear="0 0 1 0 0 {-airframe.spin[i] * airframe.motor.km:.9g}"/>'
+        for i in range(4)
+    )
+    if rig == "rig":
+        joint = f'<joint name="ball" type="ball" pos="{_vec(com)}" damping="0"/>'
+        start = "0 0 1"
+        floor = ""
+        legs = ""
+    else:
+        joint = '<freejoint name="free"/>'
+        start = f"0 0 {airframe.gear_half_height + bz:.6g}"
+        floor = '<geom name="floor" type="plane" size="20 20 0.1" rgba=".8 .8 .8 1"/>'
+        h = airframe.gear_half_height
+        legs = "\n".join(
+            f'      <geom type="sphere" size="0.01" pos="{sx * bx * 0.6:.4f} {sy * by * 0.6:.4f}'
+            f' {-h:.4f}" friction="1 0.01 0.001"/>'
+            for sx in (-1, 1) for sy in (-1, 1)
+        )
+    return f"""<mujoco model="{airframe.name}-{rig}">
+  <compiler angle="radian" inertiafromgeom="false"/>
+  <option timestep="{dt}" gravity="0 0 -9.81"/>
+  <worldbody>
+    {floor}
+    <body name="base" pos="{start}">
+      {joint}
+      <inertial pos="0 0 0" mass="{airframe.base_mass}" diaginertia="{_vec(airframe.base_inertia)}"/>
+      <geom type="box" size="{bx} {by * 0.3:.4f} {bz}" contype="1" conaffinity="1"
+            rgba=".3 .3 .8 1"/>
+{legs}
+      <site name="imu" pos="{_vec(com)}"/>
+{rotors}
+    </body>
+  </worldbody>
+  <actuator>
+{actuators}
+  </actuator>
+  <sensor>
+    <gyro name="gyro" site="imu"/>
+    <accelerometer name="accel" site="imu"/>
+  </sensor>
+</mujoco>
+"""

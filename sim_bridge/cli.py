@@ -1,0 +1,30 @@
+"""`fcemu twin ...` and `fcemu bench sim`."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    twin = sub.add_parser("twin", help="the digital twin on its own")
+    twin_sub = twin.add_subparsers(dest="twin_command", required=True, metavar="WHAT")
+
+    serve = twin_sub.add_parser("serve", help="run the twin as a UDP lockstep simulator")
+    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--port", type=int, default=9002)
+    serve.add_argument("--rig", choices=("rig", "free"), default="rig")
+    serve.add_argument("--airframe", default="iris", help="airframe name or JSON file")
+    serve.add_argument("--quiet", action="store_true", help="no periodic status line")
+    serve.set_defaults(handler="sim_bridge.link:serve_command")
+
+    demo = twin_sub.add_parser("demo", help="open-loop showcase: hover, then roll/pitch/yaw")
+    demo.add_argument("--out", default="out/twin_demo.png", help="where to write the plot")
+    demo.set_defaults(handler="sim_bridge.showcase:main")
+
+
+def register_bench(bench_sub: argparse._SubParsersAction) -> None:
+    sim = bench_sub.add_parser("sim", help="twin, UDP link and environment throughput")
+    sim.add_argument("--seconds", type=float, default=2.0, help="time per measurement")
+    sim.add_argument("--envs", type=int, default=64, help="batch size for the vectorised env")
+    sim.add_argument("--json", action="store_true")
+    sim.set_defaults(handler="sim_bridge.bench:bench_sim")

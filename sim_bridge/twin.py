@@ -1,0 +1,176 @@
+"""The digital twin: MuJoCo Iris, per-rotor motor model, sensors in FRD.
+
+`Twin.step(pwm)` advances exactly one physics step (1 ms by default) and returns the
+`SensorFrame` the flight controller would read next. Everything random (sensor noise,
+initial state) draws from the generator seeded by `reset(seed)`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from firmware.sensors import SensorFrame
+from sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf, load_airframe
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """Sensor imperfections; all zero by default, as in the paper's twin."""
+
+    gyro_std: float = 0.0  # rad/s, white noise per sample
+    gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad/s, FRD
+    accel_std: float = 0.0  # m/s^2
+    accel_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotor_speed_std: float = 0.0  # rad/s
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.gyro_std or self.accel_std or self.rotor_speed_std
+                    or any(self.gyro_bias) or any(self.accel_bias))
+
+
+@dataclass(frozen=True)
+class TwinState:
+    """A full initial state. Quaternion (w, x, y, z) rotates FRD body into NED."""
+
+    attitude: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    body_rates: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad/s FRD
+    rotor_speed: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # rad/s
+    position: tuple[float, float, float] | None = None  # NED m; free rig only, None = on ground
+    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # NED m/s; free rig only
+
+
+@dataclass(frozen=True)
+class Truth:
+    """Ground truth, for telemetry and tests only; the controller never sees it."""
+
+    position: np.ndarray  # NED m (zeros in the ball-joint rig)
+    velocity: np.ndarray  # NED m/s
+    attitude: np.ndarray  # quaternion (w, x, y, z), FRD -> NED
+    body_rates: np.ndarray  # FRD rad/s
+    acceleration: np.ndarray = field(default_factory=lambda: np.zeros(3))  # NED m/s^2
+
+
+def _ned_quat_from_mujoco(q: np.ndarray) -> np.ndarray:
+    return np.array([q[0], q[1], -q[2], -q[3]])
+
+
+class Twin:
+    """One Iris in one rig, stepped in lockstep with the flight controller."""
+
+    def __init__(
+        self,
+        airframe: Airframe | str = "iris",
+        rig: str = "rig",
+        noise: SensorNoise | None = None,
+        dt: float = 0.001,
+    ) -> None:
+        self.airframe = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
+        self.rig = rig
+        self.noise = noise or SensorNoise()
+        self.dt = dt
+        self.dt_us = round(dt * 1e6)
+        self.model = mujoco.MjModel.from_xml_string(build_mjcf(self.airframe, rig, dt))
+        self.data = mujoco.MjData(self.model)
+        m = self.airframe.motor
+        self._cmd_per_us = m.max_rotor_speed / (m.pwm_max - m.pwm_min)
+        self._alpha_up = 1.0 - np.exp(-dt / m.tau_up)
+        self._alpha_down = 1.0 - np.exp(-dt / m.tau_down)
+        self._kf = m.kf
+        self._pwm_lo, self._pwm_hi = m.pwm_min, m.pwm_max
+        gyro, accel = self.model.sensor("gyro").adr[0], self.model.sensor("accel").adr[0]
+        if accel != gyro + 3:
+            raise RuntimeError("the MJCF must declare the accelerometer right after the gyro")
+        self._imu = slice(gyro, gyro + 6)
+        self._sensordata = self.data.sensordata
+        self._ctrl = self.data.ctrl
+        self._imu_sign = np.tile(FLU_FROM_FRD, 2)
+        self._noisy = self.noise.enabled
+        self._omega = [0.0] * 4
+        self._t_us = 0
+        self._rng = np.random.default_rng()
+        self.reset()
+
+    @property
+    def t_us(self) -> int:
+        return self._t_us
+
+    @property
+    def rotor_speed(self) -> np.ndarray:
+        return np.array(self._omega)
+
+    def reset(self, seed: int | None = None, state: TwinState | None = None) -> SensorFrame:
+        """Start over at t = 0 from `state` (at rest, level, by default); returns the first frame."""
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        state = state or TwinState()
+        mujoco.mj_resetData(self.model, self.data)
+        quat = np.asarray(state.attitude, dtype=float)
+        norm = np.linalg.norm(quat)
+        if not np.isfinite(norm) or norm < 1e-9:
+            raise ValueError(f"initial attitude {state.attitude} is not a rotation quaternion")
+        quat = _ned_quat_from_mujoco(quat / norm)  # the conversion is its own inverse
+        rates = np.asarray(state.body_rates, dtype=float) * FLU_FROM_FRD
+        if self.rig == "rig":
+            self.data.qpos[0:4] = quat
+            self.data.qvel[0:3] = rates
+        else:
+            if state.position is not None:
+                self.data.qpos[0:3] = np.asarray(state.position, dtype=float) * FLU_FROM_FRD
+            self.data.qpos[3:7] = quat
+            self.data.qvel[0:3] = np.asarray(state.velocity, dtype=float) * FLU_FROM_FRD
+            self.data.qvel[3:6] = rates
+        self._omega = [float(w) for w in state.rotor_speed]
+        self.data.ctrl[:] = [self._kf * w * w for w in self._omega]
+        mujoco.mj_forward(self.model, self.data)
+        self._t_us = 0
+        return self._frame()
+
+    def step(self, pwm: np.ndarray) -> SensorFrame:
+        """Apply PWM (µs, Betaflight motor order) for one step; return the next sensor frame."""
+        # Four rotors in plain floats: numpy's per-call overhead would triple the step time.
+        values = pwm.tolist() if isinstance(pwm, np.ndarray) else list(pwm)
+        if len(values) != 4 or not all(math.isfinite(v) for v in values):
+            raise ValueError(f"pwm must be 4 finite values in µs, got {pwm!r}")
+        lo, hi, per_us, kf = self._pwm_lo, self._pwm_hi, self._cmd_per_us, self._kf
+        up, down, omega = self._alpha_up, self._alpha_down, self._omega
+        thrust = [0.0] * 4
+        for i, v in enumerate(values):
+            error = ((lo if v < lo else hi if v > hi else v) - lo) * per_us - omega[i]
+            w = omega[i] + (up if error > 0.0 else down) * error
+            omega[i] = w
+            thrust[i] = kf * w * w
+        self._ctrl[:] = thrust
+        mujoco.mj_step(self.model, self.data)
+        self._t_us += self.dt_us
+        return self._frame()
+
+    def _frame(self) -> SensorFrame:
+        imu = self._sensordata[self._imu] * self._imu_sign
+        gyro, accel = imu[0:3], imu[3:6]
+        omega = np.array(self._omega)
+        if self._noisy:
+            n = self.noise
+            rng = self._rng
+            gyro += np.asarray(n.gyro_bias) + n.gyro_std * rng.standard_normal(3)
+            accel += np.asarray(n.accel_bias) + n.accel_std * rng.standard_normal(3)
+            omega += n.rotor_speed_std * rng.standard_normal(4)
+        return SensorFrame(self._t_us, gyro, accel, omega)
+
+    def truth(self) -> Truth:
+        d = self.data
+        if self.rig == "rig":
+            quat, pos, vel = d.qpos[0:4], np.zeros(3), np.zeros(3)
+            rates = d.qvel[0:3] * FLU_FROM_FRD
+            acc = np.zeros(3)
+        else:
+            quat = d.qpos[3:7]
+            pos = d.qpos[0:3] * FLU_FROM_FRD
+            vel = d.qvel[0:3] * FLU_FROM_FRD
+            rates = d.qvel[3:6] * FLU_FROM_FRD
+            acc = d.qacc[0:3] * FLU_FROM_FRD
+        return Truth(pos, vel, _ned_quat_from_mujoco(np.asarray(quat)), rates, acc)
