@@ -17,6 +17,7 @@ import numpy as np
 AIRFRAME_DIR = Path(__file__).parent / "airframes"
 FLU_FROM_FRD = np.array([1.0, -1.0, -1.0])  # also NED <-> (north, west, up)
 RIGS = ("rig", "free")
+LEG_RADIUS = 0.01
 
 
 @dataclass(frozen=True)
@@ -145,11 +146,11 @@ def build_mjcf(airframe: Airframe, rig: str, dt: float = 0.001) -> str:
         legs = ""
     else:
         joint = '<freejoint name="free"/>'
-        start = f"0 0 {airframe.gear_half_height + bz:.6g}"
+        start = f"0 0 {airframe.gear_half_height + LEG_RADIUS:.6g}"  # resting on the legs
         floor = '<geom name="floor" type="plane" size="20 20 0.1" rgba=".8 .8 .8 1"/>'
         h = airframe.gear_half_height
         legs = "\n".join(
-            f'      <geom type="sphere" size="0.01" pos="{sx * bx * 0.6:.4f} {sy * by * 0.6:.4f}'
+            f'      <geom type="sphere" size="{LEG_RADIUS}" pos="{sx * bx * 0.6:.4f} {sy * by * 0.6:.4f}'
             f' {-h:.4f}" friction="1 0.01 0.001"/>'
             for sx in (-1, 1) for sy in (-1, 1)
         )

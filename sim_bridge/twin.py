@@ -133,8 +133,11 @@ class Twin:
     def step(self, pwm: np.ndarray) -> SensorFrame:
         """Apply PWM (µs, Betaflight motor order) for one step; return the next sensor frame."""
         # Four rotors in plain floats: numpy's per-call overhead would triple the step time.
-        values = pwm.tolist() if isinstance(pwm, np.ndarray) else list(pwm)
-        if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        try:
+            values = pwm.tolist() if isinstance(pwm, np.ndarray) else [float(v) for v in pwm]
+        except TypeError:
+            values = []
+        if len(values) != 4 or not all(isinstance(v, float) and math.isfinite(v) for v in values):
             raise ValueError(f"pwm must be 4 finite values in µs, got {pwm!r}")
         lo, hi, per_us, kf = self._pwm_lo, self._pwm_hi, self._cmd_per_us, self._kf
         up, down, omega = self._alpha_up, self._alpha_down, self._omega
