@@ -17,7 +17,7 @@ $(VENV)/.dev: $(VENV)/.runtime
 	touch $@
 
 demo: $(VENV)/.runtime
-	$(VENV)/bin/fcemu demo
+	$(VENV)/bin/fcemu twin demo
 
 test: $(VENV)/.dev
 	$(PY) -m ruff check .
