@@ -1,0 +1,182 @@
+"""Export a Stable-Baselines3 checkpoint to the ONNX file the firmware flies.
+
+The exported graph is the deterministic actor with the training run's observation
+normalisation folded in: raw observation (as `firmware.observation` builds it) in,
+unclipped action out. The file's metadata carries the contract `firmware.neural`
+checks. A parity check against torch on ≥ 10,000 observations is printed and stored.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from torch import nn
+
+from fcemu import __version__
+from firmware.neural import META_PREFIX, NeuralRateController
+from firmware.observation import ObservationSpec, observe_step
+
+ALGORITHMS = ("ppo", "trpo", "ddpg", "td3", "sac")
+PARITY_TOLERANCE = 1e-5
+
+
+class ExportError(ValueError):
+    """A checkpoint that cannot be exported, with the reason."""
+
+
+@dataclass
+class Checkpoint:
+    model_path: Path
+    vecnormalize_path: Path | None
+    config: dict
+
+
+def find_checkpoint(target: str | Path) -> Checkpoint:
+    """A run directory (its final model) or one checkpoint .zip inside a run."""
+    target = Path(target)
+    if target.is_dir():
+        run_dir, model = target, target / "model.zip"
+        vecnorm = run_dir / "vecnormalize.pkl"
+    elif target.suffix == ".zip":
+        model = target
+        run_dir = target.parent.parent if target.parent.name == "checkpoints" else target.parent
+        prefix, _, steps = target.stem.rpartition("_steps")[0].rpartition("_")
+        vecnorm = target.with_name(f"{prefix}_vecnormalize_{steps}_steps.pkl")
+        if not vecnorm.exists():
+            vecnorm = run_dir / "vecnormalize.pkl"
+    else:
+        raise ExportError(f"{target}: give a run directory or a checkpoint .zip")
+    if not model.exists():
+        raise ExportError(f"{model}: no such checkpoint")
+    config_path = run_dir / "config.json"
+    if not config_path.exists():
+        raise ExportError(f"{config_path} missing: it records the observation spec, action mapping and "
+                          "algorithm; only runs made by `fcemu train` can be exported")
+    config = json.loads(config_path.read_text())
+    return Checkpoint(model, vecnorm if vecnorm.exists() else None, config)
+
+
+def load_model(checkpoint: Checkpoint):
+    algo = checkpoint.config.get("algo", "").lower()
+    if algo not in ALGORITHMS:
+        raise ExportError(f"algorithm {algo!r} in {checkpoint.model_path.parent}: export knows {ALGORITHMS}")
+    if algo == "trpo":
+        from sb3_contrib import TRPO as cls
+    else:
+        import stable_baselines3
+
+        cls = getattr(stable_baselines3, algo.upper())
+    try:
+        return cls.load(checkpoint.model_path, device="cpu")
+    except Exception as exc:  # SB3 raises many types for a corrupt or foreign zip
+        raise ExportError(f"{checkpoint.model_path}: cannot load as {algo.upper()} ({exc})") from exc
+
+
+class DeterministicActor(nn.Module):
+    """Normalisation + the policy's deterministic action, as one traceable module."""
+
+    def __init__(self, model, obs_mean: np.ndarray, obs_var: np.ndarray, clip_obs: float, eps: float) -> None:
+        super().__init__()
+        self.policy = model.policy
+        self.on_policy = hasattr(self.policy, "action_net")
+        self.register_buffer("mean", torch.as_tensor(obs_mean, dtype=torch.float32))
+        self.register_buffer("inv_std", torch.as_tensor(1.0 / np.sqrt(obs_var + eps), dtype=torch.float32))
+        self.clip_obs = float(clip_obs)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        x = torch.clamp((obs - self.mean) * self.inv_std, -self.clip_obs, self.clip_obs)
+        if self.on_policy:  # PPO, TRPO: the Gaussian's mean
+            features = self.policy.extract_features(x, self.policy.pi_features_extractor)
+            return self.policy.action_net(self.policy.mlp_extractor.forward_actor(features))
+        return self.policy.actor(x, deterministic=True) if _is_sac(self.policy) else self.policy.actor(x)
+
+
+def _is_sac(policy) -> bool:
+    return type(policy).__module__.startswith("stable_baselines3.sac")
+
+
+def build_actor(model, checkpoint: Checkpoint, spec: ObservationSpec) -> DeterministicActor:
+    size = spec.size
+    obs_shape = getattr(model.observation_space, "shape", None)
+    if obs_shape != (size,):
+        raise ExportError(f"policy observation shape {obs_shape} does not match the run's spec ({size},)")
+    if getattr(model.action_space, "shape", None) != (4,):
+        raise ExportError(f"policy action shape {model.action_space.shape}, expected (4,)")
+    mean, var, clip, eps = np.zeros(size), np.ones(size), np.inf, 0.0
+    if checkpoint.vecnormalize_path is not None:
+        with open(checkpoint.vecnormalize_path, "rb") as fh:
+            vecnorm = pickle.load(fh)
+        if vecnorm.norm_obs:
+            mean, var = vecnorm.obs_rms.mean, vecnorm.obs_rms.var
+            clip, eps = vecnorm.clip_obs, vecnorm.epsilon
+    actor = DeterministicActor(model, mean, var, min(clip, 1e9), eps)
+    return actor.eval()
+
+
+def parity_observations(spec: ObservationSpec, n: int, seed: int = 0) -> np.ndarray:
+    """Observations spread over what flight produces: errors to ±2× the command bound, any rotor speed."""
+    rng = np.random.default_rng(seed)
+    steps = []
+    for _ in range(spec.memory):
+        setpoint = rng.uniform(-10.5, 10.5, (n, 3))
+        gyro = rng.uniform(-10.5, 10.5, (n, 3))
+        rotor = rng.uniform(0.0, 1100.0, (n, 4))
+        steps.append(observe_step(spec, setpoint, gyro, rotor))
+    return np.concatenate(steps, axis=-1).astype(np.float32)
+
+
+def export_policy(target: str | Path, out: str | Path, parity_samples: int = 10_000) -> dict:
+    checkpoint = find_checkpoint(target)
+    cfg = checkpoint.config
+    spec = ObservationSpec.from_json(json.dumps(cfg["observation"]))
+    model = load_model(checkpoint)
+    actor = build_actor(model, checkpoint, spec)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    dummy = torch.zeros(1, spec.size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the TorchScript exporter is deprecated but needs no onnxscript
+        torch.onnx.export(actor, (dummy,), str(out), dynamo=False, input_names=["observation"],
+                          output_names=["action"], opset_version=17,
+                          dynamic_axes={"observation": {0: "batch"}, "action": {0: "batch"}})
+    obs = parity_observations(spec, max(parity_samples, 1))
+    with torch.no_grad():
+        expected = actor(torch.as_tensor(obs)).numpy()
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    got = session.run(None, {"observation": obs})[0]
+    max_diff = float(np.abs(got - expected).max())
+    steps = int(cfg.get("trained_steps", getattr(model, "num_timesteps", 0)))
+    metadata = {
+        "observation": spec.to_json(),
+        "action_mapping": cfg["action_mapping"],
+        "throttle": json.dumps(cfg.get("throttle")),
+        "loop_rate_hz": str(float(cfg.get("loop_rate_hz", 1000.0))),
+        "algorithm": cfg["algo"].lower(),
+        "training_steps": str(steps),
+        "seed": str(cfg.get("seed")),
+        "fcemu_version": __version__,
+        "source": str(checkpoint.model_path),
+        "parity_max_abs_diff": f"{max_diff:.3e}",
+        "parity_samples": str(len(obs)),
+    }
+    proto = onnx.load(str(out))
+    for k, v in metadata.items():
+        proto.metadata_props.add(key=META_PREFIX + k, value=v)
+    proto.producer_name = "fcemu export"
+    onnx.save(proto, str(out))
+    NeuralRateController(out)  # the firmware must accept what we just wrote
+    report = {"out": str(out), "bytes": out.stat().st_size, "parity_max_abs_diff": max_diff,
+              "parity_samples": len(obs), "parity_ok": max_diff <= PARITY_TOLERANCE, **{
+                  k: metadata[k] for k in ("algorithm", "training_steps", "seed", "action_mapping")}}
+    out.with_suffix(".parity.json").write_text(json.dumps(report, indent=2) + "\n")
+    if not report["parity_ok"]:
+        raise ExportError(f"parity check failed: max |onnx - torch| = {max_diff:.3e} > {PARITY_TOLERANCE}")
+    return report
