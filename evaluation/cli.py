@@ -1,0 +1,21 @@
+"""`fcemu eval`: the paper's metrics for one or more controllers, side by side."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("eval", help="the paper's metrics for --controller pid|FILE.onnx (repeatable)")
+    p.add_argument("--controller", action="append", default=None,
+                   help="pid, pid:<preset> or a policy .onnx; repeat to compare (default: pid)")
+    p.add_argument("--episodes", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--task", choices=("episodic", "continuous"), default="episodic")
+    p.add_argument("--episode-s", type=float, default=None,
+                   help="episode length (default 1 s episodic, 10 s continuous)")
+    p.add_argument("--throttle", type=float, default=None, help="collective 0..1 (default: hover)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.add_argument("--report", metavar="DIR", help="write a Markdown report with figures into DIR")
+    p.add_argument("--save-traces", metavar="FILE.npz", help="save the traces (one file per controller)")
+    p.set_defaults(handler="evaluation.evaluate:eval_command")

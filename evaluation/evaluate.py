@@ -1,0 +1,77 @@
+"""What `fcemu eval` does: fly each controller over the same commands, score, report."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from evaluation.metrics import AXES, EvalMetrics, compute_metrics
+from evaluation.report import ControllerResult, write_report
+from evaluation.runner import EvalConfig, run_controller
+from evaluation.traces import Traces, save_traces
+
+REPORT_CONTINUOUS_S = 10.0
+
+
+def result_json(spec: str, cfg: EvalConfig, metrics: EvalMetrics) -> dict:
+    return {"controller": spec, "episodes": cfg.episodes, "seed": cfg.seed, "task": cfg.task,
+            "metrics": metrics.to_json(), "details": metrics.details_json()}
+
+
+def traces_path(base: str, spec: str, several: bool) -> Path:
+    path = Path(base)
+    if not several:
+        return path
+    slug = Path(spec).stem if spec.endswith(".onnx") else spec.replace(":", "_")
+    return path.with_name(f"{path.stem}_{slug}{path.suffix or '.npz'}")
+
+
+def summary_line(spec: str, m: EvalMetrics) -> str:
+    def cell(metric: str) -> str:
+        return "/".join(_fmt(m.stat(metric, a).mean) for a in AXES)
+
+    total = sum(m.stat("error", a).mean for a in AXES)
+    return (f"{spec:>28}  rise ms {cell('rise_ms')}  peak % {cell('peak_pct')}  error {cell('error')} "
+            f"(sum {total:.1f})  success % {cell('success_pct')}  smoothness {cell('smoothness')}")
+
+
+def _fmt(x: float | None) -> str:
+    return "n/a" if x is None or x != x else f"{x:.1f}"
+
+
+def eval_command(args) -> int:
+    specs = args.controller or ["pid"]
+    cfg = EvalConfig(task=args.task, episodes=args.episodes, seed=args.seed, episode_s=args.episode_s,
+                     throttle=args.throttle)
+    results: list[ControllerResult] = []
+    payload = []
+    for spec in specs:
+        traces = run_controller(spec, cfg, progress=sys.stderr.isatty())
+        metrics = compute_metrics(traces)
+        payload.append(result_json(spec, cfg, metrics))
+        if args.save_traces:
+            out = save_traces(traces_path(args.save_traces, spec, len(specs) > 1), traces)
+            print(f"traces: {out}", file=sys.stderr)
+        continuous = traces if cfg.task == "continuous" else None
+        if args.report and continuous is None:
+            trace_cfg = replace(cfg, task="continuous", episodes=1, episode_s=REPORT_CONTINUOUS_S)
+            continuous = run_controller(spec, trace_cfg, progress=False)
+        results.append(ControllerResult(spec, metrics, traces if cfg.task == "episodic" else None,
+                                        _first(continuous)))
+        if not args.json:
+            print(summary_line(spec, metrics))
+    if args.report:
+        command = "fcemu " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        md = write_report(args.report, results, command=command, seed=cfg.seed, task=cfg.task,
+                          episodes=cfg.episodes)
+        print(f"report: {md}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(payload[0] if len(payload) == 1 else {"results": payload}))
+    return 0
+
+
+def _first(traces: Traces | None) -> Traces | None:
+    return None if traces is None else traces.episode(0)
