@@ -1,0 +1,149 @@
+"""The neural controller's contract: what it flies, what it refuses, what it contains."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from firmware.action import gymfc_pwm, throttle_pwm
+from firmware.controller import RateSetpoint
+from firmware.loop import FlightLoop, ScriptedCommander
+from firmware.neural import META_PREFIX, NeuralRateController, PolicyContractError, PolicyOutputError
+from firmware.observation import ObservationSpec, observe_step
+from firmware.sensors import SensorFrame
+from firmware.timing import LockstepClock
+from sim_bridge.twin import Twin
+
+
+def linear_policy(path, weight: np.ndarray, bias: np.ndarray, meta: dict[str, str] | None,
+                  nan: bool = False) -> str:
+    """action = obs @ weight + bias (optionally ·0/0 to poison it), with fcemu metadata."""
+    n_in, n_out = weight.shape
+    nodes = [helper.make_node("MatMul", ["observation", "W"], ["xw"]),
+             helper.make_node("Add", ["xw", "b"], ["action" if not nan else "raw"])]
+    inits = [numpy_helper.from_array(weight.astype(np.float32), "W"),
+             numpy_helper.from_array(bias.astype(np.float32), "b")]
+    if nan:
+        nodes.append(helper.make_node("Div", ["raw", "zero"], ["ratio"]))
+        nodes.append(helper.make_node("Mul", ["ratio", "zero"], ["action"]))
+        inits.append(numpy_helper.from_array(np.zeros(1, np.float32), "zero"))
+    graph = helper.make_graph(
+        nodes, "policy",
+        [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["batch", n_in])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", n_out])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=9)
+    for k, v in (meta or {}).items():
+        model.metadata_props.add(key=META_PREFIX + k, value=v)
+    onnx.save(model, str(path))
+    return str(path)
+
+
+def meta(memory: int = 1, mapping: str = "gymfc", rate: float = 1000.0) -> dict[str, str]:
+    return {"observation": ObservationSpec(memory=memory).to_json(), "action_mapping": mapping,
+            "loop_rate_hz": str(rate), "algorithm": "ppo", "training_steps": "0", "seed": "0"}
+
+
+def frame(gyro=(0.1, -0.2, 0.3), rotor=(500.0, 510.0, 520.0, 530.0)) -> SensorFrame:
+    return SensorFrame(0, np.array(gyro, float), np.array([0, 0, -9.81]), np.array(rotor, float))
+
+
+@pytest.fixture
+def weight() -> np.ndarray:
+    return np.random.default_rng(0).uniform(-0.5, 0.5, (7, 4))
+
+
+def test_flies_the_shared_observation_and_action_mapping(tmp_path, weight):
+    bias = np.array([0.1, -0.2, 0.3, 0.0])
+    ctl = NeuralRateController(linear_policy(tmp_path / "p.onnx", weight, bias, meta()))
+    sp = RateSetpoint(np.array([1.0, 2.0, -3.0]), 0.6)
+    f = frame()
+    obs = observe_step(ctl.spec, sp.rates, f.gyro, f.rotor_speed)
+    expected = gymfc_pwm(obs.astype(np.float64) @ weight + bias)
+    np.testing.assert_allclose(ctl.update(sp, f, 0.001), expected, rtol=0, atol=1e-3)
+
+
+def test_throttle_mapping_uses_the_setpoint_collective(tmp_path, weight):
+    path = linear_policy(tmp_path / "p.onnx", weight, np.zeros(4), meta(mapping="throttle"))
+    ctl = NeuralRateController(path)
+    sp = RateSetpoint(np.array([1.0, 0.0, 0.0]), 0.7)
+    f = frame()
+    action = observe_step(ctl.spec, sp.rates, f.gyro, f.rotor_speed).astype(np.float64) @ weight
+    np.testing.assert_allclose(ctl.update(sp, f, 0.001), throttle_pwm(action, 0.7), atol=1e-3)
+
+
+def test_memory_keeps_the_last_steps_newest_first(tmp_path):
+    spec = ObservationSpec(memory=3)
+    weight = np.zeros((spec.size, 4))
+    weight[7, 0] = 1.0  # action[0] = the previous step's roll error (scaled)
+    ctl = NeuralRateController(linear_policy(tmp_path / "p.onnx", weight, np.zeros(4), meta(memory=3)))
+    sp = RateSetpoint(np.zeros(3), 0.5)
+    first = ctl.update(sp, frame(gyro=(-1.0, 0, 0)), 0.001)
+    second = ctl.update(sp, frame(gyro=(-2.0, 0, 0)), 0.001)
+    assert first[0] == pytest.approx(gymfc_pwm(np.array(1.0 * spec.rate_scale)), abs=1e-3)  # history filled
+    assert second[0] == pytest.approx(gymfc_pwm(np.array(1.0 * spec.rate_scale)), abs=1e-3)
+
+
+@pytest.mark.parametrize(("shape", "metadata", "message"), [
+    ((8, 4), meta(), "input shape"),
+    ((7, 3), meta(), "output shape"),
+    ((7, 4), {k: v for k, v in meta().items() if k != "observation"}, "metadata lacks"),
+    ((7, 4), meta(mapping="rpm"), "action mapping"),
+    ((7, 4), {**meta(), "observation": '{"memory": 1, "fields": ["attitude"], "version": 1}'},
+     "observation spec"),
+    ((7, 4), {**meta(), "observation": ObservationSpec().to_json().replace('"version": 1', '"version": 9')},
+     "observation version"),
+])
+def test_refuses_a_model_it_cannot_fly(tmp_path, shape, metadata, message):
+    path = linear_policy(tmp_path / "bad.onnx", np.zeros(shape), np.zeros(shape[1]), metadata)
+    with pytest.raises(PolicyContractError, match=message):
+        NeuralRateController(path)
+
+
+def test_refuses_another_loop_rate_and_garbage(tmp_path, weight):
+    path = linear_policy(tmp_path / "p.onnx", weight, np.zeros(4), meta(rate=1000.0))
+    with pytest.raises(PolicyContractError, match="1000 Hz loop"):
+        NeuralRateController(path, loop_rate_hz=4000.0)
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a model")
+    with pytest.raises(PolicyContractError, match="not a loadable"):
+        NeuralRateController(junk)
+
+
+def test_nan_output_never_reaches_the_motors(tmp_path, weight):
+    path = linear_policy(tmp_path / "nan.onnx", weight, np.zeros(4), meta(), nan=True)
+    ctl = NeuralRateController(path)
+    with pytest.raises(PolicyOutputError):
+        ctl.update(RateSetpoint(np.zeros(3), 0.5), frame(), 0.001)
+
+    class Hover:
+        name = "pid"
+
+        def reset(self) -> None: ...
+
+        def update(self, setpoint, frame, dt):
+            return np.full(4, 1500.0)
+
+    twin = Twin(rig="rig")
+    writes = []
+
+    class Plant:
+        def pwm_write(self, pwm):
+            writes.append(np.array(pwm))
+            return twin.step(pwm)
+
+    loop = FlightLoop(Plant(), twin.reset(), {"main": ctl, "pid": Hover()},
+                      ScriptedCommander([(0.0, (1, 0, 0), 0.5)], controller="main"), LockstepClock(),
+                      fallback="pid")
+    loop.run(0.05)
+    assert all((w == 1500).all() for w in writes)
+    assert sum(loop.faults.values()) == 50
+
+
+def test_non_finite_sensor_input_is_not_fed_to_the_model(tmp_path, weight):
+    ctl = NeuralRateController(linear_policy(tmp_path / "p.onnx", weight, np.zeros(4), meta()))
+    with pytest.raises(PolicyOutputError, match="sensor"):
+        ctl.update(RateSetpoint(np.zeros(3), 0.5), frame(gyro=(np.nan, 0, 0)), 0.001)
+    with pytest.raises(PolicyOutputError):
+        ctl.update(RateSetpoint(np.array([np.inf, 0, 0]), 0.5), frame(), 0.001)
