@@ -1,0 +1,54 @@
+"""`fcemu bench inference`: the policy's per-tick cost, as the loop pays it."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+
+from firmware.controller import RateSetpoint
+from firmware.neural import NeuralRateController
+from firmware.sensors import SensorFrame
+
+
+def measure_inference(model: str, n: int = 20_000, warmup: int = 2_000) -> dict:
+    """Median and p99 of one `infer` (onnxruntime only) and of one full `update` (tick cost), in µs."""
+    ctl = NeuralRateController(model)
+    rng = np.random.default_rng(0)
+    obs = rng.standard_normal((n + warmup, ctl.spec.size)).astype(np.float32)
+    infer_ns = np.empty(n, dtype=np.int64)
+    for i in range(n + warmup):
+        t0 = time.perf_counter_ns()
+        ctl.infer(obs[i])
+        if i >= warmup:
+            infer_ns[i - warmup] = time.perf_counter_ns() - t0
+    frames = [SensorFrame(0, rng.uniform(-5, 5, 3), np.array([0, 0, -9.81]), rng.uniform(0, 1100, 4))
+              for _ in range(256)]
+    setpoint = RateSetpoint(np.array([1.0, -2.0, 0.5]), 0.6)
+    update_ns = np.empty(n, dtype=np.int64)
+    for i in range(n + warmup):
+        t0 = time.perf_counter_ns()
+        ctl.update(setpoint, frames[i % 256], 0.001)
+        if i >= warmup:
+            update_ns[i - warmup] = time.perf_counter_ns() - t0
+    return {"model": model, "median_us": float(np.median(infer_ns)) / 1e3,
+            "p99_us": float(np.percentile(infer_ns, 99)) / 1e3,
+            "update_median_us": float(np.median(update_ns)) / 1e3,
+            "update_p99_us": float(np.percentile(update_ns, 99)) / 1e3, "samples": n}
+
+
+def bench_inference(args) -> int:
+    from firmware.controllers import default_controller
+
+    model = args.model or default_controller()
+    if not model.endswith(".onnx"):
+        raise SystemExit("fcemu bench inference: no policy given and none shipped; pass --model FILE.onnx")
+    r = measure_inference(model, args.samples)
+    if args.json:
+        print(json.dumps(r))
+    else:
+        print(f"{r['model']}: onnxruntime median {r['median_us']:.1f} µs, p99 {r['p99_us']:.1f} µs; "
+              f"full controller update (observation + inference + mapping) median "
+              f"{r['update_median_us']:.1f} µs, p99 {r['update_p99_us']:.1f} µs over {r['samples']} samples")
+    return 0
