@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from firmware.action import ACTION_MAPPINGS, action_to_pwm
+from firmware.action import ACTION_MAPPINGS, action_to_pwm, throttle_pwm_one
 from firmware.controller import RateSetpoint
 from firmware.observation import OBS_VERSION, ObservationHistory, ObservationSpec, observe_step
 from firmware.sensors import SensorFrame
@@ -129,9 +129,9 @@ class NeuralRateController:
         return self._output[0]
 
     def update(self, setpoint: RateSetpoint, frame: SensorFrame, dt: float) -> np.ndarray:
-        if not frame.is_finite() or not np.isfinite(setpoint.rates).all():
-            raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
         step = observe_step(self.spec, setpoint.rates, frame.gyro, frame.rotor_speed)
+        if not np.isfinite(step).all():  # the step holds every input the policy reads
+            raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
         if self._fresh:
             obs = self._history.reset(step)
             self._fresh = False
@@ -140,4 +140,6 @@ class NeuralRateController:
         action = self.infer(obs)
         if not np.isfinite(action).all():
             raise PolicyOutputError(f"policy output {action} is not finite")
+        if self.action_mapping == "throttle":
+            return throttle_pwm_one(action, setpoint.throttle)
         return action_to_pwm(self.action_mapping, action, setpoint.throttle)

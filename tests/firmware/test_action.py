@@ -1,0 +1,45 @@
+"""The action mappings shared by training and flight."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from firmware.action import action_to_pwm, gymfc_pwm, throttle_pwm, throttle_pwm_one
+
+
+def test_gymfc_mapping_is_the_papers():
+    np.testing.assert_array_equal(gymfc_pwm(np.array([-1.0, 0.0, 1.0, 3.0])), [1000, 1500, 2000, 2000])
+
+
+def test_throttle_mapping_centres_the_differential_on_the_collective():
+    pwm = throttle_pwm(np.array([0.2, -0.2, 0.2, -0.2]), 0.5)
+    np.testing.assert_allclose(pwm, [1600, 1400, 1600, 1400])
+    assert throttle_pwm(np.zeros(4), 0.3).tolist() == [1300.0] * 4
+
+
+def test_airmode_shifts_the_collective_instead_of_clipping_an_axis():
+    pwm = throttle_pwm(np.array([1.0, -1.0, 1.0, -1.0]), 0.95)  # differential ±0.5 at 95%
+    assert pwm.max() == 2000 and pwm.min() == 1000  # full differential kept, collective moved down
+    # mix [0.75, -0.25, -0.25, -0.25] at 50% would clip motor 1; the collective drops to 25% instead
+    squeezed = throttle_pwm(np.array([1.0, -1.0, -1.0, -1.0]), 0.5)
+    np.testing.assert_allclose(squeezed, [2000, 1000, 1000, 1000])
+
+
+def test_a_mix_wider_than_the_range_is_scaled_to_fit():
+    pwm = throttle_pwm(np.array([1.0, -1.0, 1.0, -1.0]), 0.5, gain=1.0)  # ±1: twice the range
+    np.testing.assert_allclose(pwm, [2000, 1000, 2000, 1000])
+
+
+def test_single_vehicle_path_is_bit_identical_to_the_batched_one():
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1.6, 1.6, (20_000, 4)).astype(np.float32)
+    throttles = rng.uniform(-0.1, 1.1, 20_000)
+    batched = throttle_pwm(actions, throttles)
+    single = np.array([throttle_pwm_one(a, t) for a, t in zip(actions, throttles, strict=True)])
+    assert np.array_equal(batched, single)
+
+
+def test_unknown_mapping_is_refused():
+    with pytest.raises(ValueError, match="unknown action mapping"):
+        action_to_pwm("rpm", np.zeros(4))
