@@ -1,0 +1,70 @@
+"""Environment throughput for `fcemu bench sim`: env_steps_per_s and vec_env_steps_per_s.
+
+Both step with pre-drawn random actions in [-1, 1] (no policy in the loop), include the
+episode resets, and time `seconds` of wall clock after a short warm-up.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from sim_bridge.env import RateControlEnv
+from sim_bridge.vec_env import BatchedRateEnv
+
+_ACTION_SETS = 16
+
+
+def env_steps_per_s(seconds: float = 2.0, seed: int = 0, **env_kwargs: Any) -> float:
+    """Steps per second of one `RateControlEnv` (episodic task unless told otherwise)."""
+    env = RateControlEnv(**env_kwargs)
+    actions = np.random.default_rng(seed).uniform(-1, 1, (_ACTION_SETS, 4)).astype(np.float32)
+    env.reset(seed=seed)
+    steps = 0
+
+    def run(until: float) -> None:
+        nonlocal steps
+        while time.perf_counter() < until:
+            for a in actions:
+                if env.step(a)[3]:
+                    env.reset()
+            steps += len(actions)
+
+    run(time.perf_counter() + min(0.2, seconds / 10))
+    steps = 0
+    start = time.perf_counter()
+    run(start + seconds)
+    return steps / (time.perf_counter() - start)
+
+
+def vec_env_steps_per_s(n_envs: int = 128, seconds: float = 2.0, seed: int = 0, nthread: int = 0,
+                        **env_kwargs: Any) -> float:
+    """Aggregate environment steps per second of a `BatchedRateEnv` of `n_envs` copies."""
+    env = BatchedRateEnv(n_envs, nthread=nthread, **env_kwargs)
+    actions = np.random.default_rng(seed).uniform(-1, 1, (_ACTION_SETS, n_envs, 4)).astype(np.float32)
+    env.reset(seed=seed)
+    calls = 0
+
+    def run(until: float) -> None:
+        nonlocal calls
+        while time.perf_counter() < until:
+            for a in actions:
+                env.step(a)  # auto-resets finished copies
+            calls += len(actions)
+
+    try:
+        run(time.perf_counter() + min(0.2, seconds / 10))
+        calls = 0
+        start = time.perf_counter()
+        run(start + seconds)
+        return calls * n_envs / (time.perf_counter() - start)
+    finally:
+        env.close()
+
+
+if __name__ == "__main__":
+    print(f"env_steps_per_s {env_steps_per_s():,.0f}")
+    for n in (16, 64, 128, 256, 512):
+        print(f"vec_env_steps_per_s n_envs={n} {vec_env_steps_per_s(n):,.0f}")

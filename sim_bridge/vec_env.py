@@ -1,0 +1,311 @@
+"""Many twins stepped in one call: the rate-control task batched for training speed.
+
+`BatchedRateEnv` runs N copies of `RateControlEnv` in lockstep. The physics state of
+each copy is one row of an (N, nstate) array (MuJoCo's full physics state), and one
+`mujoco.rollout` call steps all of them from those rows in C, on one shared MjModel
+(or one per copy when mass, inertia or km are randomised: all have the same sizes).
+Motor model, sensor noise, observations (`firmware.observation`, batch-aware) and
+reward are numpy over the batch, written to reproduce the twin's float arithmetic
+operation for operation, so a batch and single environments agree to the last bit.
+
+Seeding contract: `reset(seed=s)` seeds copy i with `s + i` (a list seeds each copy);
+copy i then makes exactly the draws that `RateControlEnv(...).reset(seed=s + i)` and its
+later unseeded resets make, in the same order (`sim_bridge.env.draw_episode`). So copy i
+of a batch seeded with s follows the single env seeded with s + i, across auto-resets.
+
+Auto-reset is same-step (what Stable-Baselines3 expects): the step that ends an episode
+returns the first observation of the next one, and `info["final_obs"]` holds the last.
+`SB3VecEnv` adapts the batch to `stable_baselines3.common.vec_env.VecEnv`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+from mujoco import rollout
+
+from firmware.action import PWM_MIN, PWM_SPAN, action_to_pwm
+from firmware.observation import ObservationHistory, observe_step
+from sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf
+from sim_bridge.env import EnvConfig, draw_episode, motor_output_rate
+from sim_bridge.tasks import rate_reward
+from sim_bridge.twin import Twin
+
+FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
+NOISE_BLOCK = 256  # steps of sensor noise drawn at a time per copy
+NOISE_WIDTH = 10  # the twin draws gyro (3), accel (3), rotor speed (4) per frame
+
+
+class BatchedRateEnv(VectorEnv):
+    """`n_envs` copies of `RateControlEnv(**env_kwargs)` stepped together.
+
+    `nthread` > 0 steps the physics on a MuJoCo thread pool (the results do not depend
+    on it). Info holds batch arrays: setpoint, rate, gyro, pwm, paper_reward,
+    action_rate, and on episode ends final_obs with its mask _final_obs.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+
+    def __init__(self, n_envs: int, *, nthread: int = 0, **env_kwargs: Any) -> None:
+        if n_envs < 1:
+            raise ValueError(f"n_envs must be >= 1, got {n_envs}")
+        cfg = self.config = EnvConfig(**env_kwargs)
+        self.num_envs = n = n_envs
+        self.obs_spec = cfg.observation_spec
+        self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
+        self.single_action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)
+        self.observation_space = batch_space(self.single_observation_space, n)
+        self.action_space = batch_space(self.single_action_space, n)
+        self.render_mode = None
+
+        twin = Twin(cfg.base_airframe, "rig", None, cfg.dt)  # the reference for state and constants
+        self._model = twin.model
+        self._state0 = np.empty(mujoco.mj_stateSize(self._model, FULL_PHYSICS))
+        mujoco.mj_getState(self._model, twin.data, self._state0, FULL_PHYSICS)
+        self._sens0 = twin.data.sensordata.copy()
+        g = self._model.sensor("gyro").adr[0]
+        self._gyro = slice(g, g + 3)
+        m = cfg.base_airframe.motor
+        self._lo, self._hi = m.pwm_min, m.pwm_max
+        self._per_us = m.max_rotor_speed / (m.pwm_max - m.pwm_min)
+        self._alpha_up = 1.0 - np.exp(-cfg.dt / m.tau_up)
+        self._alpha_down = 1.0 - np.exp(-cfg.dt / m.tau_down)
+        self._per_model = bool(set(cfg.randomize or {}) & {"mass", "inertia", "km"})
+
+        self._n_steps, self._noisy = cfg.n_steps, cfg.noisy
+        self._rows = np.arange(n)
+        self._models = [self._model] * n
+        self._kf = np.full((n, 1), m.kf)
+        self._state = np.tile(self._state0, (n, 1))
+        self._next = np.empty((n, 1, self._state0.size))
+        self._sens = np.tile(self._sens0, (n, 1, 1))
+        self._ctrl = np.zeros((n, 1, 4))
+        self._omega = np.zeros((n, 4))
+        self._err = np.empty((n, 4))
+        self._alpha = np.empty((n, 4))
+        self._sched = np.zeros((n, self._n_steps + 1, 3))
+        self._t = np.zeros(n, dtype=np.int64)
+        self._throttle = np.zeros(n)
+        self._prev_u = np.zeros((n, 4))
+        self._first = np.ones(n, dtype=bool)
+        self._history = ObservationHistory(self.obs_spec, (n,))
+        self._rngs = [np.random.default_rng() for _ in range(n)]
+        self._factors: list[dict[str, float]] = [{} for _ in range(n)]
+        if self._noisy:
+            assert cfg.noise is not None
+            self._gyro_bias = np.asarray(cfg.noise.gyro_bias)
+            self._noise_rngs = [np.random.default_rng() for _ in range(n)]
+            self._noise = np.zeros((n, NOISE_BLOCK, NOISE_WIDTH))
+            self._noise_pos = np.zeros(n, dtype=np.int64)
+        self._pool = rollout.Rollout(nthread=nthread)
+        self._datas = [mujoco.MjData(self._model) for _ in range(max(1, nthread))]
+        self._scratch = self._datas[0]
+
+    def reset(self, *, seed: int | Sequence[int | None] | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start every copy over; `seed` int s seeds copy i with s + i, a list seeds each copy."""
+        seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else seed
+        if seeds is not None:
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} environments")
+            for i, s in enumerate(seeds):
+                if s is not None:
+                    self._rngs[i] = np.random.default_rng(s)
+        obs = self._reset_rows(np.ones(self.num_envs, dtype=bool))
+        info = {"setpoint": self._sched[:, 0].copy(), "throttle": self._throttle.copy()}
+        return obs, info
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
+        actions = np.asarray(actions, dtype=np.float32)
+        pwm = action_to_pwm(self.config.action_mapping, actions, self._throttle)
+        # The twin's motor model, operation for operation, over the batch.
+        err, alpha, omega = self._err, self._alpha, self._omega
+        np.clip(pwm, self._lo, self._hi, out=err)
+        err -= self._lo
+        err *= self._per_us
+        err -= omega
+        alpha.fill(self._alpha_down)
+        np.copyto(alpha, self._alpha_up, where=err > 0.0)
+        alpha *= err
+        omega += alpha
+        thrust = self._ctrl[:, 0]
+        np.multiply(self._kf, omega, out=thrust)
+        thrust *= omega
+        self._pool.rollout(self._models, self._datas, self._state, self._ctrl, skip_checks=True, nstep=1,
+                           state=self._next, sensordata=self._sens, initial_warmstart=None,
+                           chunk_size=max(1, self.num_envs // (2 * len(self._datas))))
+        self._state[:] = self._next[:, 0]
+        self._t += 1
+        rate = self._sens[:, 0, self._gyro] * FLU_FROM_FRD
+        gyro, rotor = self._measure(rate, self._rows)
+        setpoint = self._sched[self._rows, self._t]
+        paper_reward = rate_reward(setpoint, rate, self.config.omega_max)
+        pwm = pwm.astype(float)
+        u = (pwm - PWM_MIN) / PWM_SPAN
+        action_rate = motor_output_rate(u, self._prev_u)
+        action_rate[self._first] = 0.0
+        self._prev_u[:] = u
+        self._first[:] = False
+        reward = paper_reward - self.config.action_rate_penalty * action_rate
+        obs = self._history.push(observe_step(self.obs_spec, setpoint, gyro, rotor))
+        truncated = self._t >= self._n_steps
+        info: dict[str, Any] = {"setpoint": setpoint, "rate": rate, "gyro": gyro, "pwm": pwm,
+                                "paper_reward": paper_reward, "action_rate": action_rate}
+        if truncated.any():
+            info["final_obs"], info["_final_obs"] = obs.copy(), truncated.copy()
+            obs[truncated] = self._reset_rows(truncated)[truncated]
+        return obs, reward, np.zeros(self.num_envs, dtype=bool), truncated, info
+
+    def close_extras(self, **kwargs: Any) -> None:
+        self._pool.close()
+
+    @property
+    def episode_factors(self) -> list[dict[str, float]]:
+        """Each copy's airframe scale factors for its current episode."""
+        return [dict(f) for f in self._factors]
+
+    def _reset_rows(self, rows: np.ndarray) -> np.ndarray:
+        """Draw new episodes for the copies in the mask `rows`; returns the observation batch."""
+        idx = np.flatnonzero(rows)
+        self._state[idx] = self._state0
+        self._sens[idx, 0] = self._sens0
+        self._omega[idx] = 0.0
+        self._t[idx] = 0
+        self._first[idx] = True
+        for i in idx:
+            ep = draw_episode(self._rngs[i], self.config)
+            self._sched[i] = ep.setpoints
+            self._throttle[i] = ep.throttle
+            self._factors[i] = ep.factors
+            if ep.factors:
+                self._set_airframe(i, self.config.base_airframe.scaled(**ep.factors))
+            if self._noisy:
+                self._noise_rngs[i] = np.random.default_rng(ep.noise_seed)
+                self._noise_rngs[i].standard_normal(out=self._noise[i])
+                self._noise_pos[i] = 0
+        gyro, rotor = self._measure(self._sens[idx, 0, self._gyro] * FLU_FROM_FRD, idx)
+        first = np.zeros((self.num_envs, self.obs_spec.step_size), dtype=np.float32)
+        first[idx] = observe_step(self.obs_spec, self._sched[idx, 0], gyro, rotor)
+        return self._history.reset(first, rows)
+
+    def _set_airframe(self, i: int, airframe: Airframe) -> None:
+        self._kf[i] = airframe.motor.kf
+        if not self._per_model:
+            return
+        model = mujoco.MjModel.from_xml_string(build_mjcf(airframe, "rig", self.config.dt))
+        self._models[i] = model
+        d = self._scratch  # the same sizes as every model in the batch
+        mujoco.mj_setState(model, d, self._state0, FULL_PHYSICS)
+        d.ctrl[:] = 0.0
+        mujoco.mj_forward(model, d)
+        self._sens[i, 0] = d.sensordata  # the twin's first frame after reset
+
+    def _measure(self, rate: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What the sensors of copies `idx` report: the twin's noise, from each copy's stream."""
+        omega = self._omega[idx]
+        if not self._noisy:
+            return rate, omega
+        n = self.config.noise
+        assert n is not None
+        pos = self._noise_pos[idx]
+        z = self._noise[idx, pos]
+        pos += 1
+        self._noise_pos[idx] = pos
+        for i in idx[pos == NOISE_BLOCK]:
+            self._noise_rngs[i].standard_normal(out=self._noise[i])
+            self._noise_pos[i] = 0
+        gyro = rate + (self._gyro_bias + n.gyro_std * z[:, 0:3])
+        rotor = omega + n.rotor_speed_std * z[:, 6:10]
+        return gyro, rotor
+
+
+def _sb3_adapter() -> type:
+    """Build `SB3VecEnv` on first use: SB3 (and torch) are only needed to train."""
+    from stable_baselines3.common.vec_env import VecEnv
+    from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvStepReturn
+
+    class SB3VecEnv(VecEnv):
+        """A `BatchedRateEnv` as a Stable-Baselines3 VecEnv.
+
+        `seed(s)` then `reset()` seeds copy i with s + i, as SB3's own VecEnvs do. Infos
+        carry `TimeLimit.truncated` and, on episode ends, `terminal_observation`; wrap in
+        `VecMonitor` for episode statistics. Attributes and methods are the batch's, shared
+        by every copy: `get_attr` and `env_method` answer once per requested index.
+        """
+
+        def __init__(self, batch: BatchedRateEnv) -> None:
+            self.batch = batch
+            super().__init__(batch.num_envs, batch.single_observation_space, batch.single_action_space)
+            self._actions = np.zeros((batch.num_envs, 4), dtype=np.float32)
+            self._last_info: dict[str, Any] = {}
+
+        def reset(self) -> np.ndarray:
+            seeds = self._seeds if any(s is not None for s in self._seeds) else None
+            obs, self._last_info = self.batch.reset(seed=seeds)
+            self._reset_seeds()
+            self._reset_options()
+            return obs
+
+        def step_async(self, actions: np.ndarray) -> None:
+            self._actions = actions
+
+        def step_wait(self) -> VecEnvStepReturn:
+            obs, reward, terminated, truncated, info = self.batch.step(self._actions)
+            self._last_info = info
+            dones = terminated | truncated
+            infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
+            for i in np.flatnonzero(dones):
+                infos[i]["terminal_observation"] = info["final_obs"][i]
+                infos[i]["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
+            return obs, reward.astype(np.float32), dones, infos
+
+        @property
+        def last_info(self) -> dict[str, Any]:
+            """The batch's info arrays from the last reset or step (setpoint, rate, pwm, ...)."""
+            return self._last_info
+
+        def close(self) -> None:
+            self.batch.close()
+
+        def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+            value = getattr(self.batch, attr_name)
+            return [value for _ in self._get_indices(indices)]
+
+        def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+            setattr(self.batch, attr_name, value)
+
+        def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None,
+                       **method_kwargs: Any) -> list[Any]:
+            result = getattr(self.batch, method_name)(*method_args, **method_kwargs)
+            return [result for _ in self._get_indices(indices)]
+
+        def env_is_wrapped(self, wrapper_class: type[gym.Wrapper],
+                           indices: VecEnvIndices = None) -> list[bool]:
+            return [False for _ in self._get_indices(indices)]
+
+    return SB3VecEnv
+
+
+_LAZY: dict[str, type] = {}
+
+
+def __getattr__(name: str) -> Any:
+    if name == "SB3VecEnv":
+        if name not in _LAZY:
+            _LAZY[name] = _sb3_adapter()
+        return _LAZY[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def make_sb3_vec_env(n_envs: int, seed: int | None = None, nthread: int = 0, **env_kwargs: Any) -> Any:
+    """`SB3VecEnv(BatchedRateEnv(n_envs, ...))`, seeded so copy i follows the single env seeded seed + i."""
+    venv = __getattr__("SB3VecEnv")(BatchedRateEnv(n_envs, nthread=nthread, **env_kwargs))
+    if seed is not None:
+        venv.seed(seed)
+    return venv

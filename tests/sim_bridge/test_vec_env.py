@@ -1,0 +1,140 @@
+import numpy as np
+import pytest
+
+from sim_bridge.env import RateControlEnv
+from sim_bridge.twin import SensorNoise
+from sim_bridge.vec_env import NOISE_BLOCK, BatchedRateEnv, make_sb3_vec_env
+
+INFO_KEYS = ("setpoint", "rate", "gyro", "pwm", "paper_reward", "action_rate")
+CONFIGS = {
+    "episodic": dict(episode_s=0.05),
+    "continuous-m3": dict(task="continuous", memory=3, episode_s=0.3),
+    "throttle-penalty": dict(action_mapping="throttle", throttle=(0.3, 0.8), action_rate_penalty=0.2,
+                             episode_s=0.05),
+    # episodes longer than a noise block, so the per-copy noise streams are refilled mid-episode
+    "noise": dict(noise=SensorNoise(gyro_std=0.1, gyro_bias=(0.01, 0.02, -0.03), accel_std=0.3,
+                                    rotor_speed_std=4.0), episode_s=0.3),
+    "randomize": dict(randomize={"mass": 0.2, "inertia": 0.3, "kf": 0.2, "km": 0.3}, episode_s=0.05),
+}
+
+
+def _assert_matches_single_envs(batch: BatchedRateEnv, singles: list[RateControlEnv], seed: int,
+                                steps: int) -> int:
+    """Step a batch and single envs seeded seed + i with the same actions; return the episode ends seen."""
+    obs, _ = batch.reset(seed=seed)
+    np.testing.assert_array_equal(obs, [e.reset(seed=seed + i)[0] for i, e in enumerate(singles)])
+    rng = np.random.default_rng(99)
+    ends = 0
+    for k in range(steps):
+        actions = rng.uniform(-1.2, 1.2, (len(singles), 4)).astype(np.float32)
+        obs, reward, terminated, truncated, info = batch.step(actions)
+        assert not terminated.any()
+        for i, env in enumerate(singles):
+            o, r, _, trunc, inf = env.step(actions[i])
+            assert trunc == truncated[i], (k, i)
+            for key in INFO_KEYS:
+                np.testing.assert_array_equal(info[key][i], inf[key], err_msg=f"{key} step {k} env {i}")
+            assert reward[i] == r, (k, i)
+            if trunc:
+                ends += 1
+                assert info["_final_obs"][i]
+                np.testing.assert_array_equal(info["final_obs"][i], o)
+                o, _ = env.reset()
+            np.testing.assert_array_equal(obs[i], o, err_msg=f"obs step {k} env {i}")
+    return ends
+
+
+@pytest.mark.parametrize("name", CONFIGS)
+def test_batch_is_bit_identical_to_single_envs_across_auto_resets(name):
+    kw = CONFIGS[name]
+    n = 3
+    steps = 700 if kw["episode_s"] > 0.1 else 160
+    ends = _assert_matches_single_envs(BatchedRateEnv(n, **kw), [RateControlEnv(**kw) for _ in range(n)],
+                                       seed=10, steps=steps)
+    assert ends >= 2 * n  # several auto-resets per copy
+    if "noise" in kw:
+        assert steps < 3 * NOISE_BLOCK and kw["episode_s"] * 1000 > NOISE_BLOCK
+
+
+def test_seed_contract_is_seed_plus_index():
+    batch = BatchedRateEnv(2)
+    _, info = batch.reset(seed=7)
+    same = RateControlEnv().reset(seed=8)[1]["setpoint"]
+    np.testing.assert_array_equal(info["setpoint"][1], same)
+    assert not np.array_equal(info["setpoint"][1], RateControlEnv().reset(seed=7)[1]["setpoint"])
+    _, info = batch.reset(seed=[8, None])  # a list seeds each copy; None keeps its stream going
+    np.testing.assert_array_equal(info["setpoint"][0], same)
+
+
+def test_threaded_physics_gives_the_same_results():
+    a, b = BatchedRateEnv(8, nthread=0), BatchedRateEnv(8, nthread=2)
+    oa, _ = a.reset(seed=3)
+    ob, _ = b.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for _ in range(120):
+        act = rng.uniform(-1, 1, (8, 4)).astype(np.float32)
+        oa, ra, *_ = a.step(act)
+        ob, rb, *_ = b.step(act)
+    np.testing.assert_array_equal(oa, ob)
+    np.testing.assert_array_equal(ra, rb)
+    b.close()
+
+
+def test_randomisation_is_per_copy_and_changes_dynamics():
+    batch = BatchedRateEnv(4, randomize={"mass": 0.3, "inertia": 0.3}, episode_s=0.1)
+    batch.reset(seed=0)
+    factors = batch.episode_factors
+    assert len({f["mass"] for f in factors}) == 4
+    act = np.tile(np.array([0.3, 0.5, -0.2, 0.1], dtype=np.float32), (4, 1))
+    for _ in range(80):
+        info = batch.step(act)[4]
+    rates = info["rate"]
+    assert len({round(float(r), 6) for r in rates[:, 0]}) == 4
+
+
+def test_sb3_adapter_api():
+    from stable_baselines3.common.vec_env import VecEnv
+
+    from sim_bridge.vec_env import SB3VecEnv
+
+    venv = make_sb3_vec_env(3, seed=5, episode_s=0.01)
+    assert isinstance(venv, VecEnv) and isinstance(venv, SB3VecEnv) and venv.num_envs == 3
+    obs = venv.reset()
+    assert obs.shape == (3, 7) and obs.dtype == np.float32
+    np.testing.assert_array_equal(obs[2], RateControlEnv(episode_s=0.01).reset(seed=7)[0])
+    for k in range(1, 11):
+        obs, rewards, dones, infos = venv.step(np.zeros((3, 4), dtype=np.float32))
+        assert rewards.shape == (3,) and rewards.dtype == np.float32 and len(infos) == 3
+        assert dones.all() == (k == 10)
+    for info in infos:
+        assert info["TimeLimit.truncated"] is True
+        assert info["terminal_observation"].shape == (7,)
+    assert not np.array_equal(infos[0]["terminal_observation"], obs[0])
+    assert venv.get_attr("num_envs", [0, 1]) == [3, 3]
+    results = venv.env_method("reset", seed=1, indices=[0, 2])
+    assert len(results) == 2 and results[0][0].shape == (3, 7)
+    assert venv.env_is_wrapped(object) == [False, False, False]
+    venv.set_attr("render_mode", None)
+    venv.close()
+
+
+def test_ppo_learns_on_the_adapter():
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    venv = VecMonitor(make_sb3_vec_env(8, seed=0, episode_s=0.05))
+    model = PPO("MlpPolicy", venv, n_steps=64, batch_size=256, n_epochs=1, seed=0, device="cpu")
+    model.learn(total_timesteps=2048)
+    assert model.num_timesteps >= 2048
+    assert len(model.ep_info_buffer) >= 8  # episodes ended, were reset and reported
+    assert all(ep["l"] == 50 for ep in model.ep_info_buffer)
+    venv.close()
+
+
+def test_bench_functions_measure_and_the_batch_is_faster():
+    from sim_bridge.env_bench import env_steps_per_s, vec_env_steps_per_s
+
+    single = env_steps_per_s(seconds=0.3)
+    batched = vec_env_steps_per_s(64, seconds=0.3)
+    assert single > 1000
+    assert batched > 2 * single
