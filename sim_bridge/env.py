@@ -186,6 +186,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         action = np.asarray(action, dtype=np.float32)
         pwm = action_to_pwm(self.config.action_mapping, action, self._episode.throttle)
         frame = self._twin.step(pwm)
+        pwm = np.asarray(pwm, dtype=float)  # float32 actions give float32 PWM; Δu is float64
         self._t += 1
         setpoint = self._episode.setpoints[self._t]
         rate = self._rate(frame.gyro)
@@ -196,7 +197,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         reward = paper_reward - self.config.action_rate_penalty * action_rate
         obs = self._history.push(observe_step(self.obs_spec, setpoint, frame.gyro, frame.rotor_speed))
         info = {"setpoint": setpoint.copy(), "rate": rate, "gyro": frame.gyro,
-                "pwm": np.asarray(pwm, dtype=float), "paper_reward": paper_reward,
+                "pwm": pwm, "paper_reward": paper_reward,
                 "action_rate": action_rate}
         return obs, reward, False, self._t >= self._n_steps, info
 
