@@ -1,0 +1,91 @@
+"""`fcemu bench sim`: how fast the twin steps, in-process and over the lockstep link.
+
+Each figure is one entry in `MEASUREMENTS`: a name (the JSON key) and a function
+`(args) -> float` whose docstring's first line describes it in the table. Adding a
+figure is adding one line there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import TypeVar
+
+import numpy as np
+from tqdm import tqdm
+
+from sim_bridge.airframe import load_airframe
+from sim_bridge.link import UdpTwinClient, spawn_server
+from sim_bridge.twin import Twin
+
+T = TypeVar("T")
+_CHUNK = 256  # calls between clock reads and progress updates
+_WARMUP_CALLS = 500
+
+
+def rate_per_s(call: Callable[[T], object], arg: T, seconds: float, label: str) -> float:
+    """Calls per second of `call(arg)`, run for `seconds` of wall time after a short warm-up."""
+    for _ in range(_WARMUP_CALLS):
+        call(arg)
+    calls = 0
+    start = now = time.perf_counter()
+    deadline = start + seconds
+    with tqdm(desc=label, unit=" calls", unit_scale=True, file=sys.stderr, leave=False,
+              disable=None) as progress:
+        while now < deadline:
+            for _ in range(_CHUNK):
+                call(arg)
+            calls += _CHUNK
+            progress.update(_CHUNK)
+            now = time.perf_counter()
+    return calls / (now - start)
+
+
+def _hover_pwm() -> np.ndarray:
+    return np.full(4, load_airframe("iris").hover_pwm())
+
+
+def twin_steps_per_s(args: argparse.Namespace) -> float:
+    """Twin.step in this process (ball-joint rig, hover PWM)"""
+    twin = Twin(rig="rig")
+    twin.reset(seed=0)
+    return rate_per_s(twin.step, _hover_pwm(), args.seconds, "twin.step")
+
+
+def udp_steps_per_s(args: argparse.Namespace) -> float:
+    """lockstep round trips over loopback UDP to `fcemu twin serve` in another process"""
+    proc, address = spawn_server(rig="rig")
+    try:
+        with UdpTwinClient(*address) as client:
+            client.reset(seed=0)
+            return rate_per_s(client.pwm_write, _hover_pwm(), args.seconds, "udp lockstep")
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+MEASUREMENTS: dict[str, Callable[[argparse.Namespace], float]] = {
+    "twin_steps_per_s": twin_steps_per_s,
+    "udp_steps_per_s": udp_steps_per_s,
+}
+
+
+def bench_sim(args: argparse.Namespace) -> int:
+    results = {name: round(measure(args), 1) for name, measure in MEASUREMENTS.items()}
+    if args.json:
+        print(json.dumps(results))
+        return 0
+    width = max(len(name) for name in results)
+    print(f"fcemu bench sim: {args.seconds:g} s per figure")
+    for name, value in results.items():
+        about = (MEASUREMENTS[name].__doc__ or "").strip().splitlines()[0]
+        print(f"  {name:<{width}}  {value:>12,.0f}  {about}")
+    return 0

@@ -1,0 +1,443 @@
+"""The lockstep link over real loopback sockets: parity with in-process, and every bad-packet case.
+
+Loss, duplication and delay come from `LossyProxy`, a real UDP relay between client
+and server; foreign and malformed packets come from plain sockets.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from firmware.sensors import SensorFrame
+from sim_bridge.link import (
+    InProcessLink,
+    LinkError,
+    LinkTimeout,
+    RemoteError,
+    Transport,
+    UdpTwinClient,
+    UdpTwinServer,
+    spawn_server,
+)
+from sim_bridge.protocol import (
+    HEADER,
+    MAGIC,
+    VERSION,
+    Error,
+    ErrorCode,
+    Frame,
+    decode,
+    encode_bye,
+    encode_error,
+    encode_frame,
+    encode_pwm,
+    encode_reset,
+)
+from sim_bridge.twin import SensorNoise, Twin, TwinState
+
+pytestmark = pytest.mark.timeout(30)
+
+TIMEOUT = 0.05  # client retry period for these tests: short, so loss costs little wall time
+NOISE = SensorNoise(gyro_std=0.05, gyro_bias=(0.01, -0.02, 0.03), accel_std=0.3, rotor_speed_std=4.0)
+START = TwinState(attitude=(0.99, 0.05, -0.08, 0.1), body_rates=(0.5, -1.0, 2.0),
+                  rotor_speed=(700.0, 750.0, 800.0, 850.0), position=(0.0, 0.0, -3.0))
+
+
+def pwm_sequence(n: int, seed: int = 1) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(1000.0, 2000.0, size=(n, 4))
+
+
+def run(link: Transport, pwms: np.ndarray, seed: int | None = 7,
+        state: TwinState | None = None) -> list[SensorFrame]:
+    return [link.reset(seed, state)] + [link.pwm_write(p) for p in pwms]
+
+
+def assert_identical(got: list[SensorFrame], expected: list[SensorFrame]) -> None:
+    assert len(got) == len(expected)
+    for i, (a, b) in enumerate(zip(got, expected, strict=True)):
+        assert a.t_us == b.t_us, f"frame {i}"
+        for name, x, y in zip(("gyro", "accel", "rotor_speed"), a[1:], b[1:], strict=True):
+            assert x.tobytes() == y.tobytes(), f"frame {i} {name}: {x} != {y}"
+
+
+def reference(pwms: np.ndarray, rig: str = "rig", noise: SensorNoise | None = None, seed: int | None = 7,
+              state: TwinState | None = None) -> list[SensorFrame]:
+    return run(InProcessLink(Twin(rig=rig, noise=noise)), pwms, seed, state)
+
+
+@pytest.fixture
+def server() -> Iterator[UdpTwinServer]:
+    with UdpTwinServer(Twin(rig="rig"), session_timeout=5.0) as srv:
+        yield srv
+
+
+def client_of(address: tuple[str, int], retries: int = 20) -> UdpTwinClient:
+    return UdpTwinClient(*address, timeout=TIMEOUT, retries=retries)
+
+
+def wait_for(condition, seconds: float = 2.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < deadline, "condition never became true"
+        time.sleep(0.005)
+
+
+class LossyProxy:
+    """A UDP relay that drops, duplicates or delays the n-th request or reply (0-based)."""
+
+    def __init__(self, server: tuple[str, int], drop_requests=(), drop_replies=(), duplicate_requests=(),
+                 duplicate_replies=(), delay_requests: dict[int, float] | None = None) -> None:
+        self.server = server
+        self.rules = {"request": (set(drop_requests), set(duplicate_requests), delay_requests or {}),
+                      "reply": (set(drop_replies), set(duplicate_replies), {})}
+        self.seen = {"request": 0, "reply": 0}
+        self.front = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.front.bind(("127.0.0.1", 0))
+        self.back = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.back.connect(server)
+        self.client: tuple[str, int] | None = None
+        self._stop = False
+        self._threads = [threading.Thread(target=self._relay, args=(self.front, "request"), daemon=True),
+                         threading.Thread(target=self._relay, args=(self.back, "reply"), daemon=True)]
+        for sock in (self.front, self.back):
+            sock.settimeout(0.02)
+        for thread in self._threads:
+            thread.start()
+
+    @property
+    def address(self) -> tuple[str, int]:
+        return self.front.getsockname()
+
+    def _relay(self, sock: socket.socket, direction: str) -> None:
+        drop, duplicate, delay = self.rules[direction]
+        while not self._stop:
+            try:
+                data, addr = sock.recvfrom(2048)
+            except (TimeoutError, OSError):
+                continue
+            index = self.seen[direction]
+            self.seen[direction] += 1
+            if direction == "request":
+                self.client = addr
+                forward = self.back.send
+            else:
+                forward = lambda d: self.front.sendto(d, self.client)  # noqa: E731
+            if index in drop:
+                continue
+            copies = 2 if index in duplicate else 1
+            if index in delay:
+                threading.Timer(delay[index], forward, args=(data,)).start()
+                continue
+            for _ in range(copies):
+                forward(data)
+
+    def close(self) -> None:
+        self._stop = True
+        for thread in self._threads:
+            thread.join()
+        self.front.close()
+        self.back.close()
+
+
+@pytest.fixture
+def proxied(server: UdpTwinServer,
+            request: pytest.FixtureRequest) -> Iterator[tuple[UdpTwinClient, LossyProxy]]:
+    proxy = LossyProxy(server.address, **request.param)
+    client = client_of(proxy.address)
+    yield client, proxy
+    client.close()
+    proxy.close()
+
+
+# --- parity -------------------------------------------------------------------------------------
+
+
+def test_in_process_link_is_the_twin() -> None:
+    pwms = pwm_sequence(50)
+    twin = Twin()
+    assert_identical(run(InProcessLink(Twin()), pwms), [twin.reset(7)] + [twin.step(p) for p in pwms])
+
+
+def test_udp_frames_are_bit_identical_to_in_process(server: UdpTwinServer) -> None:
+    pwms = pwm_sequence(300)
+    with client_of(server.address) as client:
+        assert_identical(run(client, pwms), reference(pwms))
+        assert_identical(run(client, pwms[:100], seed=8), reference(pwms[:100], seed=8))
+    assert server.counters["steps"] == 400 and server.counters["resets"] == 2
+    assert server.bad_packets == 0
+
+
+def test_parity_holds_with_noise_and_an_initial_state() -> None:
+    pwms = pwm_sequence(300, seed=2)
+    with UdpTwinServer(Twin(rig="free", noise=NOISE)) as srv, client_of(srv.address) as client:
+        got = run(client, pwms, seed=11, state=START)
+    assert_identical(got, reference(pwms, "free", NOISE, seed=11, state=START))
+    assert not np.array_equal(got[5].gyro, reference(pwms, "free", NOISE, seed=12, state=START)[5].gyro)
+
+
+def test_fcemu_twin_serve_subprocess_matches_in_process() -> None:
+    proc, address = spawn_server(rig="free")
+    try:
+        pwms = pwm_sequence(200, seed=3)
+        with client_of(address) as client:
+            assert_identical(run(client, pwms, state=START), reference(pwms, "free", state=START))
+    finally:
+        proc.terminate()
+        assert proc.wait(timeout=10) == 0
+
+
+# --- loss, duplication, delay ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("proxied", [{"drop_requests": {0, 3, 4}}], indirect=True)
+def test_lost_requests_are_resent_and_applied_once(proxied, server: UdpTwinServer) -> None:
+    client, _ = proxied
+    pwms = pwm_sequence(20)
+    assert_identical(run(client, pwms), reference(pwms))
+    assert client.counters["retries"] == 3
+    assert server.counters["steps"] == 20 and server.counters["duplicates"] == 0
+
+
+@pytest.mark.parametrize("proxied", [{"drop_replies": {0, 3, 7, 8}}], indirect=True)
+def test_lost_replies_are_answered_from_the_cache(proxied, server: UdpTwinServer) -> None:
+    client, _ = proxied
+    pwms = pwm_sequence(20)
+    assert_identical(run(client, pwms), reference(pwms))
+    assert client.counters["retries"] == 4
+    assert server.counters["steps"] == 20 and server.counters["resets"] == 1
+    assert server.counters["duplicates"] == 4
+
+
+@pytest.mark.parametrize("proxied", [{"duplicate_requests": {0, 2, 5}}], indirect=True)
+def test_duplicated_requests_step_once(proxied, server: UdpTwinServer) -> None:
+    client, _ = proxied
+    pwms = pwm_sequence(20)
+    assert_identical(run(client, pwms), reference(pwms))
+    assert server.counters["steps"] == 20 and server.counters["duplicates"] == 3
+    assert client.counters["discarded"] == 3  # the cached replies to the copies arrive late
+
+
+@pytest.mark.parametrize("proxied", [{"duplicate_replies": {1, 4}}], indirect=True)
+def test_duplicated_replies_are_discarded(proxied, server: UdpTwinServer) -> None:
+    client, _ = proxied
+    pwms = pwm_sequence(20)
+    assert_identical(run(client, pwms), reference(pwms))
+    assert client.counters["discarded"] == 2 and server.counters["steps"] == 20
+
+
+@pytest.mark.parametrize("proxied", [{"delay_requests": {3: 4 * TIMEOUT}}], indirect=True)
+def test_a_request_overtaken_by_its_retry_is_not_applied_twice(proxied, server: UdpTwinServer) -> None:
+    client, _ = proxied
+    pwms = pwm_sequence(20)
+    assert_identical(run(client, pwms), reference(pwms))
+    wait_for(lambda: server.counters["received"] == 21 + client.counters["retries"])
+    assert server.counters["steps"] == 20
+    assert server.counters["stale"] + server.counters["duplicates"] == 1  # the late original
+
+
+# --- malformed and foreign packets ----------------------------------------------------------------
+
+
+def pwm_header_with(magic: bytes = MAGIC, version: int = VERSION, msg_type: int = 1) -> bytes:
+    return HEADER.pack(magic, version, msg_type, 0, 99) + bytes(32)
+
+
+BAD_PACKETS = {
+    "empty": (b"", ErrorCode.MALFORMED, "malformed"),
+    "short header": (b"FCTW\x01", ErrorCode.MALFORMED, "malformed"),
+    "truncated pwm": (encode_pwm(99, [1500] * 4)[:-1], ErrorCode.MALFORMED, "malformed"),
+    "oversized pwm": (encode_pwm(99, [1500] * 4) + bytes(600), ErrorCode.MALFORMED, "malformed"),
+    "foreign magic": (pwm_header_with(magic=b"\xfd\x09\x00\x00"), ErrorCode.MALFORMED, "malformed"),
+    "foreign version": (pwm_header_with(version=VERSION + 1), ErrorCode.BAD_VERSION, "bad_version"),
+    "unknown type": (pwm_header_with(msg_type=0x42), ErrorCode.UNKNOWN_TYPE, "unknown_type"),
+    "garbage": (bytes(np.random.default_rng(5).integers(0, 256, 77, dtype=np.uint8)),
+                ErrorCode.MALFORMED, "malformed"),
+    "text": (b"GET / HTTP/1.1\r\n\r\n", ErrorCode.MALFORMED, "malformed"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_PACKETS))
+def test_bad_packets_are_answered_counted_and_harmless(server: UdpTwinServer, case: str) -> None:
+    packet, code, counter = BAD_PACKETS[case]
+    with client_of(server.address) as client, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rogue:
+        client.reset(seed=1)
+        client.pwm_write(np.full(4, 1500.0))
+        rogue.settimeout(2.0)
+        rogue.sendto(packet, server.address)
+        answer = decode(rogue.recv(2048))
+        assert isinstance(answer, Error) and answer.code == code
+        assert server.counters[counter] == 1 and server.bad_packets == 1
+        assert client.pwm_write(np.full(4, 1500.0)).t_us == 2000  # the session did not notice
+    assert server.counters["steps"] == 2
+
+
+@pytest.mark.parametrize("reply", [encode_frame(5, Twin().reset()), encode_error(5, ErrorCode.BUSY, "x")],
+                         ids=["frame", "error"])
+def test_replies_sent_to_the_server_are_counted_not_answered(server: UdpTwinServer, reply: bytes) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rogue:
+        rogue.settimeout(0.2)
+        rogue.sendto(reply, server.address)
+        with pytest.raises(TimeoutError):
+            rogue.recv(2048)  # two servers must never ping-pong errors
+    assert server.counters["unexpected_reply"] == 1
+
+
+def exchange(sock: socket.socket, packet: bytes) -> Frame | Error:
+    sock.send(packet)
+    msg = decode(sock.recv(2048))
+    assert isinstance(msg, Frame | Error)
+    return msg
+
+
+def test_out_of_order_sequence_numbers_are_rejected(server: UdpTwinServer) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as peer:
+        peer.settimeout(2.0)
+        peer.connect(server.address)
+        hover = [1500.0] * 4
+        assert exchange(peer, encode_pwm(5, hover)).code == ErrorCode.NO_SESSION
+        assert exchange(peer, encode_reset(10, seed=1)).seq == 10
+        assert exchange(peer, encode_pwm(11, hover)).frame.t_us == 1000
+        peer.send(encode_pwm(12, hover))
+        first_reply = peer.recv(2048)
+        assert exchange(peer, encode_pwm(11, hover)).code == ErrorCode.STALE_SEQ
+        assert exchange(peer, encode_pwm(14, hover)).code == ErrorCode.SEQ_GAP
+        assert exchange(peer, encode_reset(9, seed=1)).code == ErrorCode.STALE_SEQ
+        assert exchange(peer, encode_pwm(12, [1600.0] * 4)).code == ErrorCode.STALE_SEQ  # seq reused
+        peer.send(encode_pwm(12, hover))
+        assert peer.recv(2048) == first_reply  # an exact repeat gets the cached reply
+        assert exchange(peer, encode_pwm(13, hover)).frame.t_us == 3000
+        assert exchange(peer, encode_reset(20, seed=1)).frame.t_us == 0  # RESET may jump ahead
+    counts = {k: server.counters[k] for k in ("steps", "resets", "stale", "gap", "no_session", "duplicates")}
+    assert counts == {"steps": 3, "resets": 2, "stale": 3, "gap": 1, "no_session": 1, "duplicates": 1}
+
+
+def test_another_client_mid_session_is_refused(server: UdpTwinServer) -> None:
+    with client_of(server.address) as owner, client_of(server.address) as intruder, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rogue:
+        owner.reset(seed=1)
+        owner.pwm_write(np.full(4, 1500.0))
+        with pytest.raises(RemoteError) as info:
+            intruder.reset(seed=2)
+        assert info.value.code == ErrorCode.BUSY
+        rogue.settimeout(2.0)
+        rogue.sendto(encode_pwm(owner._seq + 1, [2000.0] * 4), server.address)  # the owner's next seq
+        assert decode(rogue.recv(2048)).code == ErrorCode.BUSY
+        rogue.sendto(encode_bye(owner._seq + 1), server.address)  # cannot end someone else's session
+        assert owner.pwm_write(np.full(4, 1500.0)).t_us == 2000
+    assert server.counters["foreign_peer"] == 3 and server.counters["steps"] == 2
+
+
+def test_the_session_passes_on_after_bye() -> None:
+    with UdpTwinServer(session_timeout=60.0) as srv:
+        with client_of(srv.address) as first:
+            first.reset(seed=1)
+        with client_of(srv.address) as second:
+            wait_for(lambda: srv.counters["byes"] == 1)
+            assert second.reset(seed=1).t_us == 0
+            assert second.pwm_write(np.full(4, 1500.0)).t_us == 1000
+
+
+def test_an_idle_session_can_be_taken_over() -> None:
+    with UdpTwinServer(session_timeout=0.2) as srv, client_of(srv.address) as first, \
+            client_of(srv.address) as second:
+        first.reset(seed=1)
+        time.sleep(0.3)
+        second.reset(seed=1)
+        with pytest.raises(RemoteError, match="BUSY"):
+            first.pwm_write(np.full(4, 1500.0))
+        assert srv.counters["takeovers"] == 1
+
+
+def test_bad_pwm_raises_value_error_and_does_not_step(server: UdpTwinServer) -> None:
+    for link in (InProcessLink(Twin()), client_of(server.address)):
+        link.reset(seed=1)
+        for bad in (np.array([1500.0, np.nan, 1500.0, 1500.0]), [1500.0, np.inf, 1500.0, 1500.0],
+                    np.full(3, 1500.0), np.full((4, 1), 1500.0), None):
+            with pytest.raises(ValueError):
+                link.pwm_write(bad)
+        assert link.pwm_write(np.full(4, 1500.0)).t_us == 1000
+        link.close()
+    assert server.counters["bad_argument"] == 2
+
+
+# --- client failure modes -------------------------------------------------------------------------
+
+
+def test_no_reply_raises_link_timeout_after_the_retries() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+        silent.bind(("127.0.0.1", 0))
+        client = client_of(silent.getsockname(), retries=3)
+        start = time.monotonic()
+        with pytest.raises(LinkTimeout, match="after 4 tries"):
+            client.reset(seed=1)
+        assert 4 * TIMEOUT * 0.9 <= time.monotonic() - start < 2.0
+        assert client.counters["retries"] == 3 and client.counters["timeouts"] == 1
+        with pytest.raises(LinkError, match="reset"):
+            client.pwm_write(np.full(4, 1500.0))
+        client.close()
+
+
+def test_nobody_listening_raises_link_timeout() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        closed_port = probe.getsockname()
+    with client_of(closed_port, retries=2) as client, pytest.raises(LinkTimeout):
+        client.reset(seed=1)
+    assert client.counters["refused"] >= 1
+
+
+def test_client_drops_garbage_stale_and_foreign_replies() -> None:
+    """A scripted peer answers badly first; the client must return only the genuine reply."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as fake, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as foreign:
+        fake.bind(("127.0.0.1", 0))
+        fake.settimeout(2.0)
+        client = UdpTwinClient(*fake.getsockname(), timeout=1.0, retries=0)
+        result: list[SensorFrame] = []
+        worker = threading.Thread(target=lambda: result.append(client.reset(seed=1)))
+        worker.start()
+        request, client_addr = fake.recvfrom(2048)
+        seq = decode(request).seq
+        genuine = Twin().reset()
+        forged = genuine._replace(t_us=666)
+        foreign.sendto(encode_frame(seq, forged), client_addr)  # right seq, wrong origin
+        for junk in (b"\x00" * 10, encode_frame(seq - 1, forged), encode_error(seq + 1, ErrorCode.BUSY, "?")):
+            fake.sendto(junk, client_addr)
+        fake.sendto(encode_frame(seq, genuine), client_addr)
+        worker.join(timeout=5)
+        assert result and result[0].t_us == 0
+        assert client.counters["discarded"] == 3
+        client.close()
+
+
+def test_client_recovers_from_a_server_restart() -> None:
+    with UdpTwinServer() as first:
+        address = first.address
+        client = client_of(address)
+        client.reset(seed=1)
+    with UdpTwinServer(port=address[1]) as second:
+        with pytest.raises(RemoteError, match="NO_SESSION"):
+            client.pwm_write(np.full(4, 1500.0))
+        assert client.reset(seed=1).t_us == 0
+        assert client.pwm_write(np.full(4, 1500.0)).t_us == 1000
+        assert second.counters["no_session"] == 1
+    client.close()
+
+
+def test_serve_stops_on_sigterm_promptly() -> None:
+    proc, _ = spawn_server()
+    start = time.monotonic()
+    proc.terminate()
+    try:
+        assert proc.wait(timeout=5) == 0
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+    assert time.monotonic() - start < 5
