@@ -3,17 +3,61 @@
 from __future__ import annotations
 
 import json
+import socket
+import subprocess
 import sys
 
 from firmware.sitl import build_sitl
 
 
-def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "rig") -> dict:
-    """Fly the scripted doublets in real time and return DESIGN.md's `bench loop` figures."""
-    sitl = build_sitl(controller, rig=rig, rate_hz=rate_hz, realtime=True)
-    stats = sitl.loop.run(seconds)
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "rig",
+                 mavlink: bool = False) -> dict:
+    """DESIGN.md's `bench loop` figures in real time: the scripted doublets, or with `mavlink`
+    the Vehicle flown in OFFBOARD by a peer process sending 100 Hz setpoints while every
+    telemetry stream goes out to two peers."""
+    if not mavlink:
+        sitl = build_sitl(controller, rig=rig, rate_hz=rate_hz, realtime=True)
+        stats = sitl.loop.run(seconds)
+        extra = {}
+    else:
+        from firmware.mavlink.bridge import MavlinkConfig, PeerConfig
+        from firmware.sitl import start_vehicle_sitl
+
+        gcs, offboard = _free_port(), _free_port()
+        config = MavlinkConfig(peers=[PeerConfig("gcs", "127.0.0.1", gcs),
+                                      PeerConfig("offboard", "127.0.0.1", offboard)], params_file=None)
+        vs = start_vehicle_sitl(controller, rig, rate_hz, 1.0, config)
+        peer = subprocess.Popen([sys.executable, "-m", "firmware.mavlink.loadpeer", str(gcs), str(offboard)])
+        sitl = vs.sitl
+        try:
+            sitl.loop.run(1.0)  # the peer connects, switches to OFFBOARD and arms
+            sitl.loop.stats.__post_init__()
+            stats = sitl.loop.run(seconds)
+        finally:
+            peer.terminate()
+            peer.wait(5)
+            mav = vs.stop()
+        extra = {"mavlink": {"armed": vs.vehicle.armed, "mode": vs.vehicle.mode_name(),
+                             "ipc_dropped": vs.linked.dropped, "rx_frames": mav.get("rx_frames", 0),
+                             "tx_frames": mav.get("tx_frames", 0)}}
     return {"rate_hz": rate_hz, "seconds": seconds, "controller": controller, **stats.summary(),
-            "controller_faults": sum(sitl.loop.faults.values())}
+            "controller_faults": sum(sitl.loop.faults.values()), **extra}
+
+
+def _line(r: dict) -> str:
+    pe, cu = r["period_error_us"], r["compute_us"]
+    miss_pct = 100.0 * r["deadline_misses"] / max(r["ticks"], 1)
+    tag = " +mavlink" if "mavlink" in r else "         "
+    return (f"{r['rate_hz']:6.0f} Hz{tag}  ticks {r['ticks']:7d}  misses {r['deadline_misses']:5d} "
+            f"({miss_pct:.3f}%)  period error µs p50/p99/p99.9/max {pe['p50']:.0f}/{pe['p99']:.0f}/"
+            f"{pe['p999']:.0f}/{pe['max']:.0f}  compute µs {cu['p50']:.0f}/{cu['p99']:.0f}/"
+            f"{cu['p999']:.0f}/{cu['max']:.0f}")
 
 
 def bench_loop(args) -> int:
@@ -23,17 +67,16 @@ def bench_loop(args) -> int:
     rates = args.rate or [1000.0]
     results = []
     for rate in rates:
-        if not args.json:
-            print(f"running {controller} at {rate:.0f} Hz for {args.seconds:g} s ...", file=sys.stderr)
-        results.append(measure_loop(controller, args.seconds, rate, args.rig))
+        for with_mavlink in (False, True) if getattr(args, "mavlink", False) else (False,):
+            if not args.json:
+                print(f"running {controller} at {rate:.0f} Hz for {args.seconds:g} s"
+                      f"{' with MAVLink' if with_mavlink else ''} ...", file=sys.stderr)
+            results.append(measure_loop(controller, args.seconds, rate, args.rig, with_mavlink))
     if args.json:
         print(json.dumps(results[0] if len(results) == 1 else results))
         return 0
     for r in results:
-        pe, cu = r["period_error_us"], r["compute_us"]
-        miss_pct = 100.0 * r["deadline_misses"] / max(r["ticks"], 1)
-        print(f"{r['rate_hz']:6.0f} Hz  ticks {r['ticks']:7d}  misses {r['deadline_misses']:5d} "
-              f"({miss_pct:.3f}%)  period error µs p50/p99/p99.9/max {pe['p50']:.0f}/{pe['p99']:.0f}/"
-              f"{pe['p999']:.0f}/{pe['max']:.0f}  compute µs {cu['p50']:.0f}/{cu['p99']:.0f}/"
-              f"{cu['p999']:.0f}/{cu['max']:.0f}")
+        print(_line(r))
+        if "mavlink" in r:
+            print(f"          MAVLink: {r['mavlink']}")
     return 0

@@ -1,11 +1,18 @@
-"""Software in the loop: the twin, the firmware loop and its controllers wired together."""
+"""Software in the loop: the twin, the firmware loop and its controllers wired together.
+
+With MAVLink (the default of `fcemu sitl`) the loop flies whatever the `Vehicle` commands,
+and the MAVLink process (firmware/mavlink) carries ground stations' requests to it; with
+`--no-mavlink` it flies the scripted doublets of `scripted_flight`.
+"""
 
 from __future__ import annotations
 
+import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -21,6 +28,42 @@ class Sitl:
     loop: FlightLoop
     twin: object  # sim_bridge.twin.Twin when in-process, None over UDP
     link: object
+    selected: str = "pid"  # the controller key the --controller option chose
+
+
+class ScaledClock(RealTimeClock):
+    """Wall time sped up `factor` times: loop time advances factor µs per µs of wall time."""
+
+    def __init__(self, factor: float, spin_us: int = 250) -> None:
+        if not factor > 0:
+            raise ValueError(f"speed factor must be positive, got {factor}")
+        super().__init__(spin_us)
+        self.factor = factor
+        self._t0 = time.perf_counter_ns()
+
+    def now_us(self) -> int:
+        return int((time.perf_counter_ns() - self._t0) * self.factor) // 1000
+
+    def wait_until(self, deadline_us: int) -> int:
+        remaining_wall = (deadline_us - self.now_us()) / self.factor
+        if remaining_wall > self.spin_us:
+            time.sleep((remaining_wall - self.spin_us) * 1e-6)
+        now = self.now_us()
+        while now < deadline_us:
+            now = self.now_us()
+        return now
+
+
+def parse_speed(text: str) -> float | None:
+    """'realtime' → 1, 'max' → None (lockstep), 'N' → N times real time."""
+    if text == "realtime":
+        return 1.0
+    if text == "max":
+        return None
+    value = float(text.rstrip("xX"))
+    if not 0 < value <= 1000:
+        raise ValueError(f"--speed must be realtime, max or a factor in (0, 1000], got {text}")
+    return value
 
 
 def hover_throttle(rig: str = "free") -> float:
@@ -29,8 +72,8 @@ def hover_throttle(rig: str = "free") -> float:
     return (load_airframe().hover_pwm() - 1000.0) / 1000.0
 
 
-def scripted_flight(rig: str) -> ScriptedCommander:
-    """What `fcemu sitl` flies without a ground station: rate doublets on each axis in turn."""
+def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
+    """What `fcemu sitl --no-mavlink` flies: rate doublets on each axis in turn."""
     hover = hover_throttle()
     climb = min(1.0, hover + 0.08) if rig == "free" else hover
     schedule: list[tuple[float, Sequence[float], float]] = [(0.0, (0, 0, 0), climb)]
@@ -44,28 +87,33 @@ def scripted_flight(rig: str) -> ScriptedCommander:
             schedule.append((t, (0, 0, 0), hover))
             t += 0.5
     schedule.append((t, (0, 0, 0), hover - 0.05 if rig == "free" else hover))
-    return ScriptedCommander(schedule, controller="main")
+    return ScriptedCommander(schedule, controller=controller)
+
+
+def load_controllers(controller: str) -> tuple[dict, str]:
+    """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks."""
+    if controller.endswith(".onnx"):
+        return {"neural": load_controller(controller), FALLBACK: load_controller(FALLBACK)}, "neural"
+    return {FALLBACK: load_controller(controller)}, FALLBACK
 
 
 def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, realtime: bool = True,
                commander: Commander | None = None, sinks: Sequence[TelemetrySink] = (),
-               twin_address: tuple[str, int] | None = None) -> Sitl:
+               twin_address: tuple[str, int] | None = None, speed: float = 1.0) -> Sitl:
     from sim_bridge.link import InProcessLink, UdpTwinClient
     from sim_bridge.twin import Twin
 
-    controllers = {"main": load_controller(controller)}
-    if controller != FALLBACK:
-        controllers[FALLBACK] = load_controller(FALLBACK)
+    controllers, selected = load_controllers(controller)
     if twin_address is None:
         twin = Twin(rig=rig, dt=1.0 / rate_hz)
         link = InProcessLink(twin)
     else:
         twin, link = None, UdpTwinClient(*twin_address)
     frame = link.reset(seed=0)
-    loop = FlightLoop(link, frame, controllers, commander or scripted_flight(rig),
-                      RealTimeClock() if realtime else LockstepClock(), rate_hz, sinks,
-                      fallback=FALLBACK)
-    return Sitl(loop, twin, link)
+    clock = (RealTimeClock() if speed == 1.0 else ScaledClock(speed)) if realtime else LockstepClock()
+    loop = FlightLoop(link, frame, controllers, commander or scripted_flight(rig, selected), clock,
+                      rate_hz, sinks, fallback=FALLBACK)
+    return Sitl(loop, twin, link, selected)
 
 
 @dataclass
@@ -74,6 +122,7 @@ class StatusLine:
 
     loop: FlightLoop
     every_s: float = 0.5
+    extra: Callable[[], str] | None = None
     _last_wall: float = field(default_factory=time.monotonic)
     _last_ticks: int = 0
 
@@ -91,21 +140,103 @@ class StatusLine:
         axes = " ".join(f"{n} {g:+5.2f}/{s:+5.2f}" for n, g, s in zip("rpy", gyro, sp, strict=True))
         sys.stderr.write(
             f"\rt {sample.t_us / 1e6:7.2f}s  loop {rate:7.0f} Hz  misses {stats.deadline_misses}  "
-            f"rate/setpoint rad/s: {axes}  pwm {np.array2string(sample.pwm, precision=0)}  "
+            f"rate/setpoint rad/s: {axes}  pwm {np.array2string(sample.pwm, precision=0)}"
+            f"{'  ' + self.extra() if self.extra else ''}  "
         )
         sys.stderr.flush()
+
+
+def default_params_file() -> Path:
+    base = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
+    return base / "fcemu" / "params.json"
+
+
+@dataclass
+class VehicleSitl:
+    """SITL flown over MAVLink: the loop, the Vehicle and the MAVLink process beside it."""
+
+    sitl: Sitl
+    vehicle: object
+    linked: object
+    proc: object
+    param_problems: list[str]
+    ports: dict[str, int]  # the vehicle's local UDP port per peer
+
+    def stop(self) -> dict:
+        from firmware.mavlink.bridge import stop_mavlink
+
+        stop_mavlink(self.proc, self.linked.sock, self.linked)
+        return self.linked.mavlink_stats
+
+
+def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float | None, config,
+                       explicit_controller: bool = True) -> VehicleSitl:
+    """Build the loop with a `Vehicle` commander and start its MAVLink process (`config`)."""
+    from firmware.mavlink.bridge import LinkedVehicle, start_mavlink
+    from firmware.params import ParamTable
+    from firmware.vehicle import Vehicle
+
+    sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0)
+    params = ParamTable()
+    pid = getattr(sitl.loop.controllers.get(FALLBACK), "pid", None)
+    if pid is not None:  # the loaded preset's gains are the defaults a GCS sees
+        g = pid.gains
+        for i, axis in enumerate(("ROLL", "PITCH", "YAW")):
+            for key, values in (("P", g.kp), ("I", g.ki), ("D", g.kd), ("FF", g.kff)):
+                params.set_default(f"PID_{axis}_{key}", values[i])
+        params.set_default("IMU_GYRO_CUTOFF", g.gyro_lowpass_hz)
+        params.set_default("IMU_DGYRO_CUTOFF", g.dterm_lowpass_hz)
+    params.set_default("MPC_THR_HOVER", hover_throttle(rig))
+    problems = params.load(config.params_file) if config.params_file else []
+    if explicit_controller or params["CTRL_SEL"] >= len(sitl.loop.controllers):
+        params.set("CTRL_SEL", ("pid", "neural").index(sitl.selected))
+    vehicle = Vehicle(params, sitl.loop.controllers, fallback=FALLBACK)
+    config.controllers = list(sitl.loop.controllers)
+    config.has_position = rig == "free" and sitl.twin is not None
+    proc, sock, slot, ports = start_mavlink(config, dict(params.values))
+    truth = sitl.twin.truth if config.has_position else None
+    linked = LinkedVehicle(vehicle, sock, slot, truth=truth, every=max(1, round(rate_hz / 250)),
+                           loop=sitl.loop)
+    sitl.loop.commander = linked
+    sitl.loop.sinks.append(linked)
+    return VehicleSitl(sitl, vehicle, linked, proc, problems, ports)
+
+
+def mavlink_config_from_args(args):
+    from firmware.mavlink.bridge import MavlinkConfig, parse_peer
+
+    peers = [parse_peer(args.gcs, "gcs"), parse_peer(args.offboard, "offboard")]
+    peers += [parse_peer(p, f"peer{i}") for i, p in enumerate(args.peer or [])]
+    params_file = args.params if args.params is not None else str(default_params_file())
+    return MavlinkConfig(peers=peers, sysid=args.sysid, tlog=args.tlog, signing_key=args.signing_key,
+                         params_file=params_file or None)
 
 
 def sitl_command(args) -> int:
     from firmware.controllers import default_controller
 
     controller = args.controller or default_controller()
-    sitl = build_sitl(controller, args.rig, args.rate, realtime=args.speed != "max")
-    status = None if args.quiet else StatusLine(sitl.loop, every_s=0.5 if args.speed != "max" else 2.0)
+    speed = parse_speed(args.speed)
+    vs = None
+    if args.no_mavlink:
+        sitl = build_sitl(controller, args.rig, args.rate, realtime=speed is not None, speed=speed or 1.0)
+    else:
+        vs = start_vehicle_sitl(controller, args.rig, args.rate, speed, mavlink_config_from_args(args),
+                                explicit_controller=args.controller is not None)
+        sitl = vs.sitl
+        for p in vs.param_problems:
+            print(f"params: {p}", file=sys.stderr)
+    extra = None
+    if vs is not None:
+        veh = vs.vehicle
+        extra = lambda: f"{'ARMED' if veh.armed else 'disarmed'} {veh.mode_name()}"  # noqa: E731
+    status = None if args.quiet else StatusLine(sitl.loop, every_s=0.5 if speed else 2.0, extra=extra)
     try:
         sitl.loop.run(args.duration, on_slack=status)
     except KeyboardInterrupt:
         pass
+    finally:
+        mav_stats = vs.stop() if vs is not None else {}
     if status is not None:
         sys.stderr.write("\n")
     summary = sitl.loop.stats.summary()
@@ -113,4 +244,7 @@ def sitl_command(args) -> int:
           f"  misses {summary['deadline_misses']}  p99 period error "
           f"{summary['period_error_us']['p99']:.0f} µs  p99 compute {summary['compute_us']['p99']:.0f} µs"
           + (f"  faults {sitl.loop.faults}" if sitl.loop.faults else ""))
+    if vs is not None:
+        print(f"vehicle: {vs.vehicle.counters or 'no events'}  ipc dropped {vs.linked.dropped}  "
+              f"mavlink: {mav_stats or 'no stats'}")
     return 0

@@ -1,0 +1,225 @@
+"""The flight process's side of MAVLink: a Commander and TelemetrySink around the Vehicle.
+
+Each tick `command` drains the socket from the MAVLink process (non-blocking; nothing to
+read costs one failed recv) and applies what came to the `Vehicle`; `publish` sends a
+telemetry snapshot every `every` ticks (250 Hz of loop time at 1 kHz) and any text the
+vehicle has to say. Sends never block: when the MAVLink process falls behind, snapshots
+are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import socket
+import subprocess
+import sys
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+from firmware.loop import Command, TickSample
+from firmware.mavlink import ipc
+from firmware.params import CONTROLLERS
+from firmware.sensors import SensorFrame
+from firmware.vehicle import Vehicle, custom_mode
+
+READY_TIMEOUT_S = 30.0
+ARMABLE_EVERY = 25  # re-run the arming checks for SYS_STATUS every this many snapshots (10 Hz)
+TRUTH_EVERY = 5  # refresh ground-truth position every this many snapshots (50 Hz at 1 kHz)
+
+
+@dataclass
+class PeerConfig:
+    name: str
+    host: str
+    port: int
+    signed: bool = False
+
+
+@dataclass
+class MavlinkConfig:
+    peers: list[PeerConfig] = field(default_factory=lambda: [PeerConfig("gcs", "127.0.0.1", 14550),
+                                                              PeerConfig("offboard", "127.0.0.1", 14540)])
+    sysid: int = 1
+    tlog: str | None = None
+    signing_key: str | None = None
+    params_file: str | None = None
+    has_position: bool = True
+    controllers: list[str] = field(default_factory=lambda: list(CONTROLLERS))
+
+
+def parse_peer(spec: str, name: str) -> PeerConfig:
+    """host:port[:signed] (host optional: ':14550' or '14550' mean 127.0.0.1)."""
+    parts = spec.split(":")
+    signed = parts[-1] == "signed"
+    if signed:
+        parts = parts[:-1]
+    host = parts[0] if len(parts) == 2 and parts[0] else "127.0.0.1"
+    try:
+        port = int(parts[-1])
+    except ValueError:
+        raise ValueError(f"bad peer {spec!r}: use host:port[:signed]") from None
+    if not 0 < port < 65536 or len(parts) > 2:
+        raise ValueError(f"bad peer {spec!r}: use host:port[:signed]")
+    return PeerConfig(name, host, port, signed)
+
+
+class LinkedVehicle:
+    """Commander + TelemetrySink: the Vehicle, fed from and reporting to the MAVLink process."""
+
+    def __init__(self, vehicle: Vehicle, sock: socket.socket, slot: ipc.SnapshotSlot,
+                 truth: Callable | None = None, every: int = 4, loop: object | None = None) -> None:
+        self.vehicle = vehicle
+        self.sock = sock
+        self.slot = slot
+        sock.setblocking(False)
+        self._poll = select.poll()
+        self._poll.register(sock, select.POLLIN | select.POLLHUP)
+        self._armable = False
+        self.truth = truth
+        self.every = max(1, every)
+        self.loop = loop  # for its stats in the snapshot; set after the loop is built
+        self.dropped = 0
+        self.bad_ipc = 0
+        self.mavlink_stats: dict = {}
+        self._n = 0
+        self._snapshots = 0
+        self._pos: tuple = (0.0, 0.0, 0.0)
+        self._vel: tuple = (0.0, 0.0, 0.0)
+        self._closed = False
+
+    # ---- Commander ----
+    def command(self, t_us: int, frame: SensorFrame) -> Command:
+        if not self._closed:
+            self._drain()
+        return self.vehicle.command(t_us, frame)
+
+    def _drain(self) -> None:
+        if not self._poll.poll(0):  # the common case: nothing new, half a µs
+            return
+        recv = self.sock.recv
+        for _ in range(16):  # bounded: a flood cannot hold the tick
+            try:
+                data = recv(65536)
+            except BlockingIOError:
+                return
+            except OSError:
+                self._closed = True
+                return
+            if not data:
+                self._closed = True
+                return
+            self._apply(ipc.decode(data))
+
+    def _apply(self, msg) -> None:
+        v = self.vehicle
+        try:
+            kind = msg[0]
+            if kind == "sp":
+                v.offboard_setpoint(msg[1], msg[2])
+            elif kind == "sticks":
+                v.sticks(*msg[1:5])
+            elif kind == "arm":
+                result, text = v.request_arm(bool(msg[2]), bool(msg[3]))
+                self._send(ipc.encode(("ack", msg[1], result, text)))
+            elif kind == "mode":
+                mode = (msg[2], msg[3]) if msg[2] == 4 else msg[2]
+                result, text = v.request_mode(mode)
+                self._send(ipc.encode(("ack", msg[1], result, text)))
+            elif kind == "param":
+                v.set_param(msg[1], msg[2])
+            elif kind == "stats":
+                self.mavlink_stats = msg[1]
+            else:
+                self.bad_ipc += 1
+        except (TypeError, IndexError, ValueError, KeyError):
+            self.bad_ipc += 1
+
+    # ---- TelemetrySink ----
+    def publish(self, sample: TickSample) -> None:
+        v = self.vehicle
+        if v.outbox:
+            for severity, text in v.outbox:
+                self._send(ipc.encode(("text", severity, text)))
+            v.outbox.clear()
+        self._n += 1
+        if self._n % self.every or self._closed:
+            return
+        self._snapshots += 1
+        if self._snapshots % ARMABLE_EVERY == 1:
+            self._armable = not v.armed and not v.arming_problem()
+        if self.truth is not None and self._snapshots % TRUTH_EVERY == 1:
+            tr = self.truth()
+            self._pos, self._vel = tuple(tr.position.tolist()), tuple(tr.velocity.tolist())
+        frame, sp = sample.frame, sample.command.setpoint
+        loop = self.loop
+        stats = getattr(loop, "stats", None)
+        ticks = stats.ticks if stats is not None else self._n
+        compute = int(stats.compute_us[(ticks - 1) % stats.capacity]) if stats is not None and ticks else 0
+        faults = sum(loop.faults.values()) if loop is not None and loop.faults else 0
+        self.slot.write((
+            sample.t_us, v.armed, custom_mode(v.mode), v.landed_state, bool(v.failsafe),
+            CONTROLLERS.index(sample.controller) if sample.controller in CONTROLLERS else 255,
+            self._armable and not v.armed, *v.estimator.q, *frame.gyro.tolist(),
+            *frame.accel.tolist(), *sample.pwm.tolist(), *frame.rotor_speed.tolist(),
+            *sp.rates.tolist(), sp.throttle, *self._pos, *self._vel, self.truth is not None,
+            v.estimator.vz, faults, sum(v.counters.values()), stats.deadline_misses if stats else 0,
+            ticks, compute))
+
+    def _send(self, data: bytes) -> None:
+        try:
+            self.sock.send(data)
+        except (BlockingIOError, OSError):
+            self.dropped += 1
+
+    def close(self) -> None:
+        self._closed = True
+        try:
+            self.sock.close()
+        except OSError:
+            pass
+
+
+def start_mavlink(config: MavlinkConfig, params: dict[str, float]
+                  ) -> tuple[subprocess.Popen, socket.socket, ipc.SnapshotSlot, dict[str, int]]:
+    """Start the MAVLink process; returns it, the flight side of the socket pair, the telemetry
+    slot and the process's local UDP port per peer."""
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    slot = ipc.SnapshotSlot()
+    for s in (ours, theirs):
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 20)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+    spec = json.dumps({"config": asdict(config), "params": params, "fd": theirs.fileno(), "slot": slot.fd})
+    env = dict(os.environ)
+    proc = subprocess.Popen([sys.executable, "-m", "firmware.mavlink.process", spec],
+                            pass_fds=(theirs.fileno(), slot.fd), env=env)
+    theirs.close()
+    # Wait until it is up (pymavlink imported, sockets bound) so its start-up does not land in the loop.
+    ours.settimeout(READY_TIMEOUT_S)
+    try:
+        ready = ipc.decode(ours.recv(65536))
+    except (TimeoutError, OSError):
+        ready = None
+    if not (isinstance(ready, tuple) and ready[0] == "ready"):
+        proc.kill()
+        raise RuntimeError("the MAVLink process did not start")
+    ours.setblocking(False)
+    return proc, ours, slot, ready[1]
+
+
+def stop_mavlink(proc: subprocess.Popen, sock: socket.socket, linked: LinkedVehicle | None = None,
+                 timeout: float = 3.0) -> int | None:
+    if linked is not None:
+        linked.close()
+    else:
+        sock.close()
+    try:
+        return proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.terminate()
+        try:
+            return proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            return proc.wait()

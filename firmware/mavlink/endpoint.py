@@ -1,0 +1,107 @@
+"""One MAVLink link per peer: a UDP socket that sends to the peer (PX4's udpout) and parses
+what comes back, with its own sequence numbers and, if required, MAVLink 2 signing.
+
+Parsing, packing and signing are pymavlink's; the link only moves bytes and counts."""
+
+from __future__ import annotations
+
+import hashlib
+import socket
+import time
+from pathlib import Path
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware.mavlink.tlog import TlogWriter
+
+SIGNING_EPOCH = 1420070400  # 2015-01-01, MAVLink 2 signing timestamps count 10 µs from here
+
+
+def load_signing_key(path: str | Path) -> bytes:
+    """32 raw bytes, 64 hex digits, or a passphrase (SHA-256 of it, as MAVProxy's `signing setup`)."""
+    raw = Path(path).read_bytes()
+    if len(raw) == 32:
+        return raw
+    text = raw.decode("utf-8", errors="strict").strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text)
+        except ValueError:
+            pass
+    if not text:
+        raise ValueError(f"signing key file {path} is empty")
+    return hashlib.sha256(text.encode()).digest()
+
+
+class _Writer:
+    """The file pymavlink's `MAVLink.send` writes to: the peer's UDP address, and the tlog."""
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        self._ep = endpoint
+
+    def write(self, buf: bytes) -> None:
+        ep = self._ep
+        try:
+            ep.sock.sendto(buf, ep.address)
+            ep.tx += 1
+        except OSError:  # peer not listening yet (ECONNREFUSED on loopback) or buffer full
+            ep.tx_errors += 1
+        if ep.tlog is not None:
+            ep.tlog.write(buf)
+
+
+class Endpoint:
+    def __init__(self, name: str, host: str, port: int, sysid: int, link_id: int,
+                 signing_key: bytes | None = None, tlog: TlogWriter | None = None) -> None:
+        self.name = name
+        self.address = (host, port)
+        self.tlog = tlog
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("0.0.0.0" if host not in ("127.0.0.1", "localhost") else "127.0.0.1", 0))
+        self.sock.setblocking(False)
+        self.mav = mavlink.MAVLink(_Writer(self), srcSystem=sysid, srcComponent=1)
+        self.mav.robust_parsing = True
+        self.tx = self.tx_errors = self.rx = self.bad = 0
+        self.peer_seen: tuple[int, int] | None = None  # (sysid, compid) of the last HEARTBEAT
+        self.signed = signing_key is not None
+        if signing_key is not None:
+            s = self.mav.signing
+            s.secret_key = signing_key
+            s.link_id = link_id
+            s.timestamp = int((max(time.time(), SIGNING_EPOCH) - SIGNING_EPOCH) * 100_000)
+            s.sign_outgoing = True
+            s.allow_unsigned_callback = lambda _mav, _msgid: False
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def receive(self) -> list:
+        """Every frame waiting on the socket, parsed; bad ones come back as MAVLink_bad_data."""
+        out = []
+        for _ in range(256):
+            try:
+                data = self.sock.recv(65536)
+            except (BlockingIOError, ConnectionRefusedError):
+                break
+            except OSError:
+                break
+            try:
+                msgs = self.mav.parse_buffer(data) or []
+            except Exception:  # pymavlink raises on some corrupt input even when robust
+                self.bad += 1
+                continue
+            for m in msgs:
+                if m.get_type() == "BAD_DATA":
+                    self.bad += 1
+                    continue
+                self.rx += 1
+                if self.tlog is not None:
+                    self.tlog.write(m.get_msgbuf())
+                out.append(m)
+        return out
+
+    def send(self, msg) -> None:
+        self.mav.send(msg)
+
+    def close(self) -> None:
+        self.sock.close()

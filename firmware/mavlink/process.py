@@ -1,0 +1,288 @@
+"""The MAVLink process: every peer's link, the handlers, telemetry, parameters, the tlog.
+
+Started by `firmware.mavlink.bridge.start_mavlink` as `python -m firmware.mavlink.process
+SPEC`; talks to the flight process over the inherited socket `SPEC["fd"]` and exits when
+that closes. HEARTBEAT goes out at 1 Hz of wall time; streams follow the loop clock of the
+snapshots; setpoints are coalesced (newest wins) so a flood of them costs the loop little.
+"""
+
+from __future__ import annotations
+
+import json
+import select
+import signal
+import socket
+import sys
+import time
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware.mavlink import ipc, telemetry
+from firmware.mavlink.endpoint import Endpoint, load_signing_key
+from firmware.mavlink.handlers import Handlers
+from firmware.mavlink.tlog import TlogWriter
+from firmware.params import ParamTable
+from firmware.vehicle import STABILIZED, custom_mode
+
+M = mavlink
+SETPOINT_MIN_GAP_S = 0.002  # forward at most 500 setpoint updates per second
+STREAM_POLL_S = 0.002  # read the telemetry slot at 500 Hz of wall time
+ACK_TIMEOUT_S = 1.0
+MAX_PENDING = 8
+STATS_EVERY_S = 1.0
+REJECT_TEXT_EVERY_S = 5.0
+PARAM_SAVE_DELAY_S = 0.2
+COUNTERS = ("rx_bad", "rx_rejected", "rx_foreign", "rx_unsupported", "rx_unhandled", "sig_rejected")
+
+
+def idle_snapshot() -> ipc.Snapshot:
+    zero3, zero4 = (0.0,) * 3, (0.0,) * 4
+    return ipc.Snapshot(0, 0, custom_mode(STABILIZED), 1, 0, 0, 0, (1.0, 0.0, 0.0, 0.0), zero3,
+                        (0.0, 0.0, -9.81), (1000.0,) * 4, zero4, zero3, 0.0, zero3, zero3, 0, 0.0,
+                        0, 0, 0, 0, 0)
+
+
+class Station:
+    def __init__(self, config: dict, params: dict, ipc_sock: socket.socket, slot: ipc.SnapshotSlot) -> None:
+        self.slot = slot
+        self.sysid = int(config["sysid"])
+        self.has_position = bool(config["has_position"])
+        self.controllers = list(config["controllers"])
+        self.params_file = config.get("params_file")
+        self.params = ParamTable()
+        for name, value in params.items():
+            self.params.set(name, value)
+        self.ipc = ipc_sock
+        self.tlog = TlogWriter(config["tlog"]) if config.get("tlog") else None
+        key = load_signing_key(config["signing_key"]) if config.get("signing_key") else None
+        any_marked = any(p["signed"] for p in config["peers"])
+        self.endpoints: list[Endpoint] = []
+        self._schedulers: dict[int, telemetry.Scheduler] = {}
+        for i, peer in enumerate(config["peers"]):
+            peer_key = key if key is not None and (peer["signed"] or not any_marked) else None
+            ep = Endpoint(peer["name"], peer["host"], int(peer["port"]), self.sysid, i, peer_key, self.tlog)
+            self.endpoints.append(ep)
+            self._schedulers[id(ep)] = telemetry.Scheduler(self.has_position)
+        self.handlers = Handlers(self)
+        self.snap = idle_snapshot()
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self.counters.update(rx_frames=0, tx_frames=0, ipc_bad=0, snapshots=0, acks_timed_out=0)
+        self._pending: dict[int, tuple] = {}
+        self._req = 0
+        self._latest_sp: tuple | None = None
+        self._latest_sticks: tuple | None = None
+        self._sp_sent = 0.0
+        self._dirty_since: float | None = None
+        self._said_once: set[str] = set()
+        self._rejects_reported = 0
+        self._last_reject_text = 0.0
+
+    # ---- used by the handlers ----
+    def count(self, what: str, n: int = 1) -> None:
+        self.counters[what] = self.counters.get(what, 0) + n
+
+    def scheduler(self, ep: Endpoint) -> telemetry.Scheduler:
+        return self._schedulers[id(ep)]
+
+    def time_ns(self) -> int:
+        return self.snap.t_us * 1000
+
+    def say(self, severity: int, text: str, ep: Endpoint | None = None, once: bool = False) -> None:
+        if once:
+            if text in self._said_once:
+                return
+            self._said_once.add(text)
+        for e in [ep] if ep is not None else self.endpoints:
+            e.send(e.mav.statustext_encode(severity, text[:50].encode(), 0, 0))
+
+    def ack(self, ep: Endpoint, msg, command: int, result: int, text: str = "") -> None:
+        ep.send(ep.mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
+
+    def setpoint(self, message: tuple) -> None:
+        if message[0] == "sp":
+            self._latest_sp = message
+        else:
+            self._latest_sticks = message
+
+    def forward_command(self, ep: Endpoint | None, request: tuple, command: int, msg) -> None:
+        if len(self._pending) >= MAX_PENDING:
+            if ep is not None:
+                self.ack(ep, msg, command, M.MAV_RESULT_TEMPORARILY_REJECTED)
+            return
+        self._req += 1
+        self._pending[self._req] = (ep, command, msg, time.monotonic())
+        self._to_flight((request[0], self._req, *request[1:]))
+
+    def send_one(self, ep: Endpoint, msgid: int) -> None:
+        if msgid == M.MAVLINK_MSG_ID_HEARTBEAT:
+            ep.send(telemetry.heartbeat(ep.mav, self.snap))
+            return
+        message = telemetry.build(msgid, ep.mav, self.snap, self._load())
+        if message is not None:
+            ep.send(message)
+
+    def send_param(self, ep: Endpoint | None, name: str, index: int) -> None:
+        table = self.params
+        for e in [ep] if ep is not None else self.endpoints:
+            e.send(e.mav.param_value_encode(name.encode(), table.encode_wire(name), table.specs[name].kind,
+                                            len(table), index))
+
+    def param_changed(self, name: str) -> None:
+        self._to_flight(("param", name, self.params[name]))
+        self.send_param(None, name, self.params.index(name))  # every link learns of it, as PX4 does
+        if self._dirty_since is None:
+            self._dirty_since = time.monotonic()
+
+    # ---- plumbing ----
+    def _to_flight(self, message: tuple) -> None:
+        try:
+            self.ipc.send(ipc.encode(message))
+        except OSError:
+            pass
+
+    def _load(self) -> int:
+        return min(1000, max(0, self.snap.compute_us_max))  # permille of a 1 ms tick
+
+    def _read_ipc(self) -> bool:
+        while True:
+            try:
+                data = self.ipc.recv(65536)
+            except BlockingIOError:
+                break
+            except OSError:
+                return False
+            if not data:
+                return False
+            msg = ipc.decode(data)
+            if msg is None or isinstance(msg, ipc.Snapshot):
+                self.counters["ipc_bad"] += 1
+            elif msg[0] == "ack":
+                self.on_ack(*msg[1:4])
+            elif msg[0] == "text":
+                self.say(int(msg[1]), str(msg[2]))
+        return True
+
+    def _stream(self) -> None:
+        latest = self.slot.read()
+        if latest is None:
+            return
+        self.counters["snapshots"] += 1
+        self.snap = latest
+        for ep in self.endpoints:
+            for msgid in self.scheduler(ep).due(latest.t_us):
+                message = telemetry.build(msgid, ep.mav, latest, self._load())
+                if message is not None:
+                    ep.send(message)
+
+    def on_ack(self, req: int, result: int, text: str) -> None:
+        pending = self._pending.pop(req, None)
+        if pending is not None and pending[0] is not None:
+            ep, command, msg, _ = pending
+            self.ack(ep, msg, command, result)
+
+    def _housekeeping(self, now: float) -> None:
+        for req, (ep, command, msg, t) in list(self._pending.items()):
+            if now - t > ACK_TIMEOUT_S:
+                del self._pending[req]
+                self.counters["acks_timed_out"] += 1
+                if ep is not None:
+                    self.ack(ep, msg, command, M.MAV_RESULT_TEMPORARILY_REJECTED)
+        if self._dirty_since is not None and now - self._dirty_since > PARAM_SAVE_DELAY_S:
+            self._save_params()
+
+    def _save_params(self) -> None:
+        self._dirty_since = None
+        if self.params_file:
+            try:
+                self.params.save(self.params_file)
+            except OSError as exc:
+                self.say(3, f"Param save failed: {exc}"[:50])
+
+    def _flush_setpoints(self, now: float) -> None:
+        if (self._latest_sp or self._latest_sticks) and now - self._sp_sent >= SETPOINT_MIN_GAP_S:
+            for m in (self._latest_sp, self._latest_sticks):
+                if m is not None:
+                    self._to_flight(m)
+            self._latest_sp = self._latest_sticks = None
+            self._sp_sent = now
+
+    def stats(self) -> dict:
+        c = dict(self.counters)
+        c["rx_frames"] = sum(ep.rx for ep in self.endpoints)
+        c["rx_bad"] = sum(ep.bad for ep in self.endpoints)
+        c["tx_frames"] = sum(ep.tx for ep in self.endpoints)
+        c["sig_rejected"] = sum(ep.mav.signing.reject_count + ep.mav.signing.badsig_count
+                                for ep in self.endpoints if ep.signed)
+        return c
+
+    def _report(self, now: float) -> None:
+        stats = self.stats()
+        self._to_flight(("stats", stats))
+        rejected = sum(stats[k] for k in ("rx_bad", "rx_rejected", "rx_foreign", "sig_rejected"))
+        t_ms = (self.snap.t_us // 1000) & 0xFFFFFFFF
+        for ep in self.endpoints:
+            for name in ("rx_bad", "rx_rejected", "rx_foreign", "sig_rejected"):
+                ep.send(ep.mav.named_value_int_encode(t_ms, name[:10].encode(), stats[name] & 0x7FFFFFFF))
+        if rejected > self._rejects_reported and now - self._last_reject_text >= REJECT_TEXT_EVERY_S:
+            self.say(4, f"Input rejected: bad {stats['rx_bad']} range {stats['rx_rejected']} "
+                        f"foreign {stats['rx_foreign']} sig {stats['sig_rejected']}")
+            self._rejects_reported, self._last_reject_text = rejected, now
+
+    def run(self) -> None:
+        next_hb = time.monotonic()
+        next_stats = next_hb + STATS_EVERY_S
+        next_stream = next_hb
+        fds = [self.ipc, *self.endpoints]
+        self.ipc.setblocking(False)
+        try:
+            while True:
+                now = time.monotonic()
+                wait = min(next_hb, next_stats, next_stream) - now
+                if self._latest_sp or self._latest_sticks:
+                    wait = min(wait, SETPOINT_MIN_GAP_S)
+                ready, _, _ = select.select(fds, [], [], max(0.0, wait))
+                for r in ready:
+                    if r is self.ipc:
+                        if not self._read_ipc():
+                            return
+                    else:
+                        for msg in r.receive():
+                            self.handlers.handle(r, msg)
+                now = time.monotonic()
+                if now >= next_stream:
+                    self._stream()
+                    next_stream = max(next_stream + STREAM_POLL_S, now)
+                self._flush_setpoints(now)
+                if now >= next_hb:
+                    for ep in self.endpoints:
+                        ep.send(telemetry.heartbeat(ep.mav, self.snap))
+                    next_hb = max(next_hb + 1.0, now)
+                if now >= next_stats:
+                    self._report(now)
+                    next_stats = now + STATS_EVERY_S
+                self._housekeeping(now)
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        if self._dirty_since is not None:
+            self._save_params()
+        if self.tlog is not None:
+            self.tlog.close()
+        for ep in self.endpoints:
+            ep.close()
+
+
+def main(argv: list[str]) -> int:
+    spec = json.loads(argv[1])
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the flight process's; we end with it
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    sock = socket.socket(fileno=spec["fd"])
+    station = Station(spec["config"], spec["params"], sock, ipc.SnapshotSlot(spec["slot"]))
+    station._to_flight(("ready", {ep.name: ep.sock.getsockname()[1] for ep in station.endpoints}))
+    station.run()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv))

@@ -1,0 +1,97 @@
+"""Start `fcemu sitl` for real, on free loopback ports, and talk to it as a peer would."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class SitlProcess:
+    proc: subprocess.Popen
+    gcs_port: int
+    offboard_port: int
+    params: Path
+    tlog: Path
+    output: str = ""
+
+    def stop(self, timeout: float = 15.0) -> str:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        try:
+            out, err = self.proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, err = self.proc.communicate()
+        self.output = out + err
+        return self.output
+
+
+def start_sitl(tmp_path: Path, *extra: str, speed: str = "realtime", rig: str = "free",
+               controller: str = "pid", duration: float = 120.0) -> SitlProcess:
+    gcs, offboard = free_udp_port(), free_udp_port()
+    params = tmp_path / "params.json"
+    tlog = tmp_path / f"session{len(list(tmp_path.glob('session*.tlog')))}.tlog"
+    cmd = [sys.executable, "-m", "fcemu.cli", "sitl", "--controller", controller, "--rig", rig,
+           "--speed", speed, "--quiet", "--duration", str(duration), "--gcs", f"127.0.0.1:{gcs}",
+           "--offboard", f"127.0.0.1:{offboard}", "--params", str(params), "--tlog", str(tlog), *extra]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    return SitlProcess(proc, gcs, offboard, params, tlog)
+
+
+@pytest.fixture
+def sitl(tmp_path):
+    started: list[SitlProcess] = []
+
+    def factory(*extra: str, **kw) -> SitlProcess:
+        s = start_sitl(tmp_path, *extra, **kw)
+        started.append(s)
+        return s
+
+    yield factory
+    for s in started:
+        s.stop()
+
+
+def connect(port: int, timeout: float = 30.0, **kw):
+    """A pymavlink GCS listening where the vehicle sends (its udpout), once the first HEARTBEAT is in."""
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, **kw)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if conn.wait_heartbeat(timeout=1.0) is not None:
+            return conn
+    raise TimeoutError(f"no HEARTBEAT on {port} within {timeout} s")
+
+
+def wait_for(conn, kind: str, cond=lambda m: True, timeout: float = 10.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        msg = conn.recv_match(type=kind, blocking=True, timeout=0.2)
+        if msg is not None and cond(msg):
+            return msg
+    raise TimeoutError(f"no {kind} matching within {timeout} s")
+
+
+def command(conn, cmd: int, *params: float, timeout: float = 5.0):
+    p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
+    conn.mav.command_long_send(conn.target_system, 1, cmd, 0, *p)
+    return wait_for(conn, "COMMAND_ACK", lambda m: m.command == cmd, timeout)
