@@ -1,0 +1,159 @@
+"""`fcemu export` on real SB3 runs: parity, metadata round trip, and the checkpoints it refuses."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from export.cli import export_command
+from export.onnx_export import ExportError, build_actor, export_policy, find_checkpoint, load_model
+from fcemu import __version__
+from firmware.neural import NeuralRateController, read_metadata
+from firmware.observation import ObservationSpec
+from training.train import TrainConfig, train
+
+pytestmark = pytest.mark.slow
+
+
+def _tiny_run(root: Path, algo: str, memory: int, steps: int, hp: dict | None = None) -> Path:
+    out = root / algo
+    cfg = TrainConfig(algo=algo, steps=steps, seed=7, out=str(out), memory=memory, envs=4,
+                      checkpoint_every=steps // 2, eval_episodes=0, progress=False, hp=hp or {})
+    train(cfg)
+    return out
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("runs")
+    off_policy = {"learning_starts": 64, "buffer_size": 10_000, "batch_size": 32}
+    return {
+        "ppo": _tiny_run(root, "ppo", 2, 1024, {"n_steps": 64, "batch_size": 64}),
+        "sac": _tiny_run(root, "sac", 1, 256, off_policy),
+        "td3": _tiny_run(root, "td3", 3, 256, off_policy),
+    }
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac", "td3"])
+def test_parity_and_metadata_round_trip(runs, algo, tmp_path):
+    run = runs[algo]
+    out = tmp_path / f"{algo}.onnx"
+    report = export_policy(run, out, parity_samples=10_000)
+    assert report["parity_samples"] >= 10_000
+    assert report["parity_max_abs_diff"] <= 1e-5 and report["parity_ok"]
+    assert json.loads(out.with_suffix(".parity.json").read_text())["parity_ok"]
+
+    config = json.loads((run / "config.json").read_text())
+    meta = read_metadata(out)
+    spec = ObservationSpec.from_json(meta["observation"])
+    assert spec == ObservationSpec.from_json(json.dumps(config["observation"]))
+    assert spec.memory == {"ppo": 2, "sac": 1, "td3": 3}[algo]
+    assert meta["action_mapping"] == "throttle"
+    assert meta["algorithm"] == algo
+    assert int(meta["training_steps"]) == config["trained_steps"] > 0
+    assert meta["seed"] == "7"
+    assert meta["fcemu_version"] == __version__
+    assert float(meta["loop_rate_hz"]) == 1000.0
+    ctrl = NeuralRateController(out)
+    assert ctrl.spec == spec and ctrl.action_mapping == "throttle"
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_onnx_is_the_normalised_deterministic_actor(runs, algo, tmp_path):
+    """Independently of export's own check: ONNX(raw obs) == SB3 predict(VecNormalize(obs))."""
+    import pickle
+
+    run = runs[algo]
+    out = tmp_path / "p.onnx"
+    export_policy(run, out)
+    ckpt = find_checkpoint(run)
+    model = load_model(ckpt)
+    with open(ckpt.vecnormalize_path, "rb") as fh:
+        vecnorm = pickle.load(fh)
+    assert vecnorm.norm_obs and not np.allclose(vecnorm.obs_rms.mean, 0.0)  # normalisation was learnt
+    spec = ObservationSpec.from_json(json.dumps(ckpt.config["observation"]))
+    obs = np.random.default_rng(1).normal(0.0, 1.0, (2000, spec.size)).astype(np.float32)
+    obs[:, 3:7] = np.abs(obs[:, 3:7])  # rotor speeds are non-negative
+    expected = model.predict(vecnorm.normalize_obs(obs), deterministic=True)[0]
+    got = ort.InferenceSession(str(out)).run(None, {"observation": obs})[0]
+    inside = np.abs(got).max(axis=1) < 1.0  # predict clips to the action box; the ONNX output does not
+    assert inside.sum() > 100
+    np.testing.assert_allclose(got[inside], expected[inside], atol=1e-5)
+
+
+def test_checkpoint_zip_exports_with_its_own_normalisation(runs, tmp_path):
+    ckpts = sorted((runs["ppo"] / "checkpoints").glob("ppo_*_steps.zip"))
+    assert ckpts, "CheckpointCallback wrote no checkpoint"
+    ckpt = find_checkpoint(ckpts[0])
+    assert ckpt.vecnormalize_path is not None and "vecnormalize" in ckpt.vecnormalize_path.name
+    assert ckpt.vecnormalize_path.parent.name == "checkpoints"
+    report = export_policy(ckpts[0], tmp_path / "ckpt.onnx")
+    assert report["parity_ok"]
+
+
+def test_missing_config_is_refused(runs, tmp_path):
+    run = tmp_path / "noconfig"
+    shutil.copytree(runs["ppo"], run)
+    (run / "config.json").unlink()
+    with pytest.raises(ExportError, match=r"config\.json missing"):
+        export_policy(run, tmp_path / "x.onnx")
+
+
+def test_unknown_and_wrong_algorithm_are_refused(runs, tmp_path):
+    run = tmp_path / "wrong"
+    shutil.copytree(runs["ppo"], run)
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "algo": "a2c"}))
+    with pytest.raises(ExportError, match="algorithm 'a2c'"):
+        export_policy(run, tmp_path / "x.onnx")
+    (run / "config.json").write_text(json.dumps({**config, "algo": "sac"}))  # a PPO zip said to be SAC
+    with pytest.raises(ExportError, match="cannot load as SAC"):
+        export_policy(run, tmp_path / "x.onnx")
+
+
+def test_corrupt_zip_is_refused(runs, tmp_path):
+    run = tmp_path / "corrupt"
+    shutil.copytree(runs["ppo"], run)
+    (run / "model.zip").write_bytes(b"PK\x03\x04 not really a zip")
+    with pytest.raises(ExportError, match="cannot load as PPO"):
+        export_policy(run, tmp_path / "x.onnx")
+    assert not (tmp_path / "x.onnx").exists()
+
+
+def test_observation_shape_mismatch_is_refused(runs, tmp_path):
+    run = tmp_path / "mismatch"
+    shutil.copytree(runs["ppo"], run)
+    config = json.loads((run / "config.json").read_text())
+    config["observation"]["memory"] = 5  # the policy was trained with memory 2
+    (run / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ExportError, match="does not match"):
+        export_policy(run, tmp_path / "x.onnx")
+
+
+def test_cli_exit_codes(runs, tmp_path, capsys):
+    class Args:
+        checkpoint, out, parity_samples, json = str(runs["sac"]), str(tmp_path / "cli.onnx"), 10_000, True
+
+    assert export_command(Args) == 0
+    assert json.loads(capsys.readouterr().out)["parity_ok"]
+    Args.checkpoint = str(tmp_path / "nowhere.zip")
+    assert export_command(Args) == 2
+    assert "no such checkpoint" in capsys.readouterr().err
+
+
+def test_actor_output_is_independent_of_batch(runs):
+    ckpt = find_checkpoint(runs["td3"])
+    model = load_model(ckpt)
+    spec = ObservationSpec.from_json(json.dumps(ckpt.config["observation"]))
+    actor = build_actor(model, ckpt, spec)
+    x = torch.rand(16, spec.size)
+    with torch.no_grad():
+        batch = actor(x)
+        single = torch.cat([actor(x[i:i + 1]) for i in range(16)])
+    torch.testing.assert_close(batch, single, atol=1e-6, rtol=0)

@@ -1,0 +1,114 @@
+"""A short real training run: layout, export, flight in the firmware, and the in-training evaluator."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evaluation.metrics import AXES, compute_metrics
+from evaluation.runner import EvalConfig, run_controller
+from fcemu.cli import build_parser
+from firmware.neural import NeuralRateController
+from training import quick_eval
+from training.train import ALGOS, TrainConfig, parse_hp, train
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("train") / "smoke"
+    cfg = TrainConfig(algo="ppo", steps=4096, seed=3, out=str(out), envs=8, checkpoint_every=2048,
+                      eval_episodes=0, action_rate_penalty=0.1, progress=False,
+                      hp={"n_steps": 128, "batch_size": 256})
+    return out, train(cfg)
+
+
+def test_run_layout(run):
+    out, summary = run
+    for name in ("config.json", "model.zip", "vecnormalize.pkl", "policy.onnx", "summary.json"):
+        assert (out / name).is_file(), name
+    for steps in (2048, 4096):
+        assert (out / "checkpoints" / f"ppo_{steps}_steps.zip").is_file()
+        assert (out / "checkpoints" / f"ppo_vecnormalize_{steps}_steps.pkl").is_file()
+    assert any((out / "tb").rglob("events.out.tfevents.*"))
+    config = json.loads((out / "config.json").read_text())
+    assert config["algo"] == "ppo" and config["seed"] == 3 and config["trained_steps"] == 4096
+    assert config["action_mapping"] == "throttle" and config["throttle"] == [0.5, 0.9]
+    assert config["observation"]["memory"] == 1 and config["loop_rate_hz"] == 1000.0
+    assert config["env"]["action_rate_penalty"] == 0.1
+    assert summary["export"]["parity_ok"] and summary["steps"] == 4096
+
+
+def test_reward_terms_are_logged_separately(run):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out, _ = run
+    acc = EventAccumulator(str(next((out / "tb").iterdir())))
+    acc.Reload()
+    tags = acc.Tags()["scalars"]
+    assert "reward/paper" in tags and "reward/action_rate" in tags
+    assert all(e.value <= 0.0 for e in acc.Scalars("reward/paper"))
+    assert all(e.value >= 0.0 for e in acc.Scalars("reward/action_rate"))
+
+
+def test_exported_policy_flies_in_the_firmware(run):
+    out, _ = run
+    ctrl = NeuralRateController(out / "policy.onnx")
+    assert ctrl.action_mapping == "throttle"
+    traces = run_controller(str(out / "policy.onnx"), EvalConfig(episodes=3, seed=5), progress=False)
+    assert traces.extra["controller_faults"] == 0  # the policy itself flew every tick
+    assert np.isfinite(traces.rate).all() and traces.pwm.min() >= 1000 and traces.pwm.max() <= 2000
+    assert np.ptp(traces.pwm) > 0  # it did command the motors
+
+
+def test_batched_evaluation_matches_the_firmware_loop(run):
+    """The in-training evaluator scores a policy as `fcemu eval` does, on the same commands."""
+    out, _ = run
+    policy = NeuralRateController(out / "policy.onnx")
+    evaluator = quick_eval.BatchedEvaluator(3, seed=11)
+    batched = evaluator.traces(lambda obs: np.stack([policy.infer(o).copy() for o in obs]))
+    parts = [run_controller(str(out / "policy.onnx"), EvalConfig(episodes=1, seed=11 + i), progress=False)
+             for i in range(3)]
+    loop = quick_eval.concat_traces(parts, "onnx", 11)
+    np.testing.assert_array_equal(batched.setpoint, loop.setpoint)
+    np.testing.assert_allclose(batched.rate, loop.rate, atol=1e-6)
+    np.testing.assert_allclose(batched.pwm, loop.pwm, atol=1e-3)
+    a, b = compute_metrics(batched), compute_metrics(loop)
+    for axis in AXES:
+        assert a.stat("error", axis).mean == pytest.approx(b.stat("error", axis).mean, rel=1e-6)
+
+
+def test_bar_verdict_names_each_criterion(run):
+    out, _ = run
+    traces = run_controller(str(out / "policy.onnx"), EvalConfig(episodes=4, seed=2), progress=False)
+    pid = run_controller("pid", EvalConfig(episodes=4, seed=2), progress=False)
+    verdict = quick_eval.bar_verdict(compute_metrics(traces), {"pid": compute_metrics(pid)})
+    assert set(verdict["checks"]) == {"error_ratio", "success", "rise"}
+    assert verdict["meets_bar"] is False  # 4096 steps of training do not beat a PID
+    assert verdict["error_ratio"] > 1.0
+    same = quick_eval.bar_verdict(compute_metrics(pid), {"pid": compute_metrics(pid)})
+    assert same["error_ratio"] == 1.0 and not same["checks"]["error_ratio"] and same["checks"]["rise"]
+
+
+def test_config_and_cli():
+    assert set(ALGOS) == {"ppo", "trpo", "ddpg", "td3", "sac"}
+    with pytest.raises(ValueError, match="unknown algorithm"):
+        TrainConfig(algo="a2c")
+    with pytest.raises(ValueError, match="unknown reward"):
+        TrainConfig(reward="shaped")
+    assert parse_hp(["gamma=0.97", "n_steps=64", "net=[32, 32]", "name=x"]) == {
+        "gamma": 0.97, "n_steps": 64, "net": [32, 32], "name": "x"}
+    argv = "train --algo sac --memory 3 --steps 10 --seed 4 --envs 2 --out runs/x --throttle 0.6 0.8"
+    args = build_parser().parse_args(argv.split())
+    assert args.handler == "training.train:train_command"
+    from training.train import config_from_args
+
+    cfg = config_from_args(args)
+    got = (cfg.algo, cfg.memory, cfg.steps, cfg.seed, cfg.n_envs, cfg.throttle)
+    assert got == ("sac", 3, 10, 4, 2, (0.6, 0.8))
+    bench = build_parser().parse_args(["bench", "train", "--json", "--max-minutes", "1"])
+    assert bench.handler == "training.bench:bench_train" and bench.max_minutes == 1.0

@@ -1,0 +1,88 @@
+"""`fcemu bench train`: training throughput and the wall time until the policy beats the PID.
+
+Trains with the defaults of `fcemu train`, evaluating the deterministic policy every
+`--eval-every` steps on a fixed set of commands at hover (the in-training evaluation of
+`training.train.PidRaceCallback`), and stops when it beats the best PID preset's Error sum
+(`--target beat`) or meets issue 5's whole bar (`--target bar`), or at the cap. Wall time
+includes the evaluations; steps/s does not. The machine's load is reported with it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from training.train import PidRaceCallback, TrainConfig, train
+
+
+class _CappedRace(PidRaceCallback):
+    """The race, stopped at the target or at the wall-time cap; times its own evaluations."""
+
+    def __init__(self, cfg: TrainConfig, every: int, target: str, cap_s: float) -> None:
+        super().__init__(cfg, every)
+        self.target, self.cap_s = target, cap_s
+        self.eval_s = 0.0
+        self.reached: dict[str, Any] | None = None
+
+    def _on_step(self) -> bool:
+        if time.perf_counter() - self._t0 > self.cap_s:
+            return False
+        if self.num_timesteps < self._next:
+            return True
+        self._next += self.every
+        t = time.perf_counter()
+        verdict = self.evaluate()
+        self.eval_s += time.perf_counter() - t
+        self.logger.record("eval/error_ratio_vs_pid", verdict["error_ratio"])
+        hit = verdict["meets_bar"] if self.target == "bar" else verdict["error_ratio"] < 1.0
+        if hit:
+            self.reached = verdict
+        return not hit
+
+
+def bench_train(args) -> int:
+    steps_cap = 10**9  # the wall-time cap ends the race, not the step count
+    with tempfile.TemporaryDirectory(prefix="fcemu-bench-train-") as tmp:
+        out = Path(args.out) if args.out else Path(tmp) / "run"
+        cfg = TrainConfig(algo=args.algo, steps=steps_cap, seed=args.seed, out=str(out), envs=args.envs,
+                          eval_commands=args.eval_commands, eval_episodes=0, threads=args.threads,
+                          checkpoint_every=10**9, progress=not args.json and sys.stderr.isatty())
+        load_before = os.getloadavg()
+        race = _CappedRace(cfg, args.eval_every, args.target, args.max_minutes * 60.0)
+        summary = train(cfg, race=race)
+    train_s = summary["train_wall_s"]
+    reached = race.reached
+    result = {
+        "algo": args.algo,
+        "n_envs": cfg.n_envs,
+        "torch_threads": args.threads,
+        "steps": summary["steps"],
+        "wall_s": train_s,
+        "steps_per_s": round(summary["steps"] / max(train_s - race.eval_s, 1e-9), 1),
+        "target": args.target,
+        "time_to_beat_pid_s": None if reached is None else round(reached["wall_s"], 1),
+        "steps_to_beat_pid": None if reached is None else reached["steps"],
+        "cap_s": args.max_minutes * 60.0,
+        "pid": race.history[-1]["best_pid"] if race.history else None,
+        "pid_error_sum": race.history[-1]["pid_error_sum"] if race.history else None,
+        "eval_commands": args.eval_commands,
+        "evaluations": [{"steps": h["steps"], "wall_s": round(h["wall_s"], 1),
+                         "error_ratio": round(h["error_ratio"], 4), "meets_bar": h["meets_bar"]}
+                        for h in race.history],
+        "cpu_count": os.cpu_count(),
+        "loadavg_before": [round(x, 2) for x in load_before],
+        "loadavg_after": [round(x, 2) for x in os.getloadavg()],
+    }
+    if args.json:
+        print(json.dumps(result))
+    else:
+        beat = ("not reached" if reached is None else
+                f"{result['time_to_beat_pid_s']:.0f} s ({result['steps_to_beat_pid']} steps)")
+        print(f"{args.algo}: {result['steps_per_s']:.0f} steps/s over {result['steps']} steps; "
+              f"time to {args.target} {result['pid']}: {beat}; load {result['loadavg_after']}")
+    return 0

@@ -1,0 +1,57 @@
+"""`fcemu train` and `fcemu bench train` (argparse only: torch loads when a command runs)."""
+
+from __future__ import annotations
+
+import argparse
+
+ALGOS = ("ppo", "trpo", "ddpg", "td3", "sac")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="RL training of a rate controller (SB3 / sb3-contrib)")
+    p.add_argument("--algo", choices=ALGOS, default="ppo")
+    p.add_argument("--memory", type=int, default=1, help="observation history length m")
+    p.add_argument("--steps", type=int, default=3_000_000, help="environment steps (1 ms each)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--envs", type=int, default=None, help="parallel twins (default: per algorithm)")
+    p.add_argument("--out", default=None, help="run directory (default runs/ALGO)")
+    p.add_argument("--task", choices=("episodic", "continuous"), default="episodic")
+    p.add_argument("--action-mapping", choices=("gymfc", "throttle"), default="throttle")
+    p.add_argument("--throttle", type=float, nargs="+", default=None, metavar="T",
+                   help="collective for the throttle mapping: one value, or LO HI drawn per episode "
+                        "(default 0.5 0.9)")
+    p.add_argument("--action-rate-penalty", type=float, default=0.0,
+                   help="weight of Neuroflight's output-oscillation penalty (mean |Δu| per step)")
+    p.add_argument("--reward", choices=("paper", "unclipped"), default="unclipped",
+                   help="paper: −clip(Σ|e|/(3·Ω_max), 0, 1); unclipped: the same without the clip")
+    p.add_argument("--norm-reward", action=argparse.BooleanOptionalAction, default=None,
+                   help="VecNormalize reward scaling (default: per algorithm)")
+    p.add_argument("--norm-obs", action=argparse.BooleanOptionalAction, default=True,
+                   help="VecNormalize observation normalisation (folded into the exported ONNX graph)")
+    p.add_argument("--hp", nargs="*", metavar="KEY=VALUE", help="override algorithm hyper-parameters")
+    p.add_argument("--checkpoint-every", type=int, default=500_000, help="steps between checkpoints")
+    p.add_argument("--eval-every", type=int, default=0,
+                   help="steps between in-training evaluations against the PID (0: none)")
+    p.add_argument("--eval-episodes", type=int, default=1000,
+                   help="final evaluation commands through the firmware loop (0: skip)")
+    p.add_argument("--eval-seed", type=int, default=1)
+    p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.set_defaults(handler="training.train:train_command")
+
+
+def register_bench(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser("train", help="training steps/s and wall time until the policy beats the PID")
+    p.add_argument("--algo", choices=ALGOS, default="ppo")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--envs", type=int, default=None)
+    p.add_argument("--max-minutes", type=float, default=15.0, help="cap on the race against the PID")
+    p.add_argument("--eval-every", type=int, default=250_000, help="steps between evaluations")
+    p.add_argument("--eval-commands", type=int, default=64, help="fixed commands per evaluation")
+    p.add_argument("--target", choices=("beat", "bar"), default="beat",
+                   help="stop when the Error sum beats the PID's (beat) or meets issue 5's bar (bar)")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--out", default=None, help="keep the run here (default: a temporary directory)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler="training.bench:bench_train")

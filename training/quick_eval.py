@@ -1,0 +1,111 @@
+"""The in-training evaluation: the paper's metrics for a torch policy on the batched twin.
+
+`run_controller` flies an exported ONNX file through the firmware loop, one episode at a
+time (~40 ms each); during training we want a verdict in about a second. This flies the
+deterministic policy, with its observation normalisation, on `BatchedRateEnv` (the same
+twin arithmetic, bit for bit) and builds the same `Traces`, so `compute_metrics` scores
+it exactly as `fcemu eval` would. Copy i flies the command `episodic_commands(seed + i, 1)`,
+so the PID reference is `run_controller(pid, EvalConfig(episodes=1, seed=seed + i))`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from evaluation.metrics import AXES, EvalMetrics, compute_metrics
+from evaluation.runner import EvalConfig, run_controller
+from evaluation.traces import Traces
+from sim_bridge.vec_env import BatchedRateEnv
+
+
+def error_sum(metrics: EvalMetrics) -> float:
+    """The bar's figure: mean Error per episode, summed over roll, pitch and yaw."""
+    return float(sum(metrics.stat("error", a).mean for a in AXES))
+
+
+def concat_traces(parts: list[Traces], controller: str, seed: int) -> Traces:
+    return Traces(parts[0].t, np.concatenate([p.setpoint for p in parts]),
+                  np.concatenate([p.rate for p in parts]), np.concatenate([p.pwm for p in parts]),
+                  controller=controller, seed=seed, task="episodic")
+
+
+def pid_reference(spec: str, n: int, seed: int) -> Traces:
+    """The PID flown through the firmware loop on the commands the batched evaluation uses."""
+    parts = [run_controller(spec, EvalConfig(episodes=1, seed=seed + i), progress=False) for i in range(n)]
+    return concat_traces(parts, spec, seed)
+
+
+def pid_references(specs: tuple[str, ...], n: int, seed: int) -> dict[str, EvalMetrics]:
+    """Metrics of each PID preset that loads (a preset file still missing is skipped)."""
+    out = {}
+    for spec in specs:
+        try:
+            out[spec] = compute_metrics(pid_reference(spec, n, seed))
+        except FileNotFoundError:
+            continue
+    if not out:
+        raise FileNotFoundError(f"none of the PID presets {specs} could be loaded")
+    return out
+
+
+@dataclass
+class BatchedEvaluator:
+    """Fly a policy (obs → action, already normalised inside) over n fixed commands at hover."""
+
+    n: int
+    seed: int
+    memory: int = 1
+    action_mapping: str = "throttle"
+    env: BatchedRateEnv = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.env = BatchedRateEnv(self.n, task="episodic", memory=self.memory,
+                                  action_mapping=self.action_mapping, throttle=None)
+
+    def traces(self, act, name: str = "policy") -> Traces:
+        """`act(obs (n, size) float32) -> actions (n, 4)`; trace sample k is tick k, as in the runner."""
+        env, n = self.env, self.n
+        ticks = env.config.n_steps
+        obs, info = env.reset(seed=self.seed)
+        setpoint = np.broadcast_to(info["setpoint"][:, None, :], (n, ticks, 3)).copy()
+        rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))  # the rig starts at rest: rate[0] = 0
+        for k in range(ticks):
+            obs, _, _, _, info = env.step(np.clip(act(obs), -1.0, 1.0))
+            pwm[:, k] = info["pwm"]
+            if k + 1 < ticks:
+                rate[:, k + 1] = info["rate"]
+        t = np.arange(ticks) * env.config.dt
+        return Traces(t, setpoint, rate, pwm, controller=name, seed=self.seed, task="episodic")
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def sb3_actor(model, vecnormalize=None):
+    """A deterministic `act(obs)` for an SB3 model, normalising observations as in training."""
+    def act(obs: np.ndarray) -> np.ndarray:
+        if vecnormalize is not None:
+            obs = vecnormalize.normalize_obs(obs)
+        return model.predict(obs, deterministic=True)[0]
+    return act
+
+
+def bar_verdict(policy: EvalMetrics, pids: dict[str, EvalMetrics], error_ratio: float = 0.8,
+                min_success: float = 99.5) -> dict:
+    """Issue 5's bar against the best PID preset (lowest Error sum); every criterion and its margin."""
+    best = min(pids, key=lambda k: error_sum(pids[k]))
+    ref = pids[best]
+    pol_sum, ref_sum = error_sum(policy), error_sum(ref)
+    rise = {a: [policy.stat("rise_ms", a).mean, ref.stat("rise_ms", a).mean] for a in AXES}
+    success = {a: policy.stat("success_pct", a).mean for a in AXES}
+    checks = {
+        "error_ratio": pol_sum / ref_sum <= error_ratio,
+        "success": all(success[a] >= min_success for a in AXES),
+        "rise": all(p <= r for p, r in rise.values()),
+    }
+    return {"best_pid": best, "policy_error_sum": pol_sum, "pid_error_sum": ref_sum,
+            "error_ratio": pol_sum / ref_sum, "error_ratio_bar": error_ratio,
+            "success_pct": success, "success_bar": min_success,
+            "rise_ms_policy_vs_pid": rise, "checks": checks, "meets_bar": all(checks.values())}
