@@ -51,6 +51,7 @@ from sim_bridge.twin import Twin, TwinState
 log = logging.getLogger(__name__)
 
 STATUS_INTERVAL_S = 2.0
+_RIG_NAMES = {"rig": "ball-joint rig", "free": "free body"}
 # Non-blocking receive attempts (~1 µs each) before a blocking one. Waking a sleeping
 # process costs tens of µs on a VM, more than a whole lockstep round trip.
 SPIN_TRIES = 40
@@ -91,10 +92,10 @@ class AdaptiveSpin:
     """How many non-blocking receive tries (~1 µs each) to make before a blocking receive.
 
     On an idle VM, waking a sleeping process costs tens of µs, more than a whole
-    lockstep round trip, so a short spin doubles the rate; on a loaded machine the
-    spinning steals the time slice the peer needs, and blocking is several times
-    faster. So: spin while spinning catches packets, halve the budget on every miss,
-    and once it is zero try the full budget again every `probe_every` receives.
+    lockstep round trip, so a short spin can double the rate; on a loaded machine a
+    fixed spin steals the time slice the peer needs and cut the rate several-fold in
+    our measurements. So: spin while spinning catches packets, halve the budget on
+    every miss, and once it is zero try the full budget again every `probe_every` receives.
     """
 
     def __init__(self, full: int, probe_every: int = 256) -> None:
@@ -394,6 +395,7 @@ class UdpTwinClient:
                 counters["retries"] += 1
             sock.send(request)
             deadline = time.monotonic() + self.timeout
+            shortened = False
             while True:
                 try:
                     n = receive()
@@ -405,13 +407,17 @@ class UdpTwinClient:
                     break
                 if n == _FRAME_SIZE and HEADER.unpack_from(rx) == expected:
                     self._seq = seq
+                    if shortened:
+                        self._set_wait(self.timeout)
                     return frame_from_buffer(rx)
                 self._check_other_reply(memoryview(rx)[:n], seq)
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     break
-                self._set_wait(remaining)
-            self._set_wait(self.timeout)
+                self._set_wait(remaining)  # junk must not extend this attempt
+                shortened = True
+            if shortened:
+                self._set_wait(self.timeout)
         counters["timeouts"] += 1
         self._in_session = False
         self._seq = seq  # it may have been applied: the next RESET must not reuse its number
@@ -472,10 +478,10 @@ def serve_command(args) -> int:
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, on_sigterm)
-    # The line `spawn_server` waits for: print it only once SIGTERM stops us cleanly.
-    print(f"fcemu twin serve: {twin.airframe.name} in the {args.rig} rig, lockstep on udp://{host}:{port}",
-          flush=True)
     try:
+        # The line `spawn_server` waits for: printed only once SIGTERM stops us cleanly.
+        print(f"fcemu twin serve: {twin.airframe.name}, {_RIG_NAMES.get(args.rig, args.rig)}, lockstep on "
+              f"udp://{host}:{port}", flush=True)
         server.serve_forever()
     except KeyboardInterrupt:
         pass

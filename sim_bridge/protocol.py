@@ -50,7 +50,7 @@ class ErrorCode(IntEnum):
     BUSY = 6  # another client owns the session
     NO_SESSION = 7  # PWM before any RESET
     BAD_ARGUMENT = 8  # the twin refused the values (non-finite PWM, bad initial state)
-    INTERNAL = 9  # the server failed; the request was not applied
+    INTERNAL = 9  # the server failed on this request; reset() before going on
 
 
 HEADER = struct.Struct("<4sBBHQ")

@@ -137,7 +137,7 @@ class Twin:
             values = pwm.tolist() if isinstance(pwm, np.ndarray) else [float(v) for v in pwm]
         except TypeError:
             values = []
-        if len(values) != 4 or not all(isinstance(v, float) and math.isfinite(v) for v in values):
+        if len(values) != 4 or not all(isinstance(v, (float, int)) and math.isfinite(v) for v in values):
             raise ValueError(f"pwm must be 4 finite values in µs, got {pwm!r}")
         lo, hi, per_us, kf = self._pwm_lo, self._pwm_hi, self._cmd_per_us, self._kf
         up, down, omega = self._alpha_up, self._alpha_down, self._omega

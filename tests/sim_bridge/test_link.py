@@ -7,6 +7,7 @@ and server; foreign and malformed packets come from plain sockets.
 from __future__ import annotations
 
 import socket
+import struct
 import subprocess
 import threading
 import time
@@ -17,6 +18,7 @@ import pytest
 
 from firmware.sensors import SensorFrame
 from sim_bridge.link import (
+    AdaptiveSpin,
     InProcessLink,
     LinkError,
     LinkTimeout,
@@ -414,6 +416,8 @@ def test_client_drops_garbage_stale_and_foreign_replies() -> None:
         worker.join(timeout=5)
         assert result and result[0].t_us == 0
         assert client.counters["discarded"] == 3
+        raw = client._sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, 16)
+        assert struct.unpack("@ll", raw) == (1, 0)  # the junk's shortened wait did not stick
         client.close()
 
 
@@ -441,3 +445,19 @@ def test_serve_stops_on_sigterm_promptly() -> None:
         proc.kill()
         raise
     assert time.monotonic() - start < 5
+
+
+def test_adaptive_spin_backs_off_and_probes_again() -> None:
+    spin = AdaptiveSpin(40, probe_every=3)
+    spin.miss()
+    assert spin.budget == 20
+    spin.hit()
+    assert spin.budget == 40
+    for _ in range(6):
+        spin.miss()
+    assert spin.budget == 0
+    spin.miss()
+    spin.miss()
+    assert spin.budget == 0
+    spin.miss()
+    assert spin.budget == 40  # probing again after `probe_every` blocking receives
