@@ -195,11 +195,13 @@ class Vehicle:
         self.now_us = t_us
         self._frame = frame
         g, a = frame.gyro.tolist(), frame.accel.tolist()
+        # The estimator integrates over the sensors' own clock: a tick the loop skipped (a deadline
+        # miss) advances the loop clock but not the IMU.
         last = self._last_est_us
-        dt = 0.001 if last is None else (t_us - last) * 1e-6
-        self._last_est_us = t_us
+        dt = 0.001 if last is None else (frame.t_us - last) * 1e-6
+        self._last_est_us = frame.t_us
         est = self.estimator
-        if last is None and not self.armed:
+        if (last is None or dt <= 0.0) and not self.armed:
             est.level_from_accel(*a)
         elif 0.0 < dt < 0.1 and math.isfinite(g[0] + g[1] + g[2] + a[0] + a[1] + a[2]):
             est.update(g[0], g[1], g[2], a[0], a[1], a[2], dt)

@@ -159,7 +159,7 @@ class LinkedVehicle:
         compute = int(stats.compute_us[(ticks - 1) % stats.capacity]) if stats is not None and ticks else 0
         faults = sum(loop.faults.values()) if loop is not None and loop.faults else 0
         self.slot.write((
-            sample.t_us, v.armed, custom_mode(v.mode), v.landed_state, bool(v.failsafe),
+            frame.t_us, v.armed, custom_mode(v.mode), v.landed_state, bool(v.failsafe),
             CONTROLLERS.index(sample.controller) if sample.controller in CONTROLLERS else 255,
             self._armable and not v.armed, *v.estimator.q, *frame.gyro.tolist(),
             *frame.accel.tolist(), *sample.pwm.tolist(), *frame.rotor_speed.tolist(),

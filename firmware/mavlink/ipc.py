@@ -24,7 +24,7 @@ _FMT = struct.Struct("<qBIBBBB4f3f3f4f4f3ff3f3fBf3IQQ")
 
 
 class Snapshot(NamedTuple):
-    t_us: int  # loop clock
+    t_us: int  # the sensor frame's time (the twin's clock: skipped ticks do not advance it)
     armed: int
     custom_mode: int  # PX4 encoding
     landed_state: int  # MAV_LANDED_STATE
