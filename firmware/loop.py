@@ -76,9 +76,10 @@ class FlightLoop:
 
     Deadlines sit on an absolute grid (t0 + k·period), so the loop never drifts; a tick
     that overruns is counted as a miss and the loop resumes at the next grid point ahead
-    rather than catching up in a burst. A controller that raises or returns non-finite or
-    out-of-range PWM is replaced for that tick by `fallback` (or motors stop if there is
-    none), and the fault is counted; the loop itself never stops for bad data.
+    rather than catching up in a burst; the plant steps through the skipped slots with the
+    last PWM held, so simulated time stays on the loop's clock. A controller that raises or
+    returns non-finite or out-of-range PWM is replaced for that tick by `fallback` (or the
+    motors stop if there is none), and the fault is counted; the loop never stops for bad data.
     """
 
     def __init__(
@@ -127,6 +128,12 @@ class FlightLoop:
             sink.publish(sample)
         self.last_sample = sample
         return sample
+
+    def _hold_outputs(self, slots: int) -> None:
+        """The world does not wait for a late tick: ESCs hold the last PWM through skipped slots."""
+        pwm = self.last_sample.pwm if self.last_sample is not None else DISARMED_PWM
+        for _ in range(slots):
+            self.frame = self.plant.pwm_write(pwm)
 
     def _switch(self, name: str) -> None:
         controller = self.controllers.get(name)
@@ -184,6 +191,7 @@ class FlightLoop:
                         missed = (now - deadline) // period + 1
                         stats.deadline_misses += missed
                         deadline += missed * period
+                        self._hold_outputs(missed)
                     slack = deadline - now
                     if n % GC_EVERY_TICKS == 0 and slack > GC_SLACK_US:
                         gc.collect(0)

