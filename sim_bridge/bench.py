@@ -72,9 +72,39 @@ def udp_steps_per_s(args: argparse.Namespace) -> float:
             proc.wait()
 
 
+def env_steps_per_s(args: argparse.Namespace) -> float:
+    """RateControlEnv.step, one Gymnasium environment (episodic task)"""
+    from sim_bridge.env_bench import env_steps_per_s as measure
+
+    return measure(seconds=args.seconds)
+
+
+def vec_env_steps_per_s(args: argparse.Namespace) -> float:
+    """BatchedRateEnv, aggregate environment steps over --envs twins in one call"""
+    from sim_bridge.env_bench import vec_env_steps_per_s as measure
+
+    return measure(n_envs=args.envs, seconds=args.seconds)
+
+
+def sitl_lockstep_ticks_per_s(args: argparse.Namespace) -> float:
+    """firmware loop ticks (PID + mixer + twin) in lockstep, as `fcemu sitl --speed max`"""
+    from firmware.loop import ScriptedCommander
+    from firmware.sitl import build_sitl
+
+    sitl = build_sitl("pid", rig="rig", realtime=False,
+                      commander=ScriptedCommander([(0.0, (1.0, -1.0, 0.5), 0.7)], controller="pid"))
+    start = time.perf_counter()
+    end = start + args.seconds
+    sitl.loop.run(should_stop=lambda: time.perf_counter() > end)
+    return sitl.loop.stats.ticks / (time.perf_counter() - start)
+
+
 MEASUREMENTS: dict[str, Callable[[argparse.Namespace], float]] = {
     "twin_steps_per_s": twin_steps_per_s,
     "udp_steps_per_s": udp_steps_per_s,
+    "env_steps_per_s": env_steps_per_s,
+    "vec_env_steps_per_s": vec_env_steps_per_s,
+    "sitl_lockstep_ticks_per_s": sitl_lockstep_ticks_per_s,
 }
 
 

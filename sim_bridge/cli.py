@@ -25,6 +25,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     sim = bench_sub.add_parser("sim", help="twin, UDP link and environment throughput")
     sim.add_argument("--seconds", type=float, default=2.0, help="time per measurement")
-    sim.add_argument("--envs", type=int, default=64, help="batch size for the vectorised env")
+    sim.add_argument("--envs", type=int, default=256, help="batch size for the vectorised env")
     sim.add_argument("--json", action="store_true")
     sim.set_defaults(handler="sim_bridge.bench:bench_sim")
