@@ -39,9 +39,14 @@ class OuterLoop:
         self.z_int = 0.0
 
     def rates(self, att, pos, tilt_limit: float = 0.2) -> tuple[float, float, float]:
-        # Horizontal hold over the take-off point (yaw stays ~0, so NED x/y ≈ body forward/right).
-        roll_sp = max(-tilt_limit, min(tilt_limit, 0.12 * -pos.y + 0.18 * -pos.vy))
-        pitch_sp = max(-tilt_limit, min(tilt_limit, -(0.12 * -pos.x + 0.18 * -pos.vx)))
+        # Horizontal hold over the take-off point (yaw stays ~0, so NED x/y ≈ body forward/right):
+        # position → a capped velocity → tilt, so that a large offset (after the flip) is flown
+        # back at walking pace rather than with ever more speed to brake.
+        def tilt(p: float, v: float) -> float:
+            v_sp = max(-1.5, min(1.5, -0.8 * p))
+            return max(-tilt_limit, min(tilt_limit, 0.25 * (v_sp - v)))
+
+        roll_sp, pitch_sp = tilt(pos.y, pos.vy), -tilt(pos.x, pos.vx)
         k, lim = 5.0, 6.0
         roll_rate = max(-lim, min(lim, k * (roll_sp - att.roll)))
         pitch_rate = max(-lim, min(lim, k * (pitch_sp - att.pitch)))
@@ -70,12 +75,12 @@ def fly(conn, altitude: float, timeout: float, log: list) -> dict:
         conn.mav.set_attitude_target_send(t_ms, conn.target_system, 1, IGNORE_ATTITUDE, [1, 0, 0, 0],
                                           *rates, thrust)
 
-    phase, t_phase, t_prev, att = "offboard", None, None, None
+    phase, t_phase, t_prev, att, disarm_sent = "offboard", None, None, None, None
     flip_angle, max_alt, flip_time, events = 0.0, 0.0, None, []
     wall_deadline = time.monotonic() + timeout
     while time.monotonic() < wall_deadline:
-        msg = conn.recv_match(type=["ATTITUDE", "LOCAL_POSITION_NED", "HEARTBEAT", "STATUSTEXT"],
-                              blocking=True, timeout=1.0)
+        msg = conn.recv_match(type=["ATTITUDE", "LOCAL_POSITION_NED", "HEARTBEAT", "STATUSTEXT",
+                                    "COMMAND_ACK"], blocking=True, timeout=1.0)
         if msg is None:
             continue
         kind = msg.get_type()
@@ -85,9 +90,10 @@ def fly(conn, altitude: float, timeout: float, log: list) -> dict:
         if kind == "STATUSTEXT":
             events.append(msg.text)
             continue
-        if kind == "HEARTBEAT":
-            armed = bool(msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED)
-            if phase == "landing" and not armed:
+        if kind in ("HEARTBEAT", "COMMAND_ACK"):
+            disarmed = (not msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED if kind == "HEARTBEAT" else
+                        msg.command == M.MAV_CMD_COMPONENT_ARM_DISARM and msg.result == M.MAV_RESULT_ACCEPTED)
+            if phase == "touchdown" and disarmed:
                 phase = "done"
                 break
             continue
@@ -128,22 +134,34 @@ def fly(conn, altitude: float, timeout: float, log: list) -> dict:
                 phase, t_phase, flip_time = "recover", t, elapsed
                 outer.z_int = 0.0
         elif phase == "recover":
-            rates = outer.rates(att, pos, tilt_limit=0.0)
+            rates = outer.rates(att, pos, tilt_limit=0.1)
             thrust = outer.thrust(att, pos, -altitude, 0.0, dt)
             if elapsed > 3.0:
                 phase, t_phase = "landing", t
-        elif phase == "landing":
-            speed = 0.6 if alt > 1.2 else 0.25
+        elif phase == "landing":  # touch down level and without drift, or a skid can tip it over
+            drifting = math.hypot(pos.vx, pos.vy) > 0.4 and alt < 1.2
+            speed = 0.0 if drifting else 0.6 if alt > 1.2 else 0.25
             z_sp = pos.z + 0.1 * speed
-            rates = outer.rates(att, pos)
+            rates = outer.rates(att, pos, tilt_limit=0.2 if alt > 0.5 else 0.05)
             thrust = outer.thrust(att, pos, z_sp, speed, dt)
-            if alt < 0.2 and abs(pos.vz) < 0.15 and elapsed > 1.0:
-                thrust = 0.0
+            if alt < 0.2 and elapsed > 1.0:  # within 10 cm of resting height: a bounce would only climb
+                phase, t_phase, disarm_sent = "touchdown", t, None
+        elif phase == "touchdown":  # latched: motors to idle and disarm, asked again until it is done
+            if disarm_sent is None or t - disarm_sent > 0.5:
                 conn.mav.command_long_send(conn.target_system, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0,
                                            0, 0, 0, 0, 0, 0, 0)
+                disarm_sent = t
         send(rates, thrust, att.time_boot_ms)
         log.append((t, pos.x, pos.y, pos.z, att.roll, att.pitch, att.yaw, att.rollspeed, att.pitchspeed,
                     att.yawspeed, *rates, thrust))
+    if phase == "done":  # how it came to rest, after the motors stopped
+        settle_until = time.monotonic() + 1.0
+        while (msg := conn.recv_match(type=["ATTITUDE", "LOCAL_POSITION_NED"], blocking=True,
+                                      timeout=0.2)) is not None or time.monotonic() < settle_until:
+            if time.monotonic() > settle_until:
+                break
+            if msg is not None:
+                att, pos = (msg, pos) if msg.get_type() == "ATTITUDE" else (att, msg)
     cos_tilt = math.cos(att.roll) * math.cos(att.pitch) if att is not None else -1.0
     tilt = math.degrees(math.acos(max(-1.0, min(1.0, cos_tilt))))
     return {"completed": phase == "done" and tilt < 20.0, "phase": phase, "final_tilt_deg": round(tilt, 1),

@@ -7,6 +7,7 @@ import json
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "pymavlink_flip.py"
@@ -71,9 +72,11 @@ def run_demo(controller: str, speed: float, out: Path, timeout_s: float = 150.0)
         calls[0] += 1
         return calls[0] % 100 == 0 and script.poll() is not None
 
+    wall0 = time.monotonic()
     try:
         vs.sitl.loop.run(timeout_s * speed, should_stop=finished)
     finally:
+        wall_s = time.monotonic() - wall0
         mav = vs.stop()
         if script.poll() is None:
             script.terminate()
@@ -82,7 +85,9 @@ def run_demo(controller: str, speed: float, out: Path, timeout_s: float = 150.0)
     stats = vs.sitl.loop.stats.summary()
     result = {"controller": controller, "speed": speed, "flight": flight,
               "loop": {"ticks": stats["ticks"], "deadline_misses": stats["deadline_misses"],
-                       "compute_us_p99": stats["compute_us"]["p99"]},
+                       "compute_us_p99": stats["compute_us"]["p99"],
+                       "achieved_speed": round(stats["ticks"] * vs.sitl.loop.period_us / 1e6 / wall_s, 2),
+                       "clock_rebases": getattr(vs.sitl.loop.clock, "rebases", 0)},
               "vehicle": vs.vehicle.counters, "mavlink": mav, "tlog": str(out / "flight.tlog")}
     if log.exists():
         title = f"fcemu demo: take-off, flip, land ({Path(controller).name}, {speed:g}× real time)"
@@ -111,7 +116,8 @@ def demo_command(args) -> int:
               f"  "
               f"landed at {f.get('final_altitude_m')} m  ({f.get('flight_s')} s of flight)")
         lp = result["loop"]
-        print(f"loop: {lp['ticks']} ticks, {lp['deadline_misses']} deadline misses, "
+        print(f"loop: {lp['ticks']} ticks at {lp['achieved_speed']:g}× real time, "
+              f"{lp['deadline_misses']} deadline misses, "
               f"p99 compute {lp['compute_us_p99']:.0f} µs   vehicle events: {result['vehicle']}")
         print(f"MAVLink: {result['mavlink'].get('rx_frames', 0)} frames in, "
               f"{result['mavlink'].get('tx_frames', 0)} out, rejected "

@@ -31,27 +31,46 @@ class Sitl:
     selected: str = "pid"  # the controller key the --controller option chose
 
 
-class ScaledClock(RealTimeClock):
-    """Wall time sped up `factor` times: loop time advances factor µs per µs of wall time."""
+class ScaledClock:
+    """Simulated time paced at `factor`× wall time, as a ceiling: when the host cannot keep up,
+    the simulation slows down instead of skipping ticks.
 
-    def __init__(self, factor: float, spin_us: int = 50) -> None:
+    A real-time loop that overruns must skip (the world does not wait); a simulated one need
+    not, and skipping would only make the vehicle fly worse because the host is busy. So this
+    clock is not `realtime` to the loop: every tick runs, on the exact loop-time grid. Lags
+    shorter than `max_lag_us` of loop time are caught up; longer ones move the wall-time origin
+    (counted in `rebases`, with the lost time in `lost_us`).
+    """
+
+    realtime = False
+
+    def __init__(self, factor: float, max_lag_us: int = 20_000) -> None:
         if not factor > 0:
             raise ValueError(f"speed factor must be positive, got {factor}")
-        super().__init__(spin_us)  # spin less than real time does: N× pacing is for speed, not jitter
         self.factor = factor
+        self.max_lag_us = max_lag_us
+        self.rebases = 0
+        self.lost_us = 0
         self._t0 = time.perf_counter_ns()
+        self._now = 0
 
-    def now_us(self) -> int:
+    def _scaled_us(self) -> int:
         return int((time.perf_counter_ns() - self._t0) * self.factor) // 1000
 
+    def now_us(self) -> int:
+        return self._now
+
     def wait_until(self, deadline_us: int) -> int:
-        remaining_wall = (deadline_us - self.now_us()) / self.factor
-        if remaining_wall > self.spin_us:
-            time.sleep((remaining_wall - self.spin_us) * 1e-6)
-        now = self.now_us()
-        while now < deadline_us:
-            now = self.now_us()
-        return now
+        remaining_wall_us = (deadline_us - self._scaled_us()) / self.factor
+        if remaining_wall_us > 0:
+            time.sleep(remaining_wall_us * 1e-6)
+        elif -remaining_wall_us * self.factor > self.max_lag_us:
+            lag_us = self._scaled_us() - deadline_us
+            self._t0 += int(lag_us * 1000 / self.factor)
+            self.rebases += 1
+            self.lost_us += lag_us
+        self._now = max(self._now, deadline_us)
+        return self._now
 
 
 def parse_speed(text: str) -> float | None:

@@ -15,6 +15,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware.mavlink import telemetry
 from firmware.params import CONTROLLERS, REAL32
+from firmware.vehicle import FORCE_ARM_MAGIC
 
 if TYPE_CHECKING:
     from firmware.mavlink.endpoint import Endpoint
@@ -28,6 +29,7 @@ RC_IGNORE = (0, 65535)
 QUIET = frozenset({"COMMAND_ACK", "REQUEST_DATA_STREAM", "SYSTEM_TIME", "PING", "RADIO_STATUS",
                    "PARAM_EXT_REQUEST_LIST", "MISSION_SET_CURRENT", "GPS_RTCM_DATA", "LOG_REQUEST_LIST"})
 ACKED_IN_FLIGHT = (M.MAV_CMD_COMPONENT_ARM_DISARM, M.MAV_CMD_DO_SET_MODE, M.MAV_CMD_NAV_LAND)
+
 
 
 def _finite(*values: float) -> bool:
@@ -123,28 +125,37 @@ class Handlers:
     def on_command_int(self, ep: Endpoint, msg) -> None:
         self._command(ep, msg, (msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y, msg.z))
 
-    def _command(self, ep: Endpoint, msg, p: tuple) -> None:
+    def _command(self, ep: Endpoint, msg, raw: tuple) -> None:
         if not self._for_us(msg):
             return
         cmd = msg.command
         ack = self.st.ack
-        if not _finite(*p):
+        # NaN is MAVLink's "unset" (MAVSDK sends it in every param a command does not use):
+        # it becomes None here and is refused only where the command needs the value.
+        # Infinity is never valid.
+        if not all(isinstance(v, int | float) and not math.isinf(v) for v in raw):
             self._reject()
             return ack(ep, msg, cmd, M.MAV_RESULT_DENIED)
+        p = tuple(None if math.isnan(v) else v for v in raw)
         if cmd == M.MAV_CMD_COMPONENT_ARM_DISARM:
             if p[0] not in (0.0, 1.0):
                 self._reject()
                 return ack(ep, msg, cmd, M.MAV_RESULT_DENIED)
-            return self.st.forward_command(ep, ("arm", p[0] == 1.0, int(p[1]) == 21196), cmd, msg)
+            force = p[1] is not None and abs(p[1]) < 1 << 31 and int(p[1]) == FORCE_ARM_MAGIC
+            return self.st.forward_command(ep, ("arm", p[0] == 1.0, force), cmd, msg)
         if cmd == M.MAV_CMD_DO_SET_MODE:
-            custom = int(p[0]) & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-            if not custom or not (0 <= p[1] < 256 and 0 <= p[2] < 256):
+            base, main, sub = p[0], p[1], 0.0 if p[2] is None else p[2]
+            if base is None or main is None or not int(base) & M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED \
+                    or not (0 <= main < 256 and 0 <= sub < 256):
                 self._reject()
                 return ack(ep, msg, cmd, M.MAV_RESULT_DENIED)
-            return self.st.forward_command(ep, ("mode", int(p[1]), int(p[2])), cmd, msg)
+            return self.st.forward_command(ep, ("mode", int(main), int(sub)), cmd, msg)
         if cmd == M.MAV_CMD_NAV_LAND:
             return self.st.forward_command(ep, ("mode", 4, 6), cmd, msg)
         if cmd in (M.MAV_CMD_REQUEST_MESSAGE, M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
+            if cmd == M.MAV_CMD_REQUEST_MESSAGE and (p[0] is None or not 0 <= p[0] < 1 << 24):
+                self._reject()
+                return ack(ep, msg, cmd, M.MAV_RESULT_DENIED)
             msgid = M.MAVLINK_MSG_ID_AUTOPILOT_VERSION if cmd != M.MAV_CMD_REQUEST_MESSAGE else int(p[0])
             if msgid not in telemetry.REQUESTABLE and msgid != M.MAVLINK_MSG_ID_MESSAGE_INTERVAL:
                 self.st.count("rx_unsupported")
@@ -154,12 +165,15 @@ class Handlers:
             ack(ep, msg, cmd, M.MAV_RESULT_ACCEPTED)
             return self.st.send_one(ep, msgid)
         if cmd == M.MAV_CMD_SET_MESSAGE_INTERVAL:
+            if p[0] is None or p[1] is None:
+                self._reject()
+                return ack(ep, msg, cmd, M.MAV_RESULT_DENIED)
             ok = self.st.scheduler(ep).set_interval(int(p[0]), p[1]) if 0 <= p[0] < 1 << 24 else False
             if not ok:
                 self.st.count("rx_unsupported")
             return ack(ep, msg, cmd, M.MAV_RESULT_ACCEPTED if ok else M.MAV_RESULT_UNSUPPORTED)
         if cmd == M.MAV_CMD_GET_MESSAGE_INTERVAL:
-            msgid = int(p[0]) if 0 <= p[0] < 1 << 24 else 0
+            msgid = int(p[0]) if p[0] is not None and 0 <= p[0] < 1 << 24 else 0
             ack(ep, msg, cmd, M.MAV_RESULT_ACCEPTED)
             return ep.send(ep.mav.message_interval_encode(msgid, self.st.scheduler(ep).interval(msgid)))
         self.st.count("rx_unsupported")

@@ -111,6 +111,9 @@ class Station:
             return
         self._req += 1
         self._pending[self._req] = (ep, command, msg, time.monotonic())
+        # Setpoints and sticks received before the command must reach the vehicle before it: an
+        # ARM right after MANUAL_CONTROL is judged on that throttle, not on the previous one.
+        self._flush_setpoints(time.monotonic(), force=True)
         self._to_flight((request[0], self._req, *request[1:]))
 
     def send_one(self, ep: Endpoint, msgid: int) -> None:
@@ -128,6 +131,7 @@ class Station:
                                             len(table), index))
 
     def param_changed(self, name: str) -> None:
+        self._flush_setpoints(time.monotonic(), force=True)
         self._to_flight(("param", name, self.params[name]))
         self.send_param(None, name, self.params.index(name))  # every link learns of it, as PX4 does
         if self._dirty_since is None:
@@ -198,8 +202,8 @@ class Station:
             except OSError as exc:
                 self.say(3, f"Param save failed: {exc}"[:50])
 
-    def _flush_setpoints(self, now: float) -> None:
-        if (self._latest_sp or self._latest_sticks) and now - self._sp_sent >= SETPOINT_MIN_GAP_S:
+    def _flush_setpoints(self, now: float, force: bool = False) -> None:
+        if (self._latest_sp or self._latest_sticks) and (force or now - self._sp_sent >= SETPOINT_MIN_GAP_S):
             for m in (self._latest_sp, self._latest_sticks):
                 if m is not None:
                     self._to_flight(m)

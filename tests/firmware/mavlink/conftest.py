@@ -16,10 +16,26 @@ import pytest
 ROOT = Path(__file__).resolve().parents[3]
 
 
+# pymavlink listeners bound to port 0 before the SITL starts, by port: a port the kernel gave us
+# and we still hold cannot be taken by another test or process in the meantime.
+_LISTENERS: dict[int, object] = {}
+
+
 def free_udp_port() -> int:
+    """A free port for a peer that binds it itself (MAVProxy, MAVSDK): probed, then released."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def listen() -> int:
+    """Bind a pymavlink GCS connection on a kernel-chosen loopback port; `connect(port)` takes it."""
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255)
+    port = conn.port.getsockname()[1]
+    _LISTENERS[port] = conn
+    return port
 
 
 @dataclass
@@ -44,8 +60,11 @@ class SitlProcess:
 
 
 def start_sitl(tmp_path: Path, *extra: str, speed: str = "realtime", rig: str = "free",
-               controller: str = "pid", duration: float = 120.0) -> SitlProcess:
-    gcs, offboard = free_udp_port(), free_udp_port()
+               controller: str = "pid", duration: float = 120.0, gcs: int | None = None,
+               offboard: int | None = None) -> SitlProcess:
+    """`fcemu sitl` sending to `gcs` and `offboard` (default: fresh pymavlink listeners)."""
+    gcs = gcs if gcs is not None else listen()
+    offboard = offboard if offboard is not None else listen()
     params = tmp_path / "params.json"
     tlog = tmp_path / f"session{len(list(tmp_path.glob('session*.tlog')))}.tlog"
     cmd = [sys.executable, "-m", "fcemu.cli", "sitl", "--controller", controller, "--rig", rig,
@@ -68,13 +87,22 @@ def sitl(tmp_path):
     yield factory
     for s in started:
         s.stop()
+        for port in (s.gcs_port, s.offboard_port):
+            conn = _LISTENERS.pop(port, None)
+            if conn is not None:
+                conn.close()
 
 
-def connect(port: int, timeout: float = 30.0, **kw):
+def connect(port: int, timeout: float = 30.0, source_system: int = 255, source_component: int = 0):
     """A pymavlink GCS listening where the vehicle sends (its udpout), once the first HEARTBEAT is in."""
     from pymavlink import mavutil
 
-    conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, **kw)
+    conn = _LISTENERS.pop(port, None)
+    if conn is None:
+        conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=source_system,
+                                          source_component=source_component)
+    conn.source_system = conn.mav.srcSystem = source_system
+    conn.source_component = conn.mav.srcComponent = source_component
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if conn.wait_heartbeat(timeout=1.0) is not None:

@@ -34,6 +34,7 @@ def test_pymavlink_script_flies_the_flip_faster_than_real_time(tmp_path) -> None
     assert flight["final_altitude_m"] < 0.3 and flight["final_tilt_deg"] < 20
     assert (tmp_path / "flight.png").stat().st_size > 10_000
     assert result["mavlink"]["rx_frames"] > 500
+    assert result["loop"]["achieved_speed"] > 1.0
 
 
 @pytest.mark.timeout(90)
