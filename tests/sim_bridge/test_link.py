@@ -25,7 +25,6 @@ from sim_bridge.link import (
     RemoteError,
     Transport,
     UdpTwinClient,
-    UdpTwinServer,
     spawn_server,
 )
 from sim_bridge.protocol import (
@@ -43,6 +42,7 @@ from sim_bridge.protocol import (
     encode_reset,
 )
 from sim_bridge.twin import SensorNoise, Twin, TwinState
+from sim_bridge.twin_server import UdpTwinServer
 
 pytestmark = pytest.mark.timeout(30)
 
