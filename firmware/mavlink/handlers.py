@@ -9,6 +9,7 @@ when its answer comes back (`Station.on_ack`).
 from __future__ import annotations
 
 import math
+import struct
 from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -30,6 +31,12 @@ QUIET = frozenset({"COMMAND_ACK", "REQUEST_DATA_STREAM", "SYSTEM_TIME", "PING", 
                    "PARAM_EXT_REQUEST_LIST", "MISSION_SET_CURRENT", "GPS_RTCM_DATA", "LOG_REQUEST_LIST"})
 ACKED_IN_FLIGHT = (M.MAV_CMD_COMPONENT_ARM_DISARM, M.MAV_CMD_DO_SET_MODE, M.MAV_CMD_NAV_LAND)
 
+
+
+FTP_HEADER = struct.Struct("<HBBBBBBI")  # seq, session, opcode, size, req_opcode, burst_complete, pad, offset
+FTP_TERMINATE_SESSION, FTP_RESET_SESSIONS, FTP_ACK, FTP_NAK = 1, 2, 128, 129
+FTP_LOOKUPS = (3, 4, 14, 16)  # ListDirectory, OpenFileRO, CalcFileCRC32, ListDirectoryWithTime
+FTP_ERR_UNKNOWN_COMMAND, FTP_ERR_FILE_NOT_FOUND = 7, 10
 
 
 def _finite(*values: float) -> bool:
@@ -220,6 +227,23 @@ class Handlers:
 
     def on_param_ext_request_read(self, ep: Endpoint, msg) -> None:
         self.st.count("rx_unsupported")
+
+    # ---- MAVLink FTP (none) ----
+    def on_file_transfer_protocol(self, ep: Endpoint, msg) -> None:
+        """No file system: each request is answered at once (NAK, or ACK to end a session), so
+        clients fall back without waiting out their timeouts (MAVProxy's parameter download)."""
+        if not self._for_us(msg):
+            return
+        seq, session, opcode, *_ = FTP_HEADER.unpack_from(bytes(msg.payload))
+        if opcode in (FTP_TERMINATE_SESSION, FTP_RESET_SESSIONS):
+            reply, size, data = FTP_ACK, 0, 0
+        else:
+            reply, size = FTP_NAK, 1
+            data = FTP_ERR_FILE_NOT_FOUND if opcode in FTP_LOOKUPS else FTP_ERR_UNKNOWN_COMMAND
+        self.st.count("rx_unsupported")
+        body = FTP_HEADER.pack((seq + 1) & 0xFFFF, session, reply, size, opcode, 0, 0, 0) + bytes([data])
+        ep.send(ep.mav.file_transfer_protocol_encode(0, msg.get_srcSystem(), msg.get_srcComponent(),
+                                                     list(body.ljust(251, b"\0"))))
 
     # ---- mission (none) and time ----
     def on_mission_request_list(self, ep: Endpoint, msg) -> None:
