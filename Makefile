@@ -17,7 +17,7 @@ $(VENV)/.dev: $(VENV)/.runtime
 	touch $@
 
 demo: $(VENV)/.runtime
-	$(VENV)/bin/fcemu twin demo
+	$(VENV)/bin/fcemu demo
 
 test: $(VENV)/.dev
 	$(PY) -m ruff check .
