@@ -1,0 +1,72 @@
+"""MAVLink 2 signing required on one link (`--peer host:port:signed --signing-key FILE`): unsigned
+and wrongly signed commands from that peer are refused and counted, signed ones obeyed; the
+other links stay unsigned."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from pymavlink.dialects.v20 import common as M
+
+from tests.firmware.mavlink.conftest import command, connect, listen, wait_for
+
+pytestmark = pytest.mark.timeout(90)
+KEY = bytes(range(1, 33))
+ARM = M.MAV_CMD_COMPONENT_ARM_DISARM
+SIGNED_FLAG = 0x01  # MAVLINK_IFLAG_SIGNED
+
+
+def armed(conn) -> bool:
+    return bool(wait_for(conn, "HEARTBEAT", lambda m: m.get_srcSystem() == 1, timeout=5).base_mode
+                & M.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+def no_ack(conn, cmd: int, seconds: float = 1.5) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        m = conn.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.2)
+        if m is not None and m.command == cmd:
+            return False
+    return True
+
+
+def test_signed_link_refuses_unsigned_and_wrongly_signed_commands_obeys_signed_ones(sitl, tmp_path) -> None:
+    key_file = tmp_path / "signing.key"
+    key_file.write_text(KEY.hex() + "\n")
+    port = listen()
+    s = sitl("--peer", f"127.0.0.1:{port}:signed", "--signing-key", str(key_file))
+    gcs = connect(s.gcs_port)
+    peer = connect(port, source_system=250, source_component=190)
+    # The vehicle signs what it sends on the marked link only.
+    hb = wait_for(peer, "HEARTBEAT", lambda m: m.get_srcSystem() == 1)
+    assert hb._header.incompat_flags & SIGNED_FLAG
+    assert not gcs.messages["HEARTBEAT"]._header.incompat_flags & SIGNED_FLAG
+
+    # Unsigned: no answer, nothing done.
+    peer.mav.command_long_send(1, 1, ARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    peer.mav.param_request_read_send(1, 1, b"COM_OF_LOSS_T", -1)
+    assert no_ack(peer, ARM)
+    assert "PARAM_VALUE" not in peer.messages  # (every message received is kept there by type)
+    assert not armed(gcs)
+
+    # Signed with another key: the same.
+    peer.setup_signing(bytes(32 * [7]), sign_outgoing=True)
+    peer.mav.command_long_send(1, 1, ARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    assert no_ack(peer, ARM)
+    assert not armed(gcs)
+    rejected = wait_for(gcs, "NAMED_VALUE_INT", lambda m: m.name == "sig_reject" and m.value >= 2, timeout=5)
+    assert rejected.value >= 2
+
+    # Signed with the vehicle's key: obeyed, and its replies verify with that key.
+    peer.setup_signing(KEY, sign_outgoing=True)
+    ack = command(peer, ARM, 1)
+    assert ack.result == M.MAV_RESULT_ACCEPTED and ack.get_signed()
+    assert armed(gcs)
+    peer.mav.param_request_read_send(1, 1, b"COM_OF_LOSS_T", -1)
+    assert wait_for(peer, "PARAM_VALUE", lambda m: m.param_id == "COM_OF_LOSS_T").get_signed()
+    assert command(peer, ARM, 0).result == M.MAV_RESULT_ACCEPTED
+    assert not armed(gcs)
+
+    # The unsigned GCS link is unaffected by the other link's requirement.
+    assert command(gcs, M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION).result == 0
