@@ -58,6 +58,7 @@ class Endpoint:
         self.tlog = tlog
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("0.0.0.0" if host not in ("127.0.0.1", "localhost") else "127.0.0.1", 0))
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)  # room for a burst
         self.sock.setblocking(False)
         self.mav = mavlink.MAVLink(_Writer(self), srcSystem=sysid, srcComponent=1)
         self.mav.robust_parsing = True
@@ -85,6 +86,7 @@ class Endpoint:
                 break
             except OSError:
                 break
+            self._restart_parser()
             try:
                 msgs = self.mav.parse_buffer(data) or []
             except Exception:  # pymavlink raises on some corrupt input even when robust
@@ -99,6 +101,17 @@ class Endpoint:
                     self.tlog.write(m.get_msgbuf())
                 out.append(m)
         return out
+
+    def _restart_parser(self) -> None:
+        """Every UDP datagram starts afresh. A frame cut short at the end of the previous one will
+        never complete (peers send whole frames per datagram), and if kept, its claimed length
+        would swallow the start of this datagram: a valid command after a truncated frame."""
+        mav = self.mav
+        if mav.buf_len():
+            self.bad += 1
+        mav.buf = bytearray()
+        mav.buf_index = 0
+        mav.expected_length = mavlink.HEADER_LEN_V1 + 2
 
     def send(self, msg) -> None:
         self.mav.send(msg)

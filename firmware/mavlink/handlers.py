@@ -212,7 +212,7 @@ class Handlers:
         name = msg.param_id.rstrip("\x00")
         if name not in table.specs:
             self._reject()
-            return self.st.say(4, f"Unknown parameter {name[:30]}", ep=ep)
+            return self.st.say(4, f"Unknown parameter {name[:30]}", ep=ep, limited=True)
         value = table.decode_wire(name, msg.param_value, msg.param_type)
         problem = ""
         if name == "CTRL_SEL" and _finite(value) and 0 <= value < len(CONTROLLERS) \
@@ -222,7 +222,7 @@ class Handlers:
         if problem:
             self._reject()
             self.st.send_param(ep, name, table.index(name))
-            return self.st.say(4, f"Param rejected: {problem}"[:50], ep=ep)
+            return self.st.say(4, f"Param rejected: {problem}"[:50], ep=ep, limited=True)
         self.st.param_changed(name)
 
     def on_param_ext_request_read(self, ep: Endpoint, msg) -> None:

@@ -9,6 +9,7 @@ snapshots; setpoints are coalesced (newest wins) so a flood of them costs the lo
 from __future__ import annotations
 
 import json
+import os
 import select
 import signal
 import socket
@@ -31,7 +32,10 @@ ACK_TIMEOUT_S = 1.0
 MAX_PENDING = 8
 STATS_EVERY_S = 1.0
 REJECT_TEXT_EVERY_S = 5.0
+REJECT_TEXTS_PER_S = 5
 PARAM_SAVE_DELAY_S = 0.2
+NICE = 5
+REPORTED = ("rx_frames", "rx_bad", "rx_rejected", "rx_foreign", "sig_rejected")
 COUNTERS = ("rx_bad", "rx_rejected", "rx_foreign", "rx_unsupported", "rx_unhandled", "sig_rejected")
 
 
@@ -76,6 +80,8 @@ class Station:
         self._said_once: set[str] = set()
         self._rejects_reported = 0
         self._last_reject_text = 0.0
+        self._text_window = 0.0
+        self._texts_in_window = 0
 
     # ---- used by the handlers ----
     def count(self, what: str, n: int = 1) -> None:
@@ -87,11 +93,21 @@ class Station:
     def time_ns(self) -> int:
         return self.snap.t_us * 1000
 
-    def say(self, severity: int, text: str, ep: Endpoint | None = None, once: bool = False) -> None:
+    def say(self, severity: int, text: str, ep: Endpoint | None = None, once: bool = False,
+            limited: bool = False) -> None:
+        """`limited`: one of many possible answers to bad input, at most REJECT_TEXTS_PER_S a second
+        (a flood gets the periodic "Input rejected" summary instead of a text per frame)."""
         if once:
             if text in self._said_once:
                 return
             self._said_once.add(text)
+        if limited:
+            now = time.monotonic()
+            if now - self._text_window >= 1.0:
+                self._text_window, self._texts_in_window = now, 0
+            if self._texts_in_window >= REJECT_TEXTS_PER_S:
+                return
+            self._texts_in_window += 1
         for e in [ep] if ep is not None else self.endpoints:
             e.send(e.mav.statustext_encode(severity, text[:50].encode(), 0, 0))
 
@@ -224,9 +240,12 @@ class Station:
         self._to_flight(("stats", stats))
         rejected = sum(stats[k] for k in ("rx_bad", "rx_rejected", "rx_foreign", "sig_rejected"))
         t_ms = (self.snap.t_us // 1000) & 0xFFFFFFFF
+        # Input health, and the loop's own deadline record, for any ground station to watch.
+        values = [(name[:10], stats[name]) for name in REPORTED]
+        values += [("loop_miss", self.snap.misses), ("loop_ticks", self.snap.ticks)]
         for ep in self.endpoints:
-            for name in ("rx_bad", "rx_rejected", "rx_foreign", "sig_rejected"):
-                ep.send(ep.mav.named_value_int_encode(t_ms, name[:10].encode(), stats[name] & 0x7FFFFFFF))
+            for name, value in values:
+                ep.send(ep.mav.named_value_int_encode(t_ms, name.encode(), value & 0x7FFFFFFF))
         if rejected > self._rejects_reported and now - self._last_reject_text >= REJECT_TEXT_EVERY_S:
             self.say(4, f"Input rejected: bad {stats['rx_bad']} range {stats['rx_rejected']} "
                         f"foreign {stats['rx_foreign']} sig {stats['sig_rejected']}")
@@ -281,6 +300,12 @@ def main(argv: list[str]) -> int:
     spec = json.loads(argv[1])
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the flight process's; we end with it
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    # When the CPU is short (a flood of input, a busy host), the flight loop goes first: the
+    # MAVLink side can fall behind and drop, the 1 kHz tick must not.
+    try:
+        os.nice(NICE)
+    except OSError:
+        pass
     sock = socket.socket(fileno=spec["fd"])
     station = Station(spec["config"], spec["params"], sock, ipc.SnapshotSlot(spec["slot"]))
     station._to_flight(("ready", {ep.name: ep.sock.getsockname()[1] for ep in station.endpoints}))

@@ -85,3 +85,21 @@ def test_nan_means_unset_in_command_params_but_infinity_and_missing_values_are_r
             gcs.command_long_encode(1, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 30, NAN, 0, 0, 0, 0, 0))
     assert to_flight(flight) == []
     assert st.counters["rx_rejected"] == rejected + 5
+
+
+def test_a_frame_cut_short_does_not_swallow_the_next_datagram() -> None:
+    """UDP carries whole frames: each datagram is parsed afresh (found by the fuzz test)."""
+    import time
+
+    from firmware.mavlink.endpoint import Endpoint
+
+    ep = Endpoint("gcs", "127.0.0.1", 9, 1, 0)
+    gcs = M.MAVLink(None, srcSystem=255, srcComponent=0)
+    long_frame = gcs.statustext_encode(1, b"x" * 50, 0, 0).pack(gcs)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as peer:
+        peer.sendto(long_frame[:20], ep.sock.getsockname())
+        peer.sendto(gcs.param_request_list_encode(1, 1).pack(gcs), ep.sock.getsockname())
+        time.sleep(0.05)
+        received = [m.get_type() for m in ep.receive()]
+    ep.close()
+    assert received == ["PARAM_REQUEST_LIST"] and ep.bad == 1

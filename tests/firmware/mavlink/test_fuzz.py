@@ -1,0 +1,180 @@
+"""Fuzz: ≥ 100,000 hostile MAVLink frames at the vehicle while it flies OFFBOARD (ball-joint rig).
+
+No crash, no changed state (mode, armed, every parameter), the rejections are counted, the
+vehicle still answers, arms, disarms and follows a setpoint afterwards, and the 1 kHz loop
+misses no more deadlines under fuzz than in a baseline window of the same test (wide margin:
+the machine is shared)."""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import pytest
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as M
+
+from tests.firmware.mavlink.conftest import command, connect, wait_for
+from tests.firmware.mavlink.fuzzframes import FrameFuzzer
+
+pytestmark = pytest.mark.timeout(180)
+FRAMES = 100_000
+FRAMES_PER_S = 6000  # a fast, hostile link (a 921600-baud serial link carries about 3,500)
+SETPOINT_EVERY_S = 0.02
+HOVER = 0.745
+ARM = M.MAV_CMD_COMPONENT_ARM_DISARM
+
+
+class Flight:
+    """The offboard peer's valid setpoint stream, kept going between whatever else the test does."""
+
+    def __init__(self, off, gcs) -> None:
+        self.off, self.gcs = off, gcs
+        self.rates = (0.0, 0.0, 0.0)
+        self._next = 0.0
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        if now >= self._next:
+            self.off.mav.set_attitude_target_send(0, 1, 1, 128, [1, 0, 0, 0], *self.rates, HOVER)
+            self._next = now + SETPOINT_EVERY_S
+
+    def fly(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            self.tick()
+            for conn in (self.off, self.gcs):
+                while conn.recv_msg() is not None:
+                    pass
+            time.sleep(0.005)
+
+    def counters(self) -> dict[str, int]:
+        """The vehicle's next once-a-second report (NAMED_VALUE_INT), flying meanwhile."""
+        wanted = {"rx_frames", "rx_bad", "rx_rejecte", "rx_foreign", "loop_miss", "loop_ticks"}
+        while self.gcs.recv_msg() is not None:  # only reports sent from now on
+            pass
+        got: dict[str, int] = {}
+        deadline = time.monotonic() + 10
+        while wanted - set(got) and time.monotonic() < deadline:
+            self.tick()
+            m = self.gcs.recv_match(type="NAMED_VALUE_INT", blocking=True, timeout=0.01)
+            if m is not None:
+                got[m.name] = m.value
+        assert not wanted - set(got), f"no counters from the vehicle: {got}"
+        return got
+
+    def heartbeat(self):
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            self.tick()
+            m = self.gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=0.01)
+            if m is not None and m.get_srcSystem() == 1:
+                return m
+        raise AssertionError("no HEARTBEAT")
+
+
+def params(conn, flight: Flight) -> dict[str, float]:
+    conn.mav.param_request_list_send(1, 1)
+    values: dict[str, float] = {}
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        flight.tick()
+        pv = conn.recv_match(type="PARAM_VALUE", blocking=True, timeout=0.01)
+        if pv is not None:
+            values[pv.param_id] = pv.param_value
+            if len(values) == pv.param_count:
+                return values
+    raise AssertionError(f"parameter list incomplete: {len(values)}")
+
+
+def misses_per_tick(before: dict, after: dict) -> tuple[float, int]:
+    ticks = after["loop_ticks"] - before["loop_ticks"]
+    return (after["loop_miss"] - before["loop_miss"]) / max(ticks, 1), ticks
+
+
+def test_fuzzed_frames_are_refused_without_disturbing_the_flight_or_the_loop(sitl) -> None:
+    fuzzer = FrameFuzzer(seed=6)
+    datagrams: list[tuple[bytes, int]] = []
+    frames = 0
+    while frames < FRAMES:  # made beforehand, so that the fuzz window is only sending
+        datagrams.append(fuzzer.datagram())
+        frames += datagrams[-1][1]
+
+    s = sitl(rig="rig", duration=300.0)
+    gcs, off = connect(s.gcs_port), connect(s.offboard_port, source_system=245, source_component=190)
+    flight = Flight(off, gcs)
+    off.mav.param_set_send(1, 1, b"COM_OF_LOSS_T", 2.0, M.MAV_PARAM_TYPE_REAL32)  # a busy test process
+    flight.fly(0.3)
+    off.set_mode_px4("OFFBOARD", None, None)
+    flight.fly(0.3)
+    assert command(off, ARM, 1).result == M.MAV_RESULT_ACCEPTED
+    flight.fly(1.0)
+    hb = flight.heartbeat()
+    assert mavutil.interpret_px4_mode(hb.base_mode, hb.custom_mode) == "OFFBOARD"
+    assert hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED
+    params_before = params(gcs, flight)
+
+    # Baseline: flying, telemetry streaming, no fuzz.
+    c0 = flight.counters()
+    flight.fly(8.0)
+    c1 = flight.counters()
+    # Fuzz, at both of the vehicle's links, paced.
+    start = time.monotonic()
+    sent = 0
+    for i, (data, n) in enumerate(datagrams):
+        conn = gcs if i % 2 else off
+        conn.port.sendto(data, next(iter(conn.clients)))  # the vehicle link that conn answers
+        sent += n
+        if i % 8 == 0:
+            flight.tick()
+            for c in (gcs, off):  # discard what the vehicle says meanwhile, unparsed
+                try:
+                    while c.port.recv(65536):
+                        pass
+                except BlockingIOError:
+                    pass
+            ahead = start + sent / FRAMES_PER_S - time.monotonic()
+            if ahead > 0:
+                time.sleep(ahead)
+    fuzz_s = time.monotonic() - start
+    c2 = flight.counters()
+
+    assert s.proc.poll() is None, s.stop()
+    print(f"fuzz: {sent} frames in {len(datagrams)} datagrams in {fuzz_s:.1f} s; {fuzzer.kinds}")
+    print(f"vehicle counters before/after baseline/after fuzz: {c0} {c1} {c2}")
+    # Every frame reached the vehicle's parser: good frames plus bad-data chunks account for them.
+    assert (c2["rx_frames"] - c1["rx_frames"]) + (c2["rx_bad"] - c1["rx_bad"]) >= 0.8 * frames
+    for name, share in (("rx_bad", 0.1), ("rx_rejecte", 0.1), ("rx_foreign", 0.05)):
+        least = share * frames
+        assert c2[name] - c1[name] >= least, (name, c1[name], c2[name])
+    base_rate, base_ticks = misses_per_tick(c0, c1)
+    fuzz_rate, fuzz_ticks = misses_per_tick(c1, c2)
+    print(f"loop misses per tick: baseline {base_rate:.4%} over {base_ticks}, fuzz {fuzz_rate:.4%} "
+          f"over {fuzz_ticks}")
+    assert base_ticks > 5000 and fuzz_ticks > 5000
+    assert fuzz_rate <= 2 * base_rate + 0.01
+
+    # Not stuck, not changed: same mode, armed, same parameters; answers; follows; arms and disarms.
+    hb = flight.heartbeat()
+    assert mavutil.interpret_px4_mode(hb.base_mode, hb.custom_mode) == "OFFBOARD"
+    assert hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED
+    assert params(gcs, flight) == params_before
+    flight.rates = (1.0, 0.0, 0.0)
+    flight.fly(1.0)
+    rates = []
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        flight.tick()
+        m = gcs.recv_match(type="ATTITUDE", blocking=True, timeout=0.01)
+        if m is not None:
+            rates.append(m.rollspeed)
+    assert len(rates) > 10 and statistics.median(rates) == pytest.approx(1.0, abs=0.1)
+    flight.rates = (0.0, 0.0, 0.0)
+    flight.fly(0.5)
+    assert command(off, ARM, 0).result == M.MAV_RESULT_ACCEPTED
+    wait_for(gcs, "HEARTBEAT", lambda m: not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED, timeout=5)
+    flight.fly(0.2)
+    assert command(off, ARM, 1).result == M.MAV_RESULT_ACCEPTED
+    assert command(off, ARM, 0).result == M.MAV_RESULT_ACCEPTED
+    out = s.stop()
+    assert "Traceback" not in out, out[-3000:]
