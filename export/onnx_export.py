@@ -153,7 +153,7 @@ def export_policy(target: str | Path, out: str | Path, parity_samples: int = 10_
     session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
     got = session.run(None, {"observation": obs})[0]
     max_diff = float(np.abs(got - expected).max())
-    steps = int(cfg.get("trained_steps", getattr(model, "num_timesteps", 0)))
+    steps = int(getattr(model, "num_timesteps", 0) or cfg.get("trained_steps", 0))  # a checkpoint's own
     metadata = {
         "observation": spec.to_json(),
         "action_mapping": cfg["action_mapping"],

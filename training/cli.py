@@ -29,9 +29,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--norm-obs", action=argparse.BooleanOptionalAction, default=True,
                    help="VecNormalize observation normalisation (folded into the exported ONNX graph)")
     p.add_argument("--hp", nargs="*", metavar="KEY=VALUE", help="override algorithm hyper-parameters")
-    p.add_argument("--checkpoint-every", type=int, default=500_000, help="steps between checkpoints")
+    p.add_argument("--checkpoint-every", type=int, default=1_000_000, help="steps between checkpoints")
     p.add_argument("--eval-every", type=int, default=0,
                    help="steps between in-training evaluations against the PID (0: none)")
+    p.add_argument("--export", choices=("best", "final"), default="best",
+                   help="best: the in-training evaluation's best (needs --eval-every); final: the last model")
     p.add_argument("--eval-episodes", type=int, default=1000,
                    help="final evaluation commands through the firmware loop (0: skip)")
     p.add_argument("--eval-seed", type=int, default=1)

@@ -43,7 +43,7 @@ _OFF_POLICY = {"learning_rate": 1e-3, "gamma": 0.98, "batch_size": 256, "buffer_
                "policy_kwargs": {"net_arch": [64, 64]}}
 ALGOS: dict[str, dict[str, Any]] = {
     "ppo": {"envs": 64, "norm_reward": True, "hp": {
-        "n_steps": 128, "batch_size": 2048, "n_epochs": 5, "learning_rate": 3e-4, "gamma": 0.98,
+        "n_steps": 128, "batch_size": 2048, "n_epochs": 5, "learning_rate": "lin_3e-4", "gamma": 0.98,
         "gae_lambda": 0.9, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
         "use_sde": True, "sde_sample_freq": -1, "policy_kwargs": _ON_POLICY_NET}},
     "trpo": {"envs": 64, "norm_reward": True, "hp": {
@@ -74,11 +74,12 @@ class TrainConfig:
     norm_reward: bool | None = None
     norm_obs: bool = True
     hp: dict[str, Any] = field(default_factory=dict)  # overrides of ALGOS[algo]["hp"]
-    checkpoint_every: int = 500_000  # steps
+    checkpoint_every: int = 1_000_000  # steps
     eval_every: int = 0  # steps between in-training evaluations against the PID; 0: none
     eval_commands: int = 64
     eval_episodes: int = 1000  # final evaluation, through the firmware loop; 0: skip
     eval_seed: int = 1
+    export: str = "best"  # best: the in-training evaluation's best checkpoint (if any); final
     threads: int = 1
     progress: bool = True
 
@@ -153,6 +154,10 @@ def make_model(cfg: TrainConfig, venv: VecEnv, tb_dir: Path):
         import stable_baselines3
 
         Algo = getattr(stable_baselines3, cfg.algo.upper())
+    for key in ("learning_rate", "clip_range"):  # "lin_3e-4": linear decay to 0, as rl-zoo writes it
+        if isinstance(hp.get(key), str) and hp[key].startswith("lin_"):
+            start = float(hp[key][4:])
+            hp[key] = lambda remaining, start=start: remaining * start
     if cfg.algo in ("ddpg", "td3") and "action_noise" not in hp:
         from stable_baselines3.common.noise import NormalActionNoise
 
@@ -175,14 +180,17 @@ class RewardTermsCallback(BaseCallback):
 class PidRaceCallback(BaseCallback):
     """Every `every` steps, score the deterministic policy on fixed commands against the PID.
 
-    Records each evaluation (steps, wall time, error ratio, bar verdict); with `stop_at`,
-    ends training once the bar is met (what `fcemu bench train` times).
+    Records each evaluation (steps, wall time, error ratio, bar verdict) and saves the best
+    policy so far (lowest Error sum) as a checkpoint, `best` holding its path; with
+    `stop_at_bar`, ends training once the bar is met.
     """
 
     def __init__(self, cfg: TrainConfig, every: int, stop_at_bar: bool = False) -> None:
         super().__init__()
         self.cfg, self.every, self.stop_at_bar = cfg, every, stop_at_bar
         self.history: list[dict[str, Any]] = []
+        self.best: Path | None = None
+        self._best_ratio = np.inf
         self._next = every
         self._t0 = time.perf_counter()
         self.evaluator = quick_eval.BatchedEvaluator(cfg.eval_commands, cfg.eval_seed, cfg.memory,
@@ -199,7 +207,20 @@ class PidRaceCallback(BaseCallback):
         verdict = self.evaluate()
         self.logger.record("eval/error_ratio_vs_pid", verdict["error_ratio"])
         self.logger.record("eval/error_sum", verdict["policy_error_sum"])
+        if verdict["error_ratio"] < self._best_ratio:
+            self._best_ratio = verdict["error_ratio"]
+            self.best = self.save_checkpoint()
         return not (self.stop_at_bar and verdict["meets_bar"])
+
+    def save_checkpoint(self) -> Path:
+        """The policy now, in CheckpointCallback's layout (so `fcemu export` takes it)."""
+        ckpt = Path(self.cfg.out) / "checkpoints"
+        path = ckpt / f"{self.cfg.algo}_{self.num_timesteps}_steps.zip"
+        self.model.save(path)
+        vecnorm = self.model.get_vec_normalize_env()
+        if vecnorm is not None:
+            vecnorm.save(str(ckpt / f"{self.cfg.algo}_vecnormalize_{self.num_timesteps}_steps.pkl"))
+        return path
 
     def evaluate(self) -> dict[str, Any]:
         vecnorm = self.model.get_vec_normalize_env()
@@ -268,10 +289,11 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
 
     from export.onnx_export import export_policy
 
-    export = export_policy(out, out / "policy.onnx")
+    source = race.best if cfg.export == "best" and race is not None and race.best else out
+    export = export_policy(source, out / "policy.onnx")
     summary: dict[str, Any] = {"run": str(out), "algo": cfg.algo, "steps": int(model.num_timesteps),
                                "train_wall_s": round(train_s, 1), "steps_per_s": config["steps_per_s"],
-                               "export": export}
+                               "exported": str(source), "export": export}
     if race is not None:
         summary["in_training_evals"] = race.history
     if cfg.eval_episodes:
@@ -347,8 +369,8 @@ def config_from_args(args) -> TrainConfig:
                        task=args.task, action_rate_penalty=args.action_rate_penalty, reward=args.reward,
                        norm_reward=args.norm_reward, norm_obs=args.norm_obs, hp=parse_hp(args.hp),
                        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
-                       eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, threads=args.threads,
-                       progress=not args.no_progress)
+                       eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, export=args.export,
+                       threads=args.threads, progress=not args.no_progress)
 
 
 def train_command(args) -> int:

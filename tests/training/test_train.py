@@ -22,8 +22,8 @@ pytestmark = pytest.mark.slow
 def run(tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("train") / "smoke"
     cfg = TrainConfig(algo="ppo", steps=4096, seed=3, out=str(out), envs=8, checkpoint_every=2048,
-                      eval_episodes=0, action_rate_penalty=0.1, progress=False,
-                      hp={"n_steps": 128, "batch_size": 256})
+                      eval_every=2048, eval_commands=4, eval_episodes=0, action_rate_penalty=0.1,
+                      progress=False, hp={"n_steps": 128, "batch_size": 256})
     return out, train(cfg)
 
 
@@ -41,6 +41,18 @@ def test_run_layout(run):
     assert config["observation"]["memory"] == 1 and config["loop_rate_hz"] == 1000.0
     assert config["env"]["action_rate_penalty"] == 0.1
     assert summary["export"]["parity_ok"] and summary["steps"] == 4096
+    assert config["hyperparameters"]["use_sde"] is True
+
+
+def test_in_training_evaluation_exports_its_best_checkpoint(run):
+    out, summary = run
+    evals = summary["in_training_evals"]
+    assert [e["steps"] for e in evals] == [2048, 4096]
+    best = min(evals, key=lambda e: e["error_ratio"])
+    assert summary["exported"] == str(out / "checkpoints" / f"ppo_{best['steps']}_steps.zip")
+    meta = NeuralRateController(out / "policy.onnx").metadata
+    assert meta["training_steps"] == str(best["steps"])  # the checkpoint's own step count
+    assert all(set(e["checks"]) == {"error_ratio", "success", "rise"} for e in evals)
 
 
 def test_reward_terms_are_logged_separately(run):
@@ -53,6 +65,8 @@ def test_reward_terms_are_logged_separately(run):
     assert "reward/paper" in tags and "reward/action_rate" in tags
     assert all(e.value <= 0.0 for e in acc.Scalars("reward/paper"))
     assert all(e.value >= 0.0 for e in acc.Scalars("reward/action_rate"))
+    lr = [e.value for e in acc.Scalars("train/learning_rate")]
+    assert lr[0] <= 3e-4 and lr[-1] < lr[0]  # "lin_3e-4": decays linearly over the run
 
 
 def test_exported_policy_flies_in_the_firmware(run):
