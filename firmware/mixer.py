@@ -13,9 +13,12 @@ proportion instead of one motor clipping; then the throttle is moved into
 low stick as well as down at high stick). Without airmode Betaflight also fades the axis
 authority to 50% as throttle goes to 0 (`airmodeTransitionPercent`).
 
-Outputs span [idle, max]: throttle 0 is the idle output (Betaflight's dshot_idle_value,
-or GymFC's minthrottle 1070 µs = 7%), throttle 1 is 2000 µs. `throttle_for_pwm` converts
-a PWM (e.g. the hover PWM) to this throttle.
+The throttle is the collective as a fraction of the PWM span, PWM = 1000 + 1000·t with
+zero demands, as for the neural controller's `throttle` action mapping (firmware/action.py),
+so one setpoint means the same collective to both and hover is (hover_pwm − 1000) / 1000.
+Armed outputs never go below the idle output (Betaflight's dshot_idle_value, or GymFC's
+minthrottle 1070 µs = 7%); Betaflight's saturation arithmetic runs in its own output
+space [idle, 2000] µs = [0, 1], into which the throttle is converted first.
 """
 
 from __future__ import annotations
@@ -41,9 +44,10 @@ BETAFLIGHT_QUAD_X: MixTable = (
 
 # The paper's Iris table (Koch et al. 2018; GymFC's Betaflight port, m_i = [roll, pitch, yaw]):
 #   m1 = [-1.0, 0.598, -1.0]  m2 = [-0.927, -0.598, 1.0]  m3 = [1.0, 0.598, 1.0]  m4 = [0.927, -0.598, -1.0]
-# GymFC fed it to the same Betaflight mix code (yaw negated), with rates in Betaflight's axes:
-# rear motors +pitch (nose down), CW motors 1 and 4 up for +yaw (nose left). Mapped to FRD exactly
-# as Betaflight's table: roll kept, pitch negated, yaw column kept.
+# GymFC fed it to the same Betaflight mix code (yaw negated) with Gazebo's FLU body rates, which
+# are Betaflight's axes: rear motors +pitch (nose down), CW motors 1 and 4 up for +yaw (nose left).
+# Mapped to FRD exactly as Betaflight's table: roll kept, pitch negated, yaw column kept. The other
+# signs would make the paper's PID unstable on the twin; tests/firmware/test_mixer.py flies each axis.
 PAPER_IRIS: MixTable = (
     (-1.0, -0.598, -1.0),  # 1 rear-right
     (-0.927, 0.598, 1.0),  # 2 front-right
@@ -55,7 +59,7 @@ TABLES: dict[str, MixTable] = {"betaflight": BETAFLIGHT_QUAD_X, "paper_iris": PA
 
 
 class QuadXMixer:
-    """Throttle (0..1) + FRD axis demands -> PWM µs in motor order, Betaflight saturation handling."""
+    """Throttle (0..1 of the PWM span) + FRD axis demands -> PWM µs in motor order, Betaflight saturation."""
 
     def __init__(
         self,
@@ -85,13 +89,14 @@ class QuadXMixer:
         self.pwm_min, self.pwm_max = float(pwm_min), float(pwm_max)
         self.out_low = self.pwm_min + self.idle * (self.pwm_max - self.pwm_min)
         self.out_range = self.pwm_max - self.out_low
+        self._span = self.pwm_max - self.pwm_min
         self._flat = [v for row in rows for v in row]
         self.mix_range = 0.0  # last unscaled motor-mix range; > 1 means the demands were scaled down
-        self.throttle = 0.0  # last throttle after the airmode shift
+        self.throttle = 0.0  # last throttle in [idle, max] = [0, 1] after the airmode shift
 
     def throttle_for_pwm(self, pwm: float) -> float:
         """The throttle whose output with zero demands is `pwm` (e.g. the hover PWM)."""
-        return (pwm - self.out_low) / self.out_range
+        return (pwm - self.pwm_min) / (self.pwm_max - self.pwm_min)
 
     def reset(self) -> None:
         self.mix_range = 0.0
@@ -108,7 +113,8 @@ class QuadXMixer:
         spread = hi - lo
         self.mix_range = spread
 
-        t = 0.0 if throttle < 0.0 else 1.0 if throttle > 1.0 else float(throttle)
+        t = (self.pwm_min + self._span * throttle - self.out_low) / self.out_range  # to [idle, max] = [0, 1]
+        t = 0.0 if t < 0.0 else 1.0 if t > 1.0 else t
         scale = 1.0
         if not self.airmode and t < 0.5:
             scale = 0.5 + t

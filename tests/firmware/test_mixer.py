@@ -58,10 +58,10 @@ def test_betaflight_table_is_betaflight_quadx_in_frd():
 
 def test_exact_output_inside_the_range():
     mixer = QuadXMixer("betaflight", idle=0.055)
-    out = mixer.mix([0.1, 0.0, 0.0], 0.5)
-    low, span = 1055.0, 945.0
-    assert out == pytest.approx([low + span * 0.4, low + span * 0.4, low + span * 0.6, low + span * 0.6])
+    out = mixer.mix([0.1, 0.0, 0.0], 0.5)  # throttle: 1500 µs; a demand of 1 spans idle..max (945 µs)
+    assert out == pytest.approx([1500 - 94.5, 1500 - 94.5, 1500 + 94.5, 1500 + 94.5])
     assert mixer.mix_range == pytest.approx(0.2)
+    assert mixer.mix([0.0, 0.0, 0.0], 0.745) == pytest.approx([1745.0] * 4)  # hover means the same to all
 
 
 @pytest.mark.parametrize("table", sorted(TABLES))
@@ -102,7 +102,10 @@ def test_without_airmode_authority_fades_at_low_throttle():
 def test_idle_is_the_minimum_armed_output():
     mixer = QuadXMixer("betaflight", idle=0.055)
     assert mixer.mix([0.0, 0.0, 0.0], 0.0) == pytest.approx([1055.0] * 4)
+    assert mixer.mix([0.0, 0.0, 0.0], 0.04) == pytest.approx([1055.0] * 4)
     assert mixer.mix([0.0, 0.0, 0.0], -1.0) == pytest.approx([1055.0] * 4)
+    out = mixer.mix([0.1, 0.0, 0.0], 0.0)  # airmode at zero stick: up from idle, the mix intact
+    assert out == pytest.approx([1055.0, 1055.0, 1055.0 + 189.0, 1055.0 + 189.0])
     assert mixer.mix([0.0, 0.0, 0.0], 1.0) == pytest.approx([2000.0] * 4)
     assert QuadXMixer("paper_iris", idle=0.07).mix([0.0, 0.0, 0.0], 0.0) == pytest.approx([1070.0] * 4)
     assert mixer.throttle_for_pwm(mixer.mix([0.0, 0.0, 0.0], 0.7)[0]) == pytest.approx(0.7)
