@@ -22,14 +22,15 @@ pytestmark = pytest.mark.slow
 def run(tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("train") / "smoke"
     cfg = TrainConfig(algo="ppo", steps=4096, seed=3, out=str(out), envs=8, checkpoint_every=2048,
-                      eval_every=2048, eval_commands=4, eval_episodes=0, action_rate_penalty=0.1,
+                      eval_every=2048, eval_commands=4, eval_episodes=3, action_rate_penalty=0.1,
                       progress=False, hp={"n_steps": 128, "batch_size": 256})
     return out, train(cfg)
 
 
 def test_run_layout(run):
     out, summary = run
-    for name in ("config.json", "model.zip", "vecnormalize.pkl", "policy.onnx", "summary.json"):
+    for name in ("config.json", "model.zip", "vecnormalize.pkl", "policy.onnx", "summary.json", "eval.json",
+                 "report/report.md"):
         assert (out / name).is_file(), name
     for steps in (2048, 4096):
         assert (out / "checkpoints" / f"ppo_{steps}_steps.zip").is_file()
@@ -42,6 +43,16 @@ def test_run_layout(run):
     assert config["env"]["action_rate_penalty"] == 0.1
     assert summary["export"]["parity_ok"] and summary["steps"] == 4096
     assert config["hyperparameters"]["use_sde"] is True
+
+
+def test_final_evaluation_flies_the_export_and_the_pids_on_the_same_commands(run):
+    out, _ = run
+    payload = json.loads((out / "eval.json").read_text())
+    assert [r["controller"] for r in payload["results"]] == ["pid", "pid:paper", str(out / "policy.onnx")]
+    assert all(r["episodes"] == 3 and r["seed"] == payload["seed"] for r in payload["results"])
+    bar = payload["bar"]
+    assert bar["best_pid"] in ("pid", "pid:paper") and bar["meets_bar"] is False
+    assert bar["error_ratio"] == pytest.approx(bar["policy_error_sum"] / bar["pid_error_sum"])
 
 
 def test_in_training_evaluation_exports_its_best_checkpoint(run):
