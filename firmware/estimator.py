@@ -27,15 +27,17 @@ class EstimatorGains:
 
 
 class AttitudeEstimator:
-    __slots__ = ("_bias", "_gains", "q", "vz")
+    __slots__ = ("_bias", "_gains", "_gate", "_ki", "_kp", "_leak", "q", "vz")
 
     def __init__(self, gains: EstimatorGains | None = None) -> None:
-        self._gains = gains or EstimatorGains()
+        g = self._gains = gains or EstimatorGains()
+        # Plain floats in slots: `update` reads them every tick.
+        self._kp, self._ki, self._gate, self._leak = g.kp, g.ki, g.accel_gate, 1.0 / g.vz_leak_s
         self.reset()
 
     def reset(self, q: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)) -> None:
-        self.q = list(q)
-        self._bias = [0.0, 0.0, 0.0]
+        self.q = tuple(q)
+        self._bias = (0.0, 0.0, 0.0)
         self.vz = 0.0
 
     def level_from_accel(self, ax: float, ay: float, az: float) -> None:
@@ -45,36 +47,35 @@ class AttitudeEstimator:
         self.reset(quat_from_euler(roll, pitch, 0.0))
 
     def update(self, gx: float, gy: float, gz: float, ax: float, ay: float, az: float, dt: float) -> None:
-        g = self._gains
         w, x, y, z = self.q
+        bx, by, bz = self._bias
         norm = math.sqrt(ax * ax + ay * ay + az * az)
-        if norm > 1e-6 and abs(norm / GRAVITY - 1.0) < g.accel_gate:
+        if norm > 1e-6 and abs(norm / GRAVITY - 1.0) < self._gate:
             # Expected specific-force direction in body axes: -(R^T · [0, 0, 1]) (up, in FRD).
             vx = -2.0 * (x * z - w * y)
             vy = -2.0 * (y * z + w * x)
             vz = -(w * w - x * x - y * y + z * z)
-            mx, my, mz = ax / norm, ay / norm, az / norm
+            inv = 1.0 / norm
+            mx, my, mz = ax * inv, ay * inv, az * inv
             ex, ey, ez = my * vz - mz * vy, mz * vx - mx * vz, mx * vy - my * vx
-            b = self._bias
-            b[0] += g.ki * ex * dt
-            b[1] += g.ki * ey * dt
-            b[2] += g.ki * ez * dt
-            gx += g.kp * ex + b[0]
-            gy += g.kp * ey + b[1]
-            gz += g.kp * ez + b[2]
+            ki_dt, kp = self._ki * dt, self._kp
+            bx, by, bz = bx + ki_dt * ex, by + ki_dt * ey, bz + ki_dt * ez
+            self._bias = (bx, by, bz)
+            gx += kp * ex + bx
+            gy += kp * ey + by
+            gz += kp * ez + bz
         else:
-            b = self._bias
-            gx, gy, gz = gx + b[0], gy + b[1], gz + b[2]
+            gx, gy, gz = gx + bx, gy + by, gz + bz
         h = 0.5 * dt
         w, x, y, z = (w - h * (x * gx + y * gy + z * gz), x + h * (w * gx + y * gz - z * gy),
                       y + h * (w * gy - x * gz + z * gx), z + h * (w * gz + x * gy - y * gx))
         n = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-        self.q = [w * n, x * n, y * n, z * n]
+        w, x, y, z = w * n, x * n, y * n, z * n
+        self.q = (w, x, y, z)
         # Down component of the specific force in NED, plus gravity: vertical acceleration.
-        w, x, y, z = self.q
         a_down = (2.0 * (x * z - w * y) * ax + 2.0 * (y * z + w * x) * ay
                   + (w * w - x * x - y * y + z * z) * az) + GRAVITY
-        self.vz += (a_down - self.vz / self._gains.vz_leak_s) * dt
+        self.vz += (a_down - self.vz * self._leak) * dt
 
     def euler(self) -> tuple[float, float, float]:
         return euler_from_quat(self.q)

@@ -86,6 +86,7 @@ class Vehicle:
         self._landed_since: int | None = None
         self._last_est_us: int | None = None
         self._setpoint = RateSetpoint(_ZERO3, 0.0)
+        self._command = Command(False, self._setpoint, self.fallback)
         if selected is not None:
             params.set("CTRL_SEL", CONTROLLERS.index(selected))
         self._apply_all()
@@ -103,6 +104,11 @@ class Vehicle:
 
     def _apply_all(self) -> None:
         p = self.params
+        # What the tick reads, as plain attributes: parameters change only through here.
+        self._of_loss_us = p["COM_OF_LOSS_T"] * 1e6
+        self._rc_loss_us = p["COM_RC_LOSS_T"] * 1e6
+        name = self.controller_name()
+        self._selected = name if name in self.controllers else self.fallback
         curves = []
         for a in "RPY":
             center = p[f"RATE_{a}_CENTER"]
@@ -208,24 +214,30 @@ class Vehicle:
         if not self.armed:
             est.vz = 0.0
             self.landed_state = ON_GROUND
-            return Command(False, self._setpoint, self._controller())
+            return self._emit(False, self._setpoint)
         self._check_failsafe(t_us)
         if not self.armed:  # the failsafe may have disarmed
-            return Command(False, self._setpoint, self._controller())
+            return self._emit(False, self._setpoint)
         sp = self._compute_setpoint(t_us)
         self._setpoint = sp
-        return Command(True, sp, self._controller())
+        return self._emit(True, sp)
+
+    def _emit(self, armed: bool, sp: RateSetpoint) -> Command:
+        """The tick's Command, reused while nothing in it changed (most ticks)."""
+        cmd, name = self._command, self._controller()
+        if cmd.armed is not armed or cmd.setpoint is not sp or cmd.controller != name:
+            cmd = self._command = Command(armed, sp, name)
+        return cmd
 
     def _controller(self) -> str:
-        name = self.controller_name()
-        return self.fallback if self.mode == LAND or name not in self.controllers else name
+        return self.fallback if self.mode == LAND else self._selected
 
     def _check_failsafe(self, t_us: int) -> None:
-        p = self.params
-        if self.mode == OFFBOARD and t_us - self._offb_us > p["COM_OF_LOSS_T"] * 1e6:
+        mode = self.mode
+        if mode == OFFBOARD and t_us - self._offb_us > self._of_loss_us:
             self._enter_land("offboard setpoint loss")
-        elif self.mode in STICK_MODES and self._sticks_us is not None \
-                and t_us - self._sticks_us > p["COM_RC_LOSS_T"] * 1e6:
+        elif mode in STICK_MODES and self._sticks_us is not None \
+                and t_us - self._sticks_us > self._rc_loss_us:
             self._enter_land("manual control loss")
             self._sticks_us = None
 
@@ -289,11 +301,10 @@ class Vehicle:
     # ---- helpers ------------------------------------------------------------------------
     def _offboard_live(self) -> bool:
         """PX4's rule: OFFBOARD (and arming in it) only while setpoints arrive within the timeout."""
-        return self.now_us - self._offb_us <= self.params["COM_OF_LOSS_T"] * 1e6
+        return self.now_us - self._offb_us <= self._of_loss_us
 
     def _sticks_live(self) -> bool:
-        timeout_us = self.params["COM_RC_LOSS_T"] * 1e6
-        return self._sticks_us is not None and self.now_us - self._sticks_us <= timeout_us
+        return self._sticks_us is not None and self.now_us - self._sticks_us <= self._rc_loss_us
 
     def _at_rest(self) -> bool:
         f = self._frame
