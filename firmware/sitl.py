@@ -158,7 +158,7 @@ class StatusLine:
         sp, gyro = sample.command.setpoint.rates, sample.frame.gyro
         axes = " ".join(f"{n} {g:+5.2f}/{s:+5.2f}" for n, g, s in zip("rpy", gyro, sp, strict=True))
         sys.stderr.write(
-            f"\rt {sample.t_us / 1e6:7.2f}s  loop {rate:7.0f} Hz  misses {stats.deadline_misses}  "
+            f"\rt {sample.frame.t_us / 1e6:7.2f}s  loop {rate:7.0f} Hz  misses {stats.deadline_misses}  "
             f"rate/setpoint rad/s: {axes}  pwm {np.array2string(sample.pwm, precision=0)}"
             f"{'  ' + self.extra() if self.extra else ''}  "
         )
