@@ -1,4 +1,4 @@
-"""`fcemu sitl`, `fcemu demo`, `fcemu bench loop`."""
+"""`fcemu sitl`, `fcemu demo`, `fcemu bench loop`, `fcemu bench inference`."""
 
 from __future__ import annotations
 
@@ -62,3 +62,9 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
                       help="also run with MAVLink telemetry streaming and a peer sending setpoints at 100 Hz")
     loop.add_argument("--json", action="store_true")
     loop.set_defaults(handler="firmware.bench:bench_loop")
+
+    inference = bench_sub.add_parser("inference", help="ONNX policy inference time per tick")
+    inference.add_argument("--model", default=None, help="a policy .onnx (default: the shipped policy)")
+    inference.add_argument("--samples", type=int, default=20_000)
+    inference.add_argument("--json", action="store_true")
+    inference.set_defaults(handler="firmware.inference_bench:bench_inference")
