@@ -24,6 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="weight of Neuroflight's output-oscillation penalty (mean |Δu| per step)")
     p.add_argument("--reward", choices=("paper", "unclipped"), default="unclipped",
                    help="paper: −clip(Σ|e|/(3·Ω_max), 0, 1); unclipped: the same without the clip")
+    p.add_argument("--axis-weights", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("R", "P", "Y"),
+                   help="weights of the roll, pitch, yaw error in the unclipped reward")
     p.add_argument("--norm-reward", action=argparse.BooleanOptionalAction, default=None,
                    help="VecNormalize reward scaling (default: per algorithm)")
     p.add_argument("--norm-obs", action=argparse.BooleanOptionalAction, default=True,

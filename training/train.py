@@ -71,6 +71,7 @@ class TrainConfig:
     task: str = "episodic"
     action_rate_penalty: float = 0.0
     reward: str = "unclipped"  # see REWARDS / RewardOption
+    axis_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # roll, pitch, yaw error (unclipped only)
     norm_reward: bool | None = None
     norm_obs: bool = True
     hp: dict[str, Any] = field(default_factory=dict)  # overrides of ALGOS[algo]["hp"]
@@ -86,6 +87,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algorithm {self.algo!r}; choose one of {tuple(ALGOS)}")
+        if self.reward == "paper" and tuple(self.axis_weights) != (1.0, 1.0, 1.0):
+            raise ValueError("axis weights need --reward unclipped")
         if self.reward not in REWARDS:
             raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
         if isinstance(self.throttle, list):
@@ -113,16 +116,18 @@ REWARDS = ("paper", "unclipped")
 
 
 class RewardOption(VecEnvWrapper):
-    """The paper's reward without its clip: −Σ|Ω* − Ω|/(3·Ω_max) − w·mean|Δu|.
+    """The paper's reward without its clip: −Σ w_axis·|Ω* − Ω|/(3·Ω_max) − w·mean|Δu|.
 
     The paper clips the error term at −1; once a spinning vehicle passes the clip every
     action scores the same and there is nothing to learn from. Unclipped, the way back
     always pays.
     """
 
-    def __init__(self, venv: VecEnv, omega_max: float, action_rate_penalty: float) -> None:
+    def __init__(self, venv: VecEnv, omega_max: float, action_rate_penalty: float,
+                 axis_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
         super().__init__(venv)
         self.scale, self.penalty = 1.0 / (3.0 * omega_max), action_rate_penalty
+        self.w = axis_weights
 
     def reset(self) -> np.ndarray:
         return self.venv.reset()
@@ -131,7 +136,9 @@ class RewardOption(VecEnvWrapper):
         obs, _, dones, infos = self.venv.step_wait()
         info = self.venv.unwrapped.last_info
         e = np.abs(info["setpoint"] - info["rate"])
-        reward = -(e[:, 0] + e[:, 1] + e[:, 2]) * self.scale - self.penalty * info["action_rate"]
+        w = self.w
+        error = (w[0] * e[:, 0] + w[1] * e[:, 1] + w[2] * e[:, 2]) * self.scale
+        reward = -error - self.penalty * info["action_rate"]
         return obs, reward.astype(np.float32), dones, infos
 
 
@@ -141,7 +148,7 @@ def make_vec_env(cfg: TrainConfig) -> VecEnv:
 
     venv = make_sb3_vec_env(cfg.n_envs, seed=cfg.seed, **cfg.env_kwargs())
     if cfg.reward == "unclipped":
-        venv = RewardOption(venv, venv.batch.config.omega_max, cfg.action_rate_penalty)
+        venv = RewardOption(venv, venv.batch.config.omega_max, cfg.action_rate_penalty, cfg.axis_weights)
     return VecMonitor(venv)
 
 
@@ -243,7 +250,8 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
     return {"algo": cfg.algo, "observation": json.loads(_spec(cfg).to_json()),
             "action_mapping": cfg.action_mapping, "throttle": cfg.throttle, "loop_rate_hz": 1000.0,
             "seed": cfg.seed, "trained_steps": 0, "fcemu_version": __version__,
-            "env": cfg.env_kwargs(), "reward": cfg.reward, "n_envs": cfg.n_envs,
+            "env": cfg.env_kwargs(), "reward": cfg.reward, "axis_weights": list(cfg.axis_weights),
+            "n_envs": cfg.n_envs,
             "norm_reward": cfg.normalise_reward,
             "hyperparameters": json.loads(json.dumps(algo_hp, default=repr)),
             "torch_threads": cfg.threads, "command": " ".join(sys.argv)}
@@ -367,6 +375,7 @@ def config_from_args(args) -> TrainConfig:
                        memory=args.memory, envs=args.envs, action_mapping=args.action_mapping,
                        throttle=throttle if args.throttle is not None else TrainConfig.throttle,
                        task=args.task, action_rate_penalty=args.action_rate_penalty, reward=args.reward,
+                       axis_weights=tuple(args.axis_weights),
                        norm_reward=args.norm_reward, norm_obs=args.norm_obs, hp=parse_hp(args.hp),
                        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                        eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, export=args.export,

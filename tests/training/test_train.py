@@ -137,3 +137,23 @@ def test_config_and_cli():
     assert got == ("sac", 3, 10, 4, 2, (0.6, 0.8))
     bench = build_parser().parse_args(["bench", "train", "--json", "--max-minutes", "1"])
     assert bench.handler == "training.bench:bench_train" and bench.max_minutes == 1.0
+
+
+def test_unclipped_reward_weights_the_axes_and_never_saturates():
+    from sim_bridge.vec_env import make_sb3_vec_env
+    from training.train import RewardOption
+
+    base = make_sb3_vec_env(2, seed=0, action_mapping="throttle", throttle=0.7, action_rate_penalty=0.5)
+    venv = RewardOption(base, 5.24, 0.5, (1.0, 2.0, 3.0))
+    venv.reset()
+    spin = np.array([[1.0, -1.0, 1.0, -1.0]] * 2, dtype=np.float32)  # full differential: spins up
+    for _ in range(400):
+        _, reward, _, _ = venv.step(spin)
+    info = base.last_info
+    e = np.abs(info["setpoint"] - info["rate"])
+    expected = -(e[:, 0] + 2 * e[:, 1] + 3 * e[:, 2]) / (3 * 5.24) - 0.5 * info["action_rate"]
+    np.testing.assert_allclose(reward, expected, rtol=1e-6)
+    assert (info["paper_reward"] == -1.0).all() and (reward < -1.0).all()  # the paper's clip would hide this
+    with pytest.raises(ValueError, match="unclipped"):
+        TrainConfig(reward="paper", axis_weights=(1.0, 1.0, 2.0))
+    venv.close()
