@@ -19,7 +19,8 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Protocol
+from collections.abc import Callable
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -43,6 +44,7 @@ from sim_bridge.protocol import (
 from sim_bridge.twin import Twin, TwinState
 
 log = logging.getLogger(__name__)
+R = TypeVar("R")
 
 # Non-blocking receive attempts (~1 µs each) before a blocking one. Waking a sleeping
 # process costs tens of µs on a VM, more than a whole lockstep round trip.
@@ -104,6 +106,18 @@ class AdaptiveSpin:
         self._until_probe -= 1
         if self._until_probe <= 0:
             self._until_probe, self.budget = self.probe_every, self.full
+
+    def receive(self, recv_into: Callable[..., R], buffer: bytearray) -> R:
+        """`recv_into(buffer)` (or `recvfrom_into`): spin non-blocking within the budget, then block."""
+        for _ in range(self.budget):
+            try:
+                received = recv_into(buffer, 0, _DONTWAIT)
+                self.hit()
+                return received
+            except BlockingIOError:
+                pass
+        self.miss()
+        return recv_into(buffer)  # blocks for at most the socket's timeout
 
 
 class InProcessLink:
@@ -224,16 +238,7 @@ class UdpTwinClient:
                           f"{self.retries + 1} tries of {self.timeout * 1e3:.0f} ms; call reset() to resume")
 
     def _receive(self) -> int:
-        recv_into, rx, spin = self._sock.recv_into, self._rx, self._spin.budget
-        for _ in range(spin):
-            try:
-                n = recv_into(rx, 0, _DONTWAIT)
-                self._spin.hit()
-                return n
-            except BlockingIOError:
-                pass
-        self._spin.miss()
-        return recv_into(rx)  # blocks for at most SO_RCVTIMEO
+        return self._spin.receive(self._sock.recv_into, self._rx)  # blocks for at most SO_RCVTIMEO
 
     def _set_wait(self, seconds: float) -> None:
         # SO_RCVTIMEO on a blocking socket: one syscall per receive, where settimeout() adds a poll().

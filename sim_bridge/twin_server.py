@@ -16,7 +16,7 @@ import sys
 import threading
 import time
 
-from sim_bridge.link import _DONTWAIT, _FRAME, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
+from sim_bridge.link import _FRAME, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
 from sim_bridge.protocol import (
     FRAME_MSG,
     MAGIC,
@@ -140,16 +140,7 @@ class UdpTwinServer:
                 self._bad("internal_error", addr, f"internal error: {exc}", 0, ErrorCode.INTERNAL)
 
     def _receive(self) -> tuple[int, tuple[str, int]]:
-        recvfrom_into, buf, spin = self._sock.recvfrom_into, self._rx, self._spin.budget
-        for _ in range(spin):
-            try:
-                received = recvfrom_into(buf, 0, _DONTWAIT)
-                self._spin.hit()
-                return received
-            except BlockingIOError:
-                pass
-        self._spin.miss()
-        return recvfrom_into(buf)
+        return self._spin.receive(self._sock.recvfrom_into, self._rx)
 
     def _handle(self, data: memoryview, addr: tuple[str, int], now: float) -> None:
         try:
