@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 
 from firmware.action import ACTION_MAPPINGS, PWM_MIN, PWM_SPAN, action_to_pwm
-from firmware.observation import ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import FIELDS, ObservationHistory, ObservationSpec, observe_step
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
 from sim_bridge.tasks import (
     HOLD_S,
@@ -60,6 +60,7 @@ class EnvConfig:
     dt: float = 0.001
     hold_s: tuple[float, float] = HOLD_S
     rest_s: tuple[float, float] | None = REST_S
+    obs_fields: tuple[str, ...] = FIELDS  # firmware.observation fields, e.g. + rate_error_integral
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -92,7 +93,7 @@ class EnvConfig:
 
     @property
     def observation_spec(self) -> ObservationSpec:
-        return ObservationSpec(memory=self.memory)
+        return ObservationSpec(memory=self.memory, fields=tuple(self.obs_fields))
 
     @property
     def noisy(self) -> bool:
@@ -142,9 +143,9 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
                  noise: SensorNoise | None = None, randomize: Mapping[str, float] | None = None,
                  omega_max: float = OMEGA_MAX, action_rate_penalty: float = 0.0,
                  airframe: Airframe | str = "iris", dt: float = 0.001,
-                 render_mode: str | None = None) -> None:
+                 render_mode: str | None = None, obs_fields: tuple[str, ...] = FIELDS) -> None:
         self.config = EnvConfig(task, memory, action_mapping, throttle, episode_s, noise, randomize,
-                                omega_max, action_rate_penalty, airframe, dt)
+                                omega_max, action_rate_penalty, airframe, dt, obs_fields=tuple(obs_fields))
         self.obs_spec = self.config.observation_spec
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)

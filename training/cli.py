@@ -11,6 +11,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="RL training of a rate controller (SB3 / sb3-contrib)")
     p.add_argument("--algo", choices=ALGOS, default="ppo")
     p.add_argument("--memory", type=int, default=1, help="observation history length m")
+    p.add_argument("--integral", action="store_true",
+                   help="add a leaky integral of the rate error to the observation (rate_error_integral)")
     p.add_argument("--steps", type=int, default=3_000_000, help="environment steps (1 ms each)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--envs", type=int, default=None, help="parallel twins (default: per algorithm)")

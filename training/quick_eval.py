@@ -17,6 +17,7 @@ import numpy as np
 from evaluation.metrics import AXES, EvalMetrics, compute_metrics
 from evaluation.runner import EvalConfig, run_controller
 from evaluation.traces import Traces
+from firmware.observation import FIELDS
 from sim_bridge.vec_env import BatchedRateEnv
 
 
@@ -58,10 +59,11 @@ class BatchedEvaluator:
     seed: int
     memory: int = 1
     action_mapping: str = "throttle"
+    obs_fields: tuple[str, ...] = FIELDS
     env: BatchedRateEnv = field(init=False)
 
     def __post_init__(self) -> None:
-        self.env = BatchedRateEnv(self.n, task="episodic", memory=self.memory,
+        self.env = BatchedRateEnv(self.n, task="episodic", memory=self.memory, obs_fields=self.obs_fields,
                                   action_mapping=self.action_mapping, throttle=None)
 
     def traces(self, act, name: str = "policy") -> Traces:

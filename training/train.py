@@ -65,6 +65,7 @@ class TrainConfig:
     seed: int = 0
     out: str = "runs/ppo"
     memory: int = 1
+    integral: bool = False  # + firmware.observation's rate_error_integral field
     envs: int | None = None  # None: the algorithm's default
     action_mapping: str = "throttle"
     throttle: float | tuple[float, float] | None = (0.5, 0.9)  # the collective training draws from
@@ -95,6 +96,12 @@ class TrainConfig:
             self.throttle = tuple(self.throttle)
 
     @property
+    def obs_fields(self) -> tuple[str, ...]:
+        from firmware.observation import FIELDS, INTEGRAL
+
+        return (*FIELDS, INTEGRAL) if self.integral else FIELDS
+
+    @property
     def n_envs(self) -> int:
         return self.envs or ALGOS[self.algo]["envs"]
 
@@ -107,7 +114,8 @@ class TrainConfig:
         return ALGOS[self.algo]["norm_reward"] if self.norm_reward is None else self.norm_reward
 
     def env_kwargs(self) -> dict[str, Any]:
-        return {"task": self.task, "memory": self.memory, "action_mapping": self.action_mapping,
+        return {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields,
+                "action_mapping": self.action_mapping,
                 "throttle": self.throttle, "action_rate_penalty": self.action_rate_penalty}
 
 
@@ -201,7 +209,7 @@ class PidRaceCallback(BaseCallback):
         self._next = every
         self._t0 = time.perf_counter()
         self.evaluator = quick_eval.BatchedEvaluator(cfg.eval_commands, cfg.eval_seed, cfg.memory,
-                                                     cfg.action_mapping)
+                                                     cfg.action_mapping, cfg.obs_fields)
         self.pids = quick_eval.pid_references(PID_PRESETS, cfg.eval_commands, cfg.eval_seed)
 
     def _on_training_start(self) -> None:
@@ -260,7 +268,7 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
 def _spec(cfg: TrainConfig):
     from firmware.observation import ObservationSpec
 
-    return ObservationSpec(memory=cfg.memory)
+    return ObservationSpec(memory=cfg.memory, fields=cfg.obs_fields)
 
 
 def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, Any]:
@@ -372,7 +380,8 @@ def config_from_args(args) -> TrainConfig:
     if throttle is not None:
         throttle = tuple(throttle) if len(throttle) == 2 else throttle[0]
     return TrainConfig(algo=args.algo, steps=args.steps, seed=args.seed, out=args.out or f"runs/{args.algo}",
-                       memory=args.memory, envs=args.envs, action_mapping=args.action_mapping,
+                       memory=args.memory, integral=args.integral, envs=args.envs,
+                       action_mapping=args.action_mapping,
                        throttle=throttle if args.throttle is not None else TrainConfig.throttle,
                        task=args.task, action_rate_penalty=args.action_rate_penalty, reward=args.reward,
                        axis_weights=tuple(args.axis_weights),

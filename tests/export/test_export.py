@@ -21,9 +21,10 @@ from training.train import TrainConfig, train
 pytestmark = pytest.mark.slow
 
 
-def _tiny_run(root: Path, algo: str, memory: int, steps: int, hp: dict | None = None) -> Path:
-    out = root / algo
-    cfg = TrainConfig(algo=algo, steps=steps, seed=7, out=str(out), memory=memory, envs=4,
+def _tiny_run(root: Path, algo: str, memory: int, steps: int, hp: dict | None = None,
+              integral: bool = False) -> Path:
+    out = root / (algo + ("_integral" if integral else ""))
+    cfg = TrainConfig(algo=algo, steps=steps, seed=7, out=str(out), memory=memory, envs=4, integral=integral,
                       checkpoint_every=steps // 2, eval_episodes=0, progress=False, hp=hp or {})
     train(cfg)
     return out
@@ -38,6 +39,16 @@ def runs(tmp_path_factory) -> dict[str, Path]:
         "sac": _tiny_run(root, "sac", 1, 256, off_policy),
         "td3": _tiny_run(root, "td3", 3, 256, off_policy),
     }
+
+
+def test_integral_observation_exports_and_flies(tmp_path):
+    run = _tiny_run(tmp_path, "ppo", 1, 1024, {"n_steps": 64, "batch_size": 64}, integral=True)
+    info = export_policy(run, tmp_path / "p.onnx", parity_samples=10_000)
+    assert info["parity_max_abs_diff"] <= 1e-5
+    spec = ObservationSpec.from_json(read_metadata(tmp_path / "p.onnx")["observation"])
+    assert spec.fields[-1] == "rate_error_integral" and spec.size == 10
+    ctrl = NeuralRateController(tmp_path / "p.onnx")
+    assert ctrl.spec == spec
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac", "td3"])

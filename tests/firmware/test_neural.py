@@ -40,8 +40,10 @@ def linear_policy(path, weight: np.ndarray, bias: np.ndarray, meta: dict[str, st
     return str(path)
 
 
-def meta(memory: int = 1, mapping: str = "gymfc", rate: float = 1000.0) -> dict[str, str]:
-    return {"observation": ObservationSpec(memory=memory).to_json(), "action_mapping": mapping,
+def meta(memory: int = 1, mapping: str = "gymfc", rate: float = 1000.0,
+         spec: ObservationSpec | None = None) -> dict[str, str]:
+    spec = spec or ObservationSpec(memory=memory)
+    return {"observation": spec.to_json(), "action_mapping": mapping,
             "loop_rate_hz": str(rate), "algorithm": "ppo", "training_steps": "0", "seed": "0"}
 
 
@@ -83,6 +85,20 @@ def test_memory_keeps_the_last_steps_newest_first(tmp_path):
     second = ctl.update(sp, frame(gyro=(-2.0, 0, 0)), 0.001)
     assert first[0] == pytest.approx(gymfc_pwm(np.array(1.0 * spec.rate_scale)), abs=1e-3)  # history filled
     assert second[0] == pytest.approx(gymfc_pwm(np.array(1.0 * spec.rate_scale)), abs=1e-3)
+
+
+def test_integral_field_integrates_the_error_across_ticks_and_restarts_on_reset(tmp_path):
+    spec = ObservationSpec(fields=("rate_error", "rotor_speed", "rate_error_integral"), integral_leak=0.9)
+    weight = np.zeros((spec.size, 4))
+    weight[7, 0] = 1.0  # action[0] = the roll error's leaky integral
+    ctl = NeuralRateController(linear_policy(tmp_path / "p.onnx", weight, np.zeros(4), meta(spec=spec)))
+    sp = RateSetpoint(np.zeros(3), 0.5)
+    e = 1.0 * spec.rate_scale
+    outs = [ctl.update(sp, frame(gyro=(-1.0, 0, 0)), 0.001)[0] for _ in range(3)]
+    expected = [0.1 * e, 0.19 * e, 0.271 * e]  # I_k = 0.9·I_{k-1} + 0.1·e, I_0 = 0.1·e
+    np.testing.assert_allclose(outs, [gymfc_pwm(np.array(x)) for x in expected], atol=1e-3)
+    ctl.reset()
+    assert ctl.update(sp, frame(gyro=(-1.0, 0, 0)), 0.001)[0] == pytest.approx(outs[0], abs=1e-3)
 
 
 @pytest.mark.parametrize(("shape", "metadata", "message"), [

@@ -135,6 +135,9 @@ def test_config_and_cli():
     cfg = config_from_args(args)
     got = (cfg.algo, cfg.memory, cfg.steps, cfg.seed, cfg.n_envs, cfg.throttle)
     assert got == ("sac", 3, 10, 4, 2, (0.6, 0.8))
+    assert cfg.obs_fields == ("rate_error", "rotor_speed") and "integral" not in argv
+    cfg = config_from_args(build_parser().parse_args([*argv.split(), "--integral"]))
+    assert cfg.obs_fields[-1] == "rate_error_integral" and cfg.env_kwargs()["obs_fields"] == cfg.obs_fields
     bench = build_parser().parse_args(["bench", "train", "--json", "--max-minutes", "1"])
     assert bench.handler == "training.bench:bench_train" and bench.max_minutes == 1.0
 
