@@ -2,14 +2,13 @@ import numpy as np
 import onnx
 import pytest
 
+from firmware.controllers import DEFAULT_POLICY
 from firmware.neural import META_PREFIX
 from firmware.observation import FIELDS, INTEGRAL, ObservationHistory, ObservationSpec, observe_step
 
-SHIPPED = "policies/iris_rate_ppo.onnx"
-
 
 def test_default_spec_serialises_exactly_as_the_shipped_policy_metadata():
-    props = {p.key: p.value for p in onnx.load(SHIPPED, load_external_data=False).metadata_props}
+    props = {p.key: p.value for p in onnx.load(str(DEFAULT_POLICY), load_external_data=False).metadata_props}
     assert ObservationSpec().to_json() == props[META_PREFIX + "observation"]
     assert "integral_leak" not in ObservationSpec().to_json()
 
