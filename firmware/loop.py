@@ -110,6 +110,7 @@ class FlightLoop:
         self._armed = False
         self._active = ""
         self.last_sample: TickSample | None = None
+        self.plant_ns = 0
 
     def tick(self, t_us: int) -> TickSample:
         command = self.commander.command(t_us, self.frame)
@@ -122,7 +123,9 @@ class FlightLoop:
             pwm, name = self._run_controller(name, command.setpoint)
         self._armed = command.armed
         frame = self.frame
+        plant_start = time.perf_counter_ns()
         self.frame = self.plant.pwm_write(pwm)
+        self.plant_ns = time.perf_counter_ns() - plant_start
         sample = TickSample(t_us, frame, command, pwm, name)
         for sink in self.sinks:
             sink.publish(sample)
@@ -182,7 +185,8 @@ class FlightLoop:
                 start = perf_us()
                 self.tick(deadline)
                 done = perf_us()
-                stats.record(done - start, woke - deadline if clock.realtime else 0)
+                plant = self.plant_ns // 1000
+                stats.record(done - start - plant, woke - deadline if clock.realtime else 0, plant)
                 n += 1
                 deadline += period
                 if clock.realtime:
