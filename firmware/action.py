@@ -50,7 +50,8 @@ def throttle_pwm_one(action: np.ndarray, throttle: float, gain: float = DIFFEREN
     The same IEEE operations in the same order, so the result is bit-identical to the
     batched version the environment trains with (tests/firmware/test_action.py checks it).
     """
-    a = [min(max(float(x), -1.0), 1.0) for x in action]
+    values = action.tolist() if isinstance(action, np.ndarray) else [float(x) for x in action]
+    a = [-1.0 if x < -1.0 else 1.0 if x > 1.0 else x for x in values]
     mean = (((a[0] + a[1]) + a[2]) + a[3]) * 0.25
     mix = [gain * (x - mean) for x in a]
     lo, hi = min(mix), max(mix)

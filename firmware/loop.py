@@ -150,12 +150,11 @@ class FlightLoop:
         if controller is not None:
             try:
                 pwm = controller.update(setpoint, self.frame, self.dt)
-                if pwm.shape != (4,) or not np.isfinite(pwm).all():
-                    problem = "non-finite output"
-                elif pwm.min() < PWM_MIN or pwm.max() > PWM_MAX:
-                    problem = "output out of range"
-                else:
+                # NaN fails both comparisons, so two reductions check finiteness and range.
+                if pwm.shape == (4,) and PWM_MIN <= pwm.min() and pwm.max() <= PWM_MAX:
                     return pwm, name
+                problem = ("output out of range" if pwm.shape == (4,) and np.isfinite(pwm).all()
+                           else "non-finite output")
             except Exception as exc:  # a controller bug must not stop the motors mid-air
                 problem = f"raised {type(exc).__name__}"
         self.faults[f"{name}: {problem}"] = self.faults.get(f"{name}: {problem}", 0) + 1
