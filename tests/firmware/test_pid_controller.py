@@ -20,7 +20,7 @@ from firmware.pid_controller import PRESETS, PIDRateController, load_preset, pre
 from firmware.sensors import SensorFrame
 from sim_bridge.twin import Twin
 
-TABLES = Path(__file__).resolve().parents[3] / "shared" / "reference" / "gymfc2018_tables.json"
+TABLES = Path(__file__).resolve().parents[2] / "evaluation" / "data" / "paper_tables.json"
 STEP = 3.0
 BAND = 0.1 * STEP
 
@@ -74,8 +74,6 @@ def test_paper_preset_is_the_papers_gains_and_mixer():
     preset = load_preset("paper")
     gains = PIDGains.from_dict(preset["pid"])
     assert preset["mixer"]["table"] == "paper_iris"
-    if not TABLES.exists():
-        pytest.skip("reference tables not available")
     ref = json.loads(TABLES.read_text())["pid_gains_kp_ki_kd"]
     for i, axis in enumerate(("roll", "pitch", "yaw")):
         assert [gains.kp[i], gains.ki[i], gains.kd[i]] == ref[axis]
