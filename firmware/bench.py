@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 from firmware.sitl import build_sitl
+from firmware.timing import give_loop_a_core
 
 
 def _free_port() -> int:
@@ -23,7 +24,11 @@ def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "ri
     telemetry stream goes out to two peers."""
     if not mavlink:
         sitl = build_sitl(controller, rig=rig, rate_hz=rate_hz, realtime=True)
-        stats = sitl.loop.run(seconds)
+        release_core = give_loop_a_core(())
+        try:
+            stats = sitl.loop.run(seconds)
+        finally:
+            release_core()
         extra = {}
     else:
         from firmware.mavlink.bridge import MavlinkConfig, PeerConfig
@@ -35,11 +40,13 @@ def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "ri
         vs = start_vehicle_sitl(controller, rig, rate_hz, 1.0, config)
         peer = subprocess.Popen([sys.executable, "-m", "firmware.mavlink.loadpeer", str(gcs), str(offboard)])
         sitl = vs.sitl
+        release_core = give_loop_a_core((vs.proc.pid, peer.pid))
         try:
             sitl.loop.run(1.0)  # the peer connects, switches to OFFBOARD and arms
             sitl.loop.stats.__post_init__()
             stats = sitl.loop.run(seconds)
         finally:
+            release_core()
             peer.terminate()
             peer.wait(5)
             mav = vs.stop()

@@ -53,6 +53,7 @@ def plot_flight(log_path: Path, out_png: Path, title: str) -> None:
 def run_demo(controller: str, speed: float, out: Path, timeout_s: float = 150.0) -> dict:
     from firmware.mavlink.bridge import MavlinkConfig, PeerConfig
     from firmware.sitl import start_vehicle_sitl
+    from firmware.timing import give_loop_a_core
 
     if not EXAMPLE.exists():
         raise FileNotFoundError(f"{EXAMPLE} not found: fcemu demo runs from a source checkout")
@@ -73,9 +74,11 @@ def run_demo(controller: str, speed: float, out: Path, timeout_s: float = 150.0)
         return calls[0] % 100 == 0 and script.poll() is not None
 
     wall0 = time.monotonic()
+    release_core = give_loop_a_core((vs.proc.pid, script.pid))
     try:
         vs.sitl.loop.run(timeout_s * speed, should_stop=finished)
     finally:
+        release_core()
         wall_s = time.monotonic() - wall0
         mav = vs.stop()
         if script.poll() is None:

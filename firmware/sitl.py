@@ -18,7 +18,7 @@ import numpy as np
 
 from firmware.controllers import load_controller
 from firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
-from firmware.timing import LockstepClock, RealTimeClock
+from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core
 
 FALLBACK = "pid"
 
@@ -250,11 +250,13 @@ def sitl_command(args) -> int:
         veh = vs.vehicle
         extra = lambda: f"{'ARMED' if veh.armed else 'disarmed'} {veh.mode_name()}"  # noqa: E731
     status = None if args.quiet else StatusLine(sitl.loop, every_s=0.5 if speed else 2.0, extra=extra)
+    release_core = give_loop_a_core([vs.proc.pid] if vs is not None else [])
     try:
         sitl.loop.run(args.duration, on_slack=status)
     except KeyboardInterrupt:
         pass
     finally:
+        release_core()
         mav_stats = vs.stop() if vs is not None else {}
     if status is not None:
         sys.stderr.write("\n")
