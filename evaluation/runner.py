@@ -22,6 +22,7 @@ from firmware.loop import Command, FlightLoop, TickSample
 from firmware.sensors import SensorFrame
 from firmware.timing import LockstepClock
 from sim_bridge.airframe import load_airframe
+from sim_bridge.link import InProcessLink
 from sim_bridge.tasks import continuous_schedule, episodic_commands
 from sim_bridge.twin import Twin
 
@@ -105,7 +106,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     for i in bar:
         commander = _Schedule(setpoints[i], throttle, round(1e6 / cfg.rate_hz))
         recorder = _Recorder(rate[i], pwm[i])
-        loop = FlightLoop(_TwinPlant(twin), twin.reset(), controllers, commander, LockstepClock(),
+        loop = FlightLoop(InProcessLink(twin), twin.reset(), controllers, commander, LockstepClock(),
                           cfg.rate_hz, [recorder], fallback=FALLBACK if neural else None)
         for k in range(ticks):
             loop.tick(k * loop.period_us)
@@ -115,8 +116,3 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     t = np.arange(ticks) / cfg.rate_hz
     return Traces(t, np.array(setpoints), rate, pwm, controller=spec, seed=cfg.seed, task=cfg.task,
                   extra={"throttle": throttle, "controller_faults": faults, "rate_hz": cfg.rate_hz})
-
-
-class _TwinPlant:
-    def __init__(self, twin: Twin) -> None:
-        self.pwm_write = twin.step
