@@ -1,4 +1,4 @@
-"""`fcemu eval`: the paper's metrics for one or more controllers, side by side."""
+"""`fcemu eval`: the paper's metrics for one or more controllers, side by side; `fcemu bound`."""
 
 from __future__ import annotations
 
@@ -19,3 +19,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--report", metavar="DIR", help="write a Markdown report with figures into DIR")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save the traces (one file per controller)")
     p.set_defaults(handler="evaluation.evaluate:eval_command")
+    register_bound(sub)
+
+
+def register_bound(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bound", help="lower bound on the Error any controller can reach (LP per command)")
+    p.add_argument("--episodes", type=int, default=200)
+    p.add_argument("--seed", type=int, default=0, help="the evaluator's command seed (as fcemu eval)")
+    p.add_argument("--horizon", type=int, default=400, help="steps optimised; later error counts as 0")
+    p.add_argument("--gyro-passes", type=int, default=0,
+                   help="re-solve with the previous solution's gyroscopic term (an estimate, not a bound)")
+    p.add_argument("--jobs", type=int, default=0, help="worker processes (default: one per CPU)")
+    p.add_argument("--controller", action="append", default=None,
+                   help="also fly pid, pid:<preset> or FILE.onnx on the same commands and compare")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    p.set_defaults(handler="evaluation.bound:bound_command")
