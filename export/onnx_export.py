@@ -18,6 +18,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import torch
+from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
 
 from fcemu import __version__
@@ -90,11 +91,15 @@ class DeterministicActor(nn.Module):
         self.register_buffer("mean", torch.as_tensor(obs_mean, dtype=torch.float32))
         self.register_buffer("inv_std", torch.as_tensor(1.0 / np.sqrt(obs_var + eps), dtype=torch.float32))
         self.clip_obs = float(clip_obs)
+        self.flat = self.on_policy and isinstance(self.policy.pi_features_extractor, FlattenExtractor) \
+            and len(getattr(model.observation_space, "shape", ())) == 1
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         x = torch.clamp((obs - self.mean) * self.inv_std, -self.clip_obs, self.clip_obs)
         if self.on_policy:  # PPO, TRPO: the Gaussian's mean
-            features = self.policy.extract_features(x, self.policy.pi_features_extractor)
+            # A flat Box observation goes through SB3's extractor as Cast + Flatten, both no-ops
+            # here; leaving them out saves the firmware two graph nodes per tick.
+            features = x if self.flat else self.policy.extract_features(x, self.policy.pi_features_extractor)
             return self.policy.action_net(self.policy.mlp_extractor.forward_actor(features))
         return self.policy.actor(x, deterministic=True) if _is_sac(self.policy) else self.policy.actor(x)
 
