@@ -14,6 +14,7 @@ reaches the model.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,7 @@ import onnxruntime as ort
 
 from firmware.action import ACTION_MAPPINGS, action_to_pwm, throttle_pwm_one
 from firmware.controller import RateSetpoint
-from firmware.observation import OBS_VERSION, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import FIELDS, OBS_VERSION, ObservationHistory, ObservationSpec, observe_step
 from firmware.sensors import SensorFrame
 
 META_PREFIX = "fcemu."
@@ -71,6 +72,9 @@ class NeuralRateController:
         self.name = f"neural:{self.path.stem}"
         self._history = ObservationHistory(self.spec)
         self._fresh = True
+        # The shipped spec (m = 1, rate error + rotor speeds) skips the general path's array
+        # building: each tick's numpy calls on 3- and 4-vectors cost more than the model.
+        self._direct = self.spec.memory == 1 and self.spec.fields == FIELDS
         self._input = np.zeros((1, self.spec.size), dtype=np.float32)
         self._output = np.zeros((1, 4), dtype=np.float32)
         self._binding = self._session.io_binding()
@@ -129,6 +133,8 @@ class NeuralRateController:
         return self._output[0]
 
     def update(self, setpoint: RateSetpoint, frame: SensorFrame, dt: float) -> np.ndarray:
+        if self._direct:
+            return self._update_direct(setpoint, frame)
         step = observe_step(self.spec, setpoint.rates, frame.gyro, frame.rotor_speed)
         if not np.isfinite(step).all():  # the step holds every input the policy reads
             raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
@@ -143,3 +149,24 @@ class NeuralRateController:
         if self.action_mapping == "throttle":
             return throttle_pwm_one(action, setpoint.throttle)
         return action_to_pwm(self.action_mapping, action, setpoint.throttle)
+
+    def _update_direct(self, setpoint: RateSetpoint, frame: SensorFrame) -> np.ndarray:
+        """`update` for m = 1 and the default fields, in plain floats written straight into
+        the bound input buffer: `observe_step`'s float64 operations in the same order, rounded
+        to float32 on the store, so the model sees bit for bit what training produced."""
+        spec = self.spec
+        sp, gyro, rotor = setpoint.rates.tolist(), frame.gyro.tolist(), frame.rotor_speed.tolist()
+        rs, ws = spec.rate_scale, spec.rotor_speed_scale
+        values = [(sp[0] - gyro[0]) * rs, (sp[1] - gyro[1]) * rs, (sp[2] - gyro[2]) * rs,
+                  rotor[0] * ws, rotor[1] * ws, rotor[2] * ws, rotor[3] * ws]
+        if not all(map(math.isfinite, values)):
+            raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
+        self._input[0] = values
+        self._fresh = False
+        self._session.run_with_iobinding(self._binding)
+        action = self._output[0].tolist()
+        if not all(map(math.isfinite, action)):
+            raise PolicyOutputError(f"policy output {action} is not finite")
+        if self.action_mapping == "throttle":
+            return throttle_pwm_one(action, setpoint.throttle)
+        return action_to_pwm(self.action_mapping, self._output[0], setpoint.throttle)

@@ -163,3 +163,18 @@ def test_non_finite_sensor_input_is_not_fed_to_the_model(tmp_path, weight):
         ctl.update(RateSetpoint(np.zeros(3), 0.5), frame(gyro=(np.nan, 0, 0)), 0.001)
     with pytest.raises(PolicyOutputError):
         ctl.update(RateSetpoint(np.array([np.inf, 0, 0]), 0.5), frame(), 0.001)
+
+
+@pytest.mark.parametrize("mapping", ["throttle", "gymfc"])
+def test_direct_path_is_bit_identical_to_the_general_one(tmp_path, weight, mapping):
+    """The m = 1 fast path must feed the model exactly what `observe_step` builds in training."""
+    path = linear_policy(tmp_path / "p.onnx", weight, np.array([0.3, -0.1, 0.05, 0.2]), meta(mapping=mapping))
+    direct, general = NeuralRateController(path), NeuralRateController(path)
+    assert direct._direct
+    general._direct = False
+    rng = np.random.default_rng(4)
+    for _ in range(500):
+        sp = RateSetpoint(rng.uniform(-6, 6, 3), float(rng.uniform(0, 1)))
+        f = frame(rng.uniform(-8, 8, 3), rng.uniform(0, 1100, 4))
+        np.testing.assert_array_equal(direct.update(sp, f, 0.001), general.update(sp, f, 0.001))
+        np.testing.assert_array_equal(direct._input, general._input)
