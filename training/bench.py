@@ -46,10 +46,11 @@ class _CappedRace(PidRaceCallback):
 
 
 def bench_train(args) -> int:
-    steps_cap = 10**9  # the wall-time cap ends the race, not the step count
     with tempfile.TemporaryDirectory(prefix="fcemu-bench-train-") as tmp:
         out = Path(args.out) if args.out else Path(tmp) / "run"
-        cfg = TrainConfig(algo=args.algo, steps=steps_cap, seed=args.seed, out=str(out), envs=args.envs,
+        # --steps sets the learning-rate schedule (decay over the run, as `fcemu train`);
+        # the wall-time cap or the target usually ends the race first.
+        cfg = TrainConfig(algo=args.algo, steps=args.steps, seed=args.seed, out=str(out), envs=args.envs,
                           eval_commands=args.eval_commands, eval_episodes=0, threads=args.threads,
                           checkpoint_every=10**9, progress=not args.json and sys.stderr.isatty())
         load_before = os.getloadavg()

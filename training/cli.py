@@ -53,6 +53,8 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--envs", type=int, default=None)
     p.add_argument("--max-minutes", type=float, default=15.0, help="cap on the race against the PID")
+    p.add_argument("--steps", type=int, default=10_000_000,
+                   help="the run's length, which sets the learning-rate decay (default: the shipped run's)")
     p.add_argument("--eval-every", type=int, default=250_000, help="steps between evaluations")
     p.add_argument("--eval-commands", type=int, default=64, help="fixed commands per evaluation")
     p.add_argument("--target", choices=("beat", "bar"), default="beat",
