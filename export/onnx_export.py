@@ -91,6 +91,7 @@ class DeterministicActor(nn.Module):
         self.register_buffer("mean", torch.as_tensor(obs_mean, dtype=torch.float32))
         self.register_buffer("inv_std", torch.as_tensor(1.0 / np.sqrt(obs_var + eps), dtype=torch.float32))
         self.clip_obs = float(clip_obs)
+        self.squash = self.on_policy and bool(getattr(self.policy, "squash_output", False))
         self.flat = self.on_policy and isinstance(self.policy.pi_features_extractor, FlattenExtractor) \
             and len(getattr(model.observation_space, "shape", ())) == 1
 
@@ -100,7 +101,8 @@ class DeterministicActor(nn.Module):
             # A flat Box observation goes through SB3's extractor as Cast + Flatten, both no-ops
             # here; leaving them out saves the firmware two graph nodes per tick.
             features = x if self.flat else self.policy.extract_features(x, self.policy.pi_features_extractor)
-            return self.policy.action_net(self.policy.mlp_extractor.forward_actor(features))
+            mean = self.policy.action_net(self.policy.mlp_extractor.forward_actor(features))
+            return torch.tanh(mean) if self.squash else mean  # gSDE's squash_output: the mode is tanh(mean)
         return self.policy.actor(x, deterministic=True) if _is_sac(self.policy) else self.policy.actor(x)
 
 

@@ -36,6 +36,9 @@ def runs(tmp_path_factory) -> dict[str, Path]:
     off_policy = {"learning_starts": 64, "buffer_size": 10_000, "batch_size": 32}
     return {
         "ppo": _tiny_run(root, "ppo", 2, 1024, {"n_steps": 64, "batch_size": 64}),
+        "ppo_squashed": _tiny_run(root / "squashed", "ppo", 1, 1024, {
+            "n_steps": 64, "batch_size": 64,
+            "policy_kwargs": {"net_arch": {"pi": [64, 64], "vf": [64, 64]}, "squash_output": True}}),
         "sac": _tiny_run(root, "sac", 1, 256, off_policy),
         "td3": _tiny_run(root, "td3", 3, 256, off_policy),
     }
@@ -75,7 +78,7 @@ def test_parity_and_metadata_round_trip(runs, algo, tmp_path):
     assert ctrl.spec == spec and ctrl.action_mapping == "throttle"
 
 
-@pytest.mark.parametrize("algo", ["ppo", "sac"])
+@pytest.mark.parametrize("algo", ["ppo", "ppo_squashed", "sac"])
 def test_onnx_is_the_normalised_deterministic_actor(runs, algo, tmp_path):
     """Independently of export's own check: ONNX(raw obs) == SB3 predict(VecNormalize(obs))."""
     import pickle
