@@ -11,6 +11,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="RL training of a rate controller (SB3 / sb3-contrib)")
     p.add_argument("--algo", choices=ALGOS, default="ppo")
     p.add_argument("--memory", type=int, default=1, help="observation history length m")
+    p.add_argument("--squash", action="store_true",
+                   help="PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
+                        "--action-rate-penalty smooth the motors instead of saturating them")
     p.add_argument("--integral", action="store_true",
                    help="add a leaky integral of the rate error to the observation (rate_error_integral)")
     p.add_argument("--steps", type=int, default=3_000_000, help="environment steps (1 ms each)")
@@ -23,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="collective for the throttle mapping: one value, or LO HI drawn per episode "
                         "(default 0.5 0.9)")
     p.add_argument("--action-rate-penalty", type=float, default=0.0,
-                   help="weight of Neuroflight's output-oscillation penalty (mean |Δu| per step)")
+                   help="weight of Neuroflight's output-oscillation penalty (mean |Δu| per step); "
+                        "use with --squash")
     p.add_argument("--reward", choices=("paper", "unclipped"), default="unclipped",
                    help="paper: −clip(Σ|e|/(3·Ω_max), 0, 1); unclipped: the same without the clip")
     p.add_argument("--axis-weights", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("R", "P", "Y"),

@@ -67,6 +67,7 @@ class TrainConfig:
     out: str = "runs/ppo"
     memory: int = 1
     integral: bool = False  # + firmware.observation's rate_error_integral field
+    squash: bool = False  # PPO/TRPO: tanh-squashed gSDE actions (SAC, TD3 and DDPG squash already)
     envs: int | None = None  # None: the algorithm's default
     action_mapping: str = "throttle"
     throttle: float | tuple[float, float] | None = (0.5, 0.9)  # the collective training draws from
@@ -93,6 +94,8 @@ class TrainConfig:
             raise ValueError("axis weights need --reward unclipped")
         if self.reward not in REWARDS:
             raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
+        if self.squash and self.algo not in ("ppo", "trpo"):
+            raise ValueError(f"--squash is for PPO and TRPO; {self.algo.upper()} squashes already")
         if isinstance(self.throttle, list):
             self.throttle = tuple(self.throttle)
 
@@ -108,7 +111,10 @@ class TrainConfig:
 
     @property
     def hyper(self) -> dict[str, Any]:
-        return copy.deepcopy({**ALGOS[self.algo]["hp"], **self.hp})  # SB3 writes into policy_kwargs
+        hp = copy.deepcopy({**ALGOS[self.algo]["hp"], **self.hp})  # SB3 writes into policy_kwargs
+        if self.squash:
+            hp["policy_kwargs"] = {**hp.get("policy_kwargs", {}), "squash_output": True}
+        return hp
 
     @property
     def normalise_reward(self) -> bool:
@@ -381,7 +387,7 @@ def config_from_args(args) -> TrainConfig:
     if throttle is not None:
         throttle = tuple(throttle) if len(throttle) == 2 else throttle[0]
     return TrainConfig(algo=args.algo, steps=args.steps, seed=args.seed, out=args.out or f"runs/{args.algo}",
-                       memory=args.memory, integral=args.integral, envs=args.envs,
+                       memory=args.memory, integral=args.integral, squash=args.squash, envs=args.envs,
                        action_mapping=args.action_mapping,
                        throttle=throttle if args.throttle is not None else TrainConfig.throttle,
                        task=args.task, action_rate_penalty=args.action_rate_penalty, reward=args.reward,

@@ -138,6 +138,11 @@ def test_config_and_cli():
     assert cfg.obs_fields == ("rate_error", "rotor_speed") and "integral" not in argv
     cfg = config_from_args(build_parser().parse_args([*argv.split(), "--integral"]))
     assert cfg.obs_fields[-1] == "rate_error_integral" and cfg.env_kwargs()["obs_fields"] == cfg.obs_fields
+    with pytest.raises(ValueError, match="squash"):
+        config_from_args(build_parser().parse_args([*argv.split(), "--squash"]))  # SAC squashes already
+    ppo = config_from_args(build_parser().parse_args(["train", "--squash", "--action-rate-penalty", "2"]))
+    assert ppo.hyper["policy_kwargs"]["squash_output"] and ppo.hyper["use_sde"]
+    assert "squash_output" not in TrainConfig().hyper["policy_kwargs"]
     bench = build_parser().parse_args(["bench", "train", "--json", "--max-minutes", "1"])
     assert bench.handler == "training.bench:bench_train" and bench.max_minutes == 1.0
 
