@@ -146,9 +146,12 @@ class NeuralRateController:
         action = self.infer(obs)
         if not np.isfinite(action).all():
             raise PolicyOutputError(f"policy output {action} is not finite")
+        return self._pwm(action, setpoint.throttle)
+
+    def _pwm(self, action: np.ndarray, throttle: float) -> np.ndarray:
         if self.action_mapping == "throttle":
-            return throttle_pwm_one(action, setpoint.throttle)
-        return action_to_pwm(self.action_mapping, action, setpoint.throttle)
+            return throttle_pwm_one(action, throttle)
+        return action_to_pwm(self.action_mapping, action, throttle)
 
     def _update_direct(self, setpoint: RateSetpoint, frame: SensorFrame) -> np.ndarray:
         """`update` for m = 1 and the default fields, in plain floats written straight into
@@ -162,11 +165,8 @@ class NeuralRateController:
         if not all(map(math.isfinite, values)):
             raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
         self._input[0] = values
-        self._fresh = False
         self._session.run_with_iobinding(self._binding)
-        action = self._output[0].tolist()
-        if not all(map(math.isfinite, action)):
+        action = self._output[0]
+        if not all(map(math.isfinite, action.tolist())):
             raise PolicyOutputError(f"policy output {action} is not finite")
-        if self.action_mapping == "throttle":
-            return throttle_pwm_one(action, setpoint.throttle)
-        return action_to_pwm(self.action_mapping, self._output[0], setpoint.throttle)
+        return self._pwm(action, setpoint.throttle)
