@@ -167,6 +167,9 @@ class ErrorBound:
         self.b_ub = np.array(ub)
         self.A_eq = sparse.csr_matrix((eq_vals, (eq_rows, eq_cols)), shape=(e, self.n))
         self.b_eq = np.zeros(e)
+        self.cost = np.zeros(self.n)  # Σ of the slacks from sample 2 on (samples 0 and 1 are at rest)
+        for j in range(3):
+            self.cost[self.s(j, 2):self.s(j, K - 1) + 1] = 1.0
         self.bounds = ([(0.0, c.w_max)] * self.n_w + [(0.0, t_max)] * self.n_t
                        + [(None, None)] * self.n_o + [(0.0, None)] * self.n_s)
 
@@ -179,17 +182,13 @@ class ErrorBound:
         """
         K = self.K
         b_ub = self.b_ub.copy()
-        for j in range(3):
-            for k in range(K - 2):
-                b_ub[self.n_motor_rows + 2 * (j * (K - 2) + k)] = -command[j]
-                b_ub[self.n_motor_rows + 2 * (j * (K - 2) + k) + 1] = command[j]
-        cost = np.zeros(self.n)
-        for j in range(3):
-            for k in range(2, K):
-                cost[self.s(j, k)] = 1.0
+        # Slack rows come in pairs per (axis, sample): Ω* − Ω ≤ s, then Ω − Ω* ≤ s.
+        pairs = b_ub[self.n_motor_rows:].reshape(3, K - 2, 2)
+        pairs[..., 0] = -np.asarray(command, dtype=float)[:, None]
+        pairs[..., 1] = np.asarray(command, dtype=float)[:, None]
         b_eq = self.b_eq.copy()
         for _ in range(gyro_passes + 1):
-            res = linprog(cost, A_ub=self.A_ub, b_ub=b_ub, A_eq=self.A_eq, b_eq=b_eq,
+            res = linprog(self.cost, A_ub=self.A_ub, b_ub=b_ub, A_eq=self.A_eq, b_eq=b_eq,
                           bounds=self.bounds, method="highs")
             if res.status != 0:
                 raise RuntimeError(f"LP for command {command} failed: {res.message}")
