@@ -1,4 +1,4 @@
-"""`fcemu export`."""
+"""`fcemu export` (checkpoint → ONNX, or ONNX policy → C) and `fcemu bench mcu`."""
 
 from __future__ import annotations
 
@@ -8,15 +8,34 @@ import sys
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("export", help="checkpoint → ONNX with metadata and a parity check")
-    p.add_argument("checkpoint", help="a run directory (runs/NAME) or a checkpoint .zip in it")
-    p.add_argument("--out", required=True, help="the .onnx file to write")
+    p = sub.add_parser("export", help="checkpoint → ONNX with metadata and a parity check; "
+                                      "--target c: ONNX policy → C99 sources with host parity")
+    p.add_argument("checkpoint", help="a run directory (runs/NAME) or a checkpoint .zip in it; "
+                                      "with --target c, a policy .onnx")
+    p.add_argument("--out", required=True, help="the .onnx file to write (--target c: a directory)")
+    p.add_argument("--target", choices=("onnx", "c"), default="onnx")
     p.add_argument("--parity-samples", type=int, default=10_000)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler="export.cli:export_command")
 
 
+def register_bench(bench_sub: argparse._SubParsersAction) -> None:
+    p = bench_sub.add_parser("mcu", help="the policy as C on a Cortex-M4F under QEMU: parity, size, "
+                                         "instructions and estimated time per inference")
+    p.add_argument("--model", default=None, help="a policy .onnx (default: the shipped policy)")
+    p.add_argument("--out", default=None, help="keep the exported sources and the firmware image here")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler="export.cli:bench_mcu_command")
+
+
+def _error(exc: Exception) -> int:
+    print(f"fcemu: error: {exc}", file=sys.stderr)
+    return 2
+
+
 def export_command(args) -> int:
+    if args.target == "c":
+        return _export_c(args)
     from export.onnx_export import ExportError, export_policy
 
     try:
@@ -30,4 +49,46 @@ def export_command(args) -> int:
         print(f"wrote {report['out']} ({report['bytes']} bytes, {report['algorithm']}, "
               f"{report['training_steps']} steps); parity over {report['parity_samples']} observations: "
               f"max |onnx − torch| = {report['parity_max_abs_diff']:.2e} (≤ 1e-5: ok)")
+    return 0
+
+
+def _export_c(args) -> int:
+    from export.c.build import CExportError, export_c
+
+    try:
+        report = export_c(args.checkpoint, args.out, args.parity_samples)
+    except CExportError as exc:
+        return _error(exc)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        print(f"wrote C99 sources and {report['out']}/libfcemu_policy.so; parity with onnxruntime over "
+              f"{report['parity_samples']} observations: max |c − onnx| = {report['max_abs_diff']:.2e}, "
+              f"max {report['max_ulp']} ULP (figures in {report['out']}/parity.json)")
+    return 0
+
+
+def bench_mcu_command(args) -> int:
+    from export.c.build import CExportError
+    from export.c.target import REPORT_KEYS, bench_mcu, budget_verdict
+
+    try:
+        details = bench_mcu(args.model, args.out)
+    except CExportError as exc:
+        return _error(exc)
+    report = {k: details[k] for k in REPORT_KEYS}
+    if args.json:
+        print(json.dumps(report))
+        return 0
+    for key, value in report.items():
+        print(f"{key:28s} {value}")
+    host, target = details["host"], details["target"]
+    print(f"host C vs onnxruntime ({host['parity_samples']} observations): max |diff| "
+          f"{host['max_abs_diff']:.2e}, {host['max_ulp']} ULP")
+    print(f"Cortex-M4F in QEMU vs onnxruntime ({target['vectors']} observations): max |diff| "
+          f"{target['max_abs_diff_vs_onnx']:.2e}, {target['max_ulp_vs_onnx']} ULP; vs host C: "
+          f"{target['max_abs_diff_vs_host']:.2e}, {target['max_ulp_vs_host']} ULP")
+    print(f"RAM = {target['static_ram_bytes']} static + {target['stack_bytes']} stack (painted); "
+          f"time = instructions × CPI {details['cpi_assumed']} / clock")
+    print(budget_verdict(report))
     return 0
