@@ -23,4 +23,8 @@ def load_controller(spec: str) -> RateController:
         from firmware.neural import NeuralRateController
 
         return NeuralRateController(spec)
+    from firmware.c_policy import CPolicyController, is_c_policy_dir
+
+    if is_c_policy_dir(spec):  # a directory written by `fcemu export --target c`
+        return CPolicyController(spec)
     raise ValueError(f"unknown controller {spec!r}: use pid, pid:<preset> or a .onnx file")

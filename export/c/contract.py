@@ -117,6 +117,8 @@ typedef struct {{
 
 /* Start of flight (arming): the next observation fills the whole history. */
 void fcemu_policy_reset(fcemu_policy_state *s);
+/* sizeof(fcemu_policy_state), for callers that allocate the state outside C. */
+int fcemu_policy_state_bytes(void);
 /* Body rates rad/s (setpoint, gyro) and rotor speeds rad/s in; the network input out. */
 void fcemu_observe(fcemu_policy_state *s, const float setpoint[3], const float gyro[3],
                    const float rotor_speed[4], float obs[FCEMU_OBS_SIZE]);
@@ -151,6 +153,10 @@ static float clampf(float x, float lo, float hi) {{
 
 void fcemu_policy_reset(fcemu_policy_state *s) {{
     s->fresh = 1;
+}}
+
+int fcemu_policy_state_bytes(void) {{
+    return (int)sizeof(fcemu_policy_state);
 }}
 
 void fcemu_observe(fcemu_policy_state *s, const float setpoint[3], const float gyro[3],

@@ -1,0 +1,98 @@
+"""The generated contract C against `firmware.observation` and `firmware.action`, compiled
+for the host: a spec with memory 3 and the leaky integral, both action mappings."""
+
+from __future__ import annotations
+
+import ctypes
+import shutil
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from export.c.build import compile_host, export_c
+from export.c.contract import Contract, contract_sources
+from firmware.action import action_to_pwm
+from firmware.observation import INTEGRAL, ObservationHistory, ObservationSpec, observe_step
+from tests.export.mcu_tools import require_codegen
+
+SPEC = ObservationSpec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL), integral_leak=0.99)
+F32P = ctypes.POINTER(ctypes.c_float)
+
+
+def _policy(path: Path, spec: ObservationSpec, mapping: str) -> None:
+    rng = np.random.default_rng(3)
+    w = numpy_helper.from_array(rng.standard_normal((4, spec.size)).astype(np.float32) * 0.3, "w")
+    b = numpy_helper.from_array(np.zeros(4, np.float32), "b")
+    nodes = [helper.make_node("Gemm", ["observation", "w", "b"], ["pre"], transB=1),
+             helper.make_node("Tanh", ["pre"], ["action"])]
+    graph = helper.make_graph(
+        nodes, "g", [helper.make_tensor_value_info("observation", TensorProto.FLOAT, ["batch", spec.size])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", 4])], [w, b])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    onnx.helper.set_model_props(model, {"fcemu.observation": spec.to_json(), "fcemu.action_mapping": mapping,
+                                        "fcemu.loop_rate_hz": "1000.0"})
+    onnx.save(model, path)
+
+
+def _load(lib_path: Path) -> ctypes.CDLL:
+    lib = ctypes.CDLL(str(lib_path))
+    lib.fcemu_observe.argtypes = [ctypes.c_void_p, F32P, F32P, F32P, F32P]
+    lib.fcemu_action_to_pwm.argtypes = [F32P, ctypes.c_float, F32P]
+    lib.fcemu_policy_reset.argtypes = [ctypes.c_void_p]
+    return lib
+
+
+@pytest.fixture(scope="module")
+def libraries(tmp_path_factory) -> dict[str, ctypes.CDLL]:
+    require_codegen()
+    root = tmp_path_factory.mktemp("contract")
+    _policy(root / "p.onnx", SPEC, "throttle")
+    export_c(root / "p.onnx", root / "throttle", parity_samples=1000)
+    gymfc = root / "gymfc"  # the same network and golden vectors, the other mapping's contract code
+    gymfc.mkdir()
+    for name in ("fcemu_net.c", "fcemu_golden.c"):
+        shutil.copy(root / "throttle" / name, gymfc / name)
+    for name, text in contract_sources(Contract(SPEC, "gymfc", 1000.0)).items():
+        (gymfc / name).write_text(text)
+    compile_host(gymfc)
+    return {m: _load(root / m / "libfcemu_policy.so") for m in ("throttle", "gymfc")}
+
+
+def _ptr(a: np.ndarray):
+    return a.ctypes.data_as(F32P)
+
+
+def test_observation_history_and_integral_match_python(libraries) -> None:
+    lib = libraries["throttle"]
+    state = ctypes.create_string_buffer(lib.fcemu_policy_state_bytes())
+    rng = np.random.default_rng(0)
+    history = ObservationHistory(SPEC)
+    obs_c = np.zeros(SPEC.size, np.float32)
+    for _ in range(3):
+        lib.fcemu_policy_reset(state)
+        for k in range(50):
+            sp, gyro = (rng.uniform(-6, 6, 3).astype(np.float32) for _ in range(2))
+            rotor = rng.uniform(0, 1100, 4).astype(np.float32)
+            step = observe_step(SPEC, *(x.astype(np.float64) for x in (sp, gyro, rotor)))
+            expected = history.reset(step) if k == 0 else history.push(step)
+            lib.fcemu_observe(state, _ptr(sp), _ptr(gyro), _ptr(rotor), _ptr(obs_c))
+            np.testing.assert_allclose(obs_c, expected, rtol=1e-6, atol=1e-6)  # float32 vs float64
+
+
+@pytest.mark.parametrize("mapping", ["throttle", "gymfc"])
+def test_action_to_pwm_matches_python(libraries, mapping: str) -> None:
+    lib = libraries[mapping]
+    rng = np.random.default_rng(1)
+    actions = rng.uniform(-1.5, 1.5, (2000, 4)).astype(np.float32)
+    throttles = rng.uniform(-0.2, 1.2, 2000).astype(np.float32)
+    pwm = np.zeros(4, np.float32)
+    ours = np.zeros((2000, 4))
+    for n in range(2000):
+        lib.fcemu_action_to_pwm(_ptr(actions[n]), float(throttles[n]), _ptr(pwm))
+        ours[n] = pwm
+    expected = action_to_pwm(mapping, actions.astype(np.float64), throttles.astype(np.float64))
+    np.testing.assert_allclose(ours, expected, atol=1e-3)  # µs; float32 against float64
+    assert ours.min() >= 1000.0 and ours.max() <= 2000.0
