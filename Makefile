@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 PIP := $(PY) -m pip -q --disable-pip-version-check
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench clean mcu-tools
 
 $(VENV)/.runtime: pyproject.toml
 	python3 -m venv $(VENV)
@@ -13,13 +13,30 @@ $(VENV)/.runtime: pyproject.toml
 # torch goes in first and pinned, so stable-baselines3 does not pull a CUDA build.
 $(VENV)/.dev: $(VENV)/.runtime
 	$(PIP) install torch==2.13.0
-	$(PIP) install -e '.[train,test]'
+	$(PIP) install -e '.[train,test,mcu]'
 	touch $@
+
+# The Cortex-M4F cross compiler, newlib and QEMU for the C-export tests (Debian packages).
+# Installs only what is missing; without apt (or the rights to use it) it says so and the
+# tests that need the tools skip with the reason (in CI, where CI is set, they fail instead).
+MCU_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm
+mcu-tools:
+	@if command -v arm-none-eabi-gcc >/dev/null && command -v arm-none-eabi-size >/dev/null \
+	    && command -v qemu-system-arm >/dev/null \
+	    && [ -f "$$(arm-none-eabi-gcc -print-file-name=libm.a)" ]; then :; \
+	elif ! command -v apt-get >/dev/null; then \
+	    echo "mcu-tools: apt-get not available; install $(MCU_PACKAGES) by hand (the MCU tests skip without them)"; \
+	else \
+	    SUDO=$$([ "$$(id -u)" -eq 0 ] || echo sudo); \
+	    echo "mcu-tools: installing $(MCU_PACKAGES)"; \
+	    { $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $(MCU_PACKAGES); } \
+	    || echo "mcu-tools: could not install $(MCU_PACKAGES) (the MCU tests skip without them)"; \
+	fi
 
 demo: $(VENV)/.runtime
 	$(VENV)/bin/fcemu demo
 
-test: $(VENV)/.dev
+test: $(VENV)/.dev mcu-tools
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 

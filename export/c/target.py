@@ -127,7 +127,8 @@ def run_qemu(elf: Path, n_vectors: int) -> dict:
     }
 
 
-def bench_mcu(model: str | Path | None = None, out: str | Path | None = None) -> dict:
+def bench_mcu(model: str | Path | None = None, out: str | Path | None = None,
+              parity_samples: int = 10_000, target_vectors: int = TARGET_VECTORS) -> dict:
     """`REPORT_KEYS` (what `fcemu bench mcu --json` prints) and the details behind them, which
     also go to OUT/mcu.json when `out` is given."""
     from firmware.controllers import DEFAULT_POLICY
@@ -139,12 +140,12 @@ def bench_mcu(model: str | Path | None = None, out: str | Path | None = None) ->
     with tempfile.TemporaryDirectory(prefix="fcemu_mcu_") as tmp:
         root = Path(out) if out is not None else Path(tmp)
         src, build = root / "c", root / "build"
-        parity = export_c(model, src)
+        parity = export_c(model, src, parity_samples)
         contract = json.loads((src / "contract.json").read_text())
         from firmware.observation import ObservationSpec
 
         spec = ObservationSpec.from_json(contract["metadata"]["observation"])
-        obs = sample_observations(spec, TARGET_VECTORS, seed=1)
+        obs = sample_observations(spec, target_vectors, seed=1)
         (build).mkdir(parents=True, exist_ok=True)
         (build / "bench_vectors.c").write_text(
             golden_source(obs, np.zeros((len(obs), 4), np.float32), prefix="bench"))
