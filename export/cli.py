@@ -34,7 +34,7 @@ def _error(exc: Exception) -> int:
 
 
 def export_command(args) -> int:
-    if args.target == "c":
+    if getattr(args, "target", "onnx") == "c":
         return _export_c(args)
     from export.onnx_export import ExportError, export_policy
 

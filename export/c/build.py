@@ -19,7 +19,14 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from export.c.contract import ACTION_SIZE, NET_FUNCTION, Contract, c_float, contract_sources
+from export.c.contract import (
+    ACTION_SIZE,
+    NET_FUNCTION,
+    SELF_TEST_TOLERANCE,
+    Contract,
+    c_float,
+    contract_sources,
+)
 from firmware.neural import NeuralRateController, PolicyContractError
 from firmware.observation import FIELD_SIZES
 
@@ -27,7 +34,6 @@ SOURCES = ("fcemu_net.c", "fcemu_policy.c", "fcemu_golden.c")
 HOST_LIBRARY = "libfcemu_policy.so"
 C_FLAGS = ("-std=c99", "-O2", "-ffp-contract=off", "-Wall", "-Wextra", "-Wno-unused-parameter")
 GOLDEN_COUNT = 32
-SELF_TEST_TOLERANCE = 1e-4
 
 
 class CExportError(ValueError):

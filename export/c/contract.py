@@ -17,6 +17,7 @@ from firmware.observation import FIELD_SIZES, INTEGRAL, ObservationSpec
 
 NET_FUNCTION = "fcemu_net"
 ACTION_SIZE = 4
+SELF_TEST_TOLERANCE = 1e-4  # golden vectors: float32 network code against onnxruntime, any libm
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,7 @@ def contract_sources(contract: Contract) -> dict[str, str]:
         "FCEMU_PWM_MIN": c_float(PWM_MIN),
         "FCEMU_PWM_SPAN": c_float(PWM_SPAN),
         "FCEMU_LOOP_RATE_HZ": c_float(contract.loop_rate_hz),
+        "FCEMU_SELF_TEST_TOLERANCE": c_float(SELF_TEST_TOLERANCE),
     }
     defines = "\n".join(f"#define {name} {value}" for name, value in constants.items())
     header = f"""\

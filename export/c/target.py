@@ -25,7 +25,6 @@ import numpy as np
 
 from export.c import firmware_image as image
 from export.c.build import (
-    SELF_TEST_TOLERANCE,
     SOURCES,
     CExportError,
     export_c,
@@ -73,8 +72,7 @@ def build_images(src: Path, build: Path, n_vectors: int) -> tuple[Path, Path]:
     for name, text in (("startup.c", image.STARTUP), ("harness.c", image.HARNESS),
                        ("size_probe.c", image.SIZE_PROBE)):
         (build / name).write_text(text)
-    defines = [f"-DFCEMU_SELF_TEST_TOLERANCE={SELF_TEST_TOLERANCE}f",
-               f"-DFCEMU_TIMED_INFERENCES={TIMED_INFERENCES}"]
+    defines = [f"-DFCEMU_TIMED_INFERENCES={TIMED_INFERENCES}"]
     objects = {}
     for path in [*(src / s for s in SOURCES), build / "bench_vectors.c", build / "startup.c",
                  build / "harness.c", build / "size_probe.c"]:
