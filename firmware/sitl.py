@@ -180,6 +180,7 @@ class VehicleSitl:
     proc: object
     param_problems: list[str]
     ports: dict[str, int]  # the vehicle's local UDP port per peer
+    params_file: str | None = None
 
     def stop(self) -> dict:
         from firmware.mavlink.bridge import stop_mavlink
@@ -218,7 +219,7 @@ def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float |
                            loop=sitl.loop)
     sitl.loop.commander = linked
     sitl.loop.sinks.append(linked)
-    return VehicleSitl(sitl, vehicle, linked, proc, problems, ports)
+    return VehicleSitl(sitl, vehicle, linked, proc, problems, ports, config.params_file)
 
 
 def mavlink_config_from_args(args):
@@ -243,8 +244,10 @@ def sitl_command(args) -> int:
         vs = start_vehicle_sitl(controller, args.rig, args.rate, speed, mavlink_config_from_args(args),
                                 explicit_controller=args.controller is not None)
         sitl = vs.sitl
-        for p in vs.param_problems:
-            print(f"params: {p}", file=sys.stderr)
+        if vs.param_problems:
+            from firmware.params import load_warning
+
+            print(load_warning(vs.params_file, vs.param_problems), file=sys.stderr)
     extra = None
     if vs is not None:
         veh = vs.vehicle
