@@ -109,11 +109,11 @@ def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
     return ScriptedCommander(schedule, controller=controller)
 
 
-def load_controllers(controller: str) -> tuple[dict, str]:
+def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
     """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks."""
     if controller.endswith(".onnx"):
-        return {"neural": load_controller(controller), FALLBACK: load_controller(FALLBACK)}, "neural"
-    return {FALLBACK: load_controller(controller)}, FALLBACK
+        return {"neural": load_controller(controller, rate_hz), FALLBACK: load_controller(FALLBACK)}, "neural"
+    return {FALLBACK: load_controller(controller, rate_hz)}, FALLBACK
 
 
 def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, realtime: bool = True,
@@ -122,7 +122,7 @@ def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, real
     from sim_bridge.link import InProcessLink, UdpTwinClient
     from sim_bridge.twin import Twin
 
-    controllers, selected = load_controllers(controller)
+    controllers, selected = load_controllers(controller, rate_hz)
     if twin_address is None:
         twin = Twin(rig=rig, dt=1.0 / rate_hz)
         link = InProcessLink(twin)
