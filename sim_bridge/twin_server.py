@@ -39,12 +39,54 @@ from sim_bridge.twin import Twin
 log = logging.getLogger(__name__)
 
 STATUS_INTERVAL_S = 2.0
+# What one sender may do outside the owner's in-sequence steps (RESETs, repeats, refused or bad
+# packets): far above any real client's resets and retries, far below a storm.
+SENDER_RATE_HZ = 200.0
+SENDER_BURST = 400.0
+MUTE_S = 1.0
 _RIG_NAMES = {"rig": "ball-joint rig", "free": "free body"}
 
 BAD_PACKET_KINDS = ("malformed", "bad_version", "unknown_type", "unexpected_reply", "stale", "gap",
                     "foreign_peer", "no_session", "bad_argument", "internal_error")
 _KIND_OF_CODE = {ErrorCode.MALFORMED: "malformed", ErrorCode.BAD_VERSION: "bad_version",
                  ErrorCode.UNKNOWN_TYPE: "unknown_type", ErrorCode.BAD_ARGUMENT: "bad_argument"}
+
+
+class SenderBudget:
+    """A token bucket per sender address for the packets that cost the server work.
+
+    A sender that runs dry is muted: its packets are dropped unread until it has been quiet
+    for `mute_s`, so a storm costs the server one receive per packet and nothing else.
+    """
+
+    def __init__(self, rate_hz: float = SENDER_RATE_HZ, burst: float = SENDER_BURST, mute_s: float = MUTE_S,
+                 max_senders: int = 4096) -> None:
+        self.rate_hz, self.burst, self.mute_s, self.max_senders = rate_hz, burst, mute_s, max_senders
+        self._tokens: dict[tuple[str, int], tuple[float, float]] = {}  # addr -> (tokens, at)
+        self._muted: dict[tuple[str, int], float] = {}  # addr -> muted until
+
+    def muted(self, addr: tuple[str, int], now: float) -> bool:
+        until = self._muted.get(addr)
+        if until is None:
+            return False
+        if now < until:
+            self._muted[addr] = now + self.mute_s  # a storm that goes on stays muted
+            return True
+        del self._muted[addr]
+        return False
+
+    def spend(self, addr: tuple[str, int], now: float) -> bool:
+        """Take one token; False (and the sender muted) when it has none left."""
+        tokens, at = self._tokens.get(addr, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - at) * self.rate_hz) - 1.0
+        if tokens < 0.0:
+            self._tokens.pop(addr, None)
+            self._muted[addr] = now + self.mute_s
+            return False
+        if len(self._tokens) >= self.max_senders and addr not in self._tokens:
+            self._tokens.clear()  # many senders (or forged ports): forget the ones with full buckets
+        self._tokens[addr] = (tokens, now)
+        return True
 
 
 class UdpTwinServer:
@@ -56,8 +98,9 @@ class UdpTwinServer:
         self.session_timeout = session_timeout
         self._spin = AdaptiveSpin(spin)
         self.counters: dict[str, int] = dict.fromkeys(
-            ("received", "steps", "resets", "duplicates", "byes", "takeovers", "errors_sent",
-             *BAD_PACKET_KINDS), 0)
+            ("received", "steps", "resets", "duplicates", "byes", "takeovers", "errors_sent", "shed",
+             "muted_senders", "revoked", *BAD_PACKET_KINDS), 0)
+        self.budget = SenderBudget()
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind((host, port))
         self._rx = bytearray(MAX_DATAGRAM)
@@ -133,11 +176,32 @@ class UdpTwinServer:
                     counters["steps"] += 1
                     sendto(reply, addr)
                     continue
+            if self.budget.muted(addr, now):
+                counters["shed"] += 1
+                continue
+            if not self.budget.spend(addr, now):
+                counters["shed"] += 1
+                self._mute(addr)
+                continue
             try:
                 self._handle(view[:n], addr, now)
             except Exception as exc:  # a server bug must not take the simulator down mid-session
                 log.exception("twin server: request from %s failed", addr)
                 self._bad("internal_error", addr, f"internal error: {exc}", 0, ErrorCode.INTERNAL)
+
+    def _mute(self, addr: tuple[str, int]) -> None:
+        self.counters["muted_senders"] += 1
+        revoked = addr == self._owner
+        if revoked:  # a session is not held by flooding it
+            self._owner = None
+            self.counters["revoked"] += 1
+        now = time.monotonic()
+        if revoked or now >= self._next_log.get("muted", 0.0):  # many senders: one line a second
+            self._next_log["muted"] = now + 1.0
+            log.warning("twin server: %s:%d sent more than %.0f requests/s outside lockstep; ignored until "
+                        "quiet for %.0f s%s (%d senders muted so far)", *addr, self.budget.rate_hz,
+                        self.budget.mute_s, ", its session ended" if revoked else "",
+                        self.counters["muted_senders"])
 
     def _receive(self) -> tuple[int, tuple[str, int]]:
         return self._spin.receive(self._sock.recvfrom_into, self._rx)
@@ -222,7 +286,7 @@ class UdpTwinServer:
         rate = (steps - steps_then) / (now - then) if now > then else 0.0
         c = self.counters
         return (f"steps {steps:,}  steps/s {rate:,.0f}  resets {c['resets']:,}  "
-                f"repeats {c['duplicates']:,}  bad packets {self.bad_packets:,}")
+                f"repeats {c['duplicates']:,}  bad packets {self.bad_packets:,}  shed {c['shed']:,}")
 
 
 def serve_command(args) -> int:
