@@ -3,7 +3,7 @@
 The model carries its contract in metadata (written by `fcemu export`): the observation
 spec, the action mapping and the loop rate it was trained at. The firmware builds the
 observation with `firmware.observation` from that spec and refuses a model whose
-contract it cannot honour, with a message that says what differs.
+contract (`firmware.contract`) it cannot honour, with a message that says what differs.
 
 Containment, as documented for users: actions are clipped to [-1, 1] as in training; a
 non-finite action raises `PolicyOutputError`, and the flight loop hands that tick to
