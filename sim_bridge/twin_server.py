@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import select
 import signal
 import socket
 import sys
 import threading
 import time
 
-from sim_bridge.link import _FRAME, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
+from sim_bridge.link import _DONTWAIT, _FRAME, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
 from sim_bridge.protocol import (
     FRAME_MSG,
     MAGIC,
@@ -44,12 +45,23 @@ STATUS_INTERVAL_S = 2.0
 SENDER_RATE_HZ = 200.0
 SENDER_BURST = 400.0
 MUTE_S = 1.0
+# Linux gives a connected UDP socket bound to the server's port (SO_REUSEPORT) the packets of
+# its peer: the session owner gets a receive queue of its own that no storm can fill.
+_OWNER_QUEUE = sys.platform.startswith("linux") and hasattr(socket, "SO_REUSEPORT")
+PUBLIC_DRAIN = 1024  # at most this many shared-queue packets are read first when a session starts
 _RIG_NAMES = {"rig": "ball-joint rig", "free": "free body"}
 
 BAD_PACKET_KINDS = ("malformed", "bad_version", "unknown_type", "unexpected_reply", "stale", "gap",
                     "foreign_peer", "no_session", "bad_argument", "internal_error")
 _KIND_OF_CODE = {ErrorCode.MALFORMED: "malformed", ErrorCode.BAD_VERSION: "bad_version",
                  ErrorCode.UNKNOWN_TYPE: "unknown_type", ErrorCode.BAD_ARGUMENT: "bad_argument"}
+
+
+def _reuse_port_socket() -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    if _OWNER_QUEUE:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+    return sock
 
 
 class SenderBudget:
@@ -101,8 +113,12 @@ class UdpTwinServer:
             ("received", "steps", "resets", "duplicates", "byes", "takeovers", "errors_sent", "shed",
              "muted_senders", "revoked", *BAD_PACKET_KINDS), 0)
         self.budget = SenderBudget()
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock = _reuse_port_socket()
         self._sock.bind((host, port))
+        self._owner_sock: socket.socket | None = None
+        self._public_first = 0
+        self._poll = select.poll()
+        self._poll.register(self._sock, select.POLLIN)
         self._rx = bytearray(MAX_DATAGRAM)
         self._reply = bytearray(FRAME_MSG.size)  # the last applied request's reply, resent for repeats
         self._owner: tuple[str, int] | None = None
@@ -135,6 +151,7 @@ class UdpTwinServer:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+        self._set_owner(None)
         self._sock.close()
 
     def __enter__(self) -> UdpTwinServer:
@@ -193,7 +210,7 @@ class UdpTwinServer:
         self.counters["muted_senders"] += 1
         revoked = addr == self._owner
         if revoked:  # a session is not held by flooding it
-            self._owner = None
+            self._set_owner(None)
             self.counters["revoked"] += 1
         now = time.monotonic()
         if revoked or now >= self._next_log.get("muted", 0.0):  # many senders: one line a second
@@ -204,7 +221,51 @@ class UdpTwinServer:
                         self.counters["muted_senders"])
 
     def _receive(self) -> tuple[int, tuple[str, int]]:
-        return self._spin.receive(self._sock.recvfrom_into, self._rx)
+        owner = self._owner_sock
+        if owner is None:
+            return self._spin.receive(self._sock.recvfrom_into, self._rx)
+        rx, public, addr = self._rx, self._sock, self._owner
+        while self._public_first > 0:  # what the owner sent before it had its own queue comes first
+            self._public_first -= 1
+            try:
+                return public.recvfrom_into(rx, 0, _DONTWAIT)
+            except BlockingIOError:
+                self._public_first = 0
+        while True:  # the owner's queue first, then one packet from everyone else, then again
+            for _ in range(max(1, self._spin.budget)):
+                try:
+                    n = owner.recv_into(rx, 0, _DONTWAIT)
+                    self._spin.hit()
+                    return n, addr  # type: ignore[return-value]
+                except (BlockingIOError, ConnectionRefusedError):  # refused: ICMP from the owner's port
+                    pass
+                try:
+                    return public.recvfrom_into(rx, 0, _DONTWAIT)
+                except BlockingIOError:
+                    pass
+            self._spin.miss()
+            self._poll.poll()
+
+    def _set_owner(self, addr: tuple[str, int] | None) -> None:
+        """Give the session to `addr` (None: to nobody), with a receive queue of its own."""
+        if self._owner_sock is not None:
+            self._poll.unregister(self._owner_sock)
+            self._owner_sock.close()
+            self._owner_sock = None
+        self._owner = addr
+        if addr is None or not _OWNER_QUEUE:
+            return
+        sock = _reuse_port_socket()
+        try:
+            sock.bind(self._sock.getsockname())
+            sock.connect(addr)
+        except OSError as exc:  # the shared queue still works, only without the isolation
+            sock.close()
+            log.warning("twin server: no separate queue for %s:%d (%s)", *addr, exc)
+            return
+        self._owner_sock = sock
+        self._poll.register(sock, select.POLLIN)
+        self._public_first = PUBLIC_DRAIN
 
     def _handle(self, data: memoryview, addr: tuple[str, int], now: float) -> None:
         try:
@@ -233,7 +294,7 @@ class UdpTwinServer:
                       ErrorCode.SEQ_GAP)
         elif isinstance(msg, Bye):
             self.counters["byes"] += 1
-            self._owner = None
+            self._set_owner(None)
         else:
             self._apply(msg, bytes(data), addr, now)
 
@@ -263,7 +324,9 @@ class UdpTwinServer:
             return
         FRAME_MSG.pack_into(self._reply, 0, MAGIC, VERSION, MsgType.FRAME, 0, msg.seq, frame.t_us,
                             *frame.gyro.tolist(), *frame.accel.tolist(), *frame.rotor_speed.tolist())
-        self._owner, self._owner_seen, self._last_seq, self._last_request = addr, now, msg.seq, request
+        if addr != self._owner:
+            self._set_owner(addr)
+        self._owner_seen, self._last_seq, self._last_request = now, msg.seq, request
         self._sock.sendto(self._reply, addr)
 
     def _bad(self, kind: str, addr: tuple[str, int], detail: str, seq: int, code: ErrorCode,
