@@ -21,13 +21,12 @@ import numpy as np
 import onnxruntime as ort
 
 from firmware.action import action_to_pwm, throttle_pwm_one
-from firmware.contract import META_PREFIX, REQUIRED_META, PolicyContract, PolicyContractError
+from firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
 from firmware.controller import RateSetpoint
 from firmware.observation import FIELDS, ObservationHistory, observe_step
 from firmware.sensors import SensorFrame
 
-__all__ = ["META_PREFIX", "REQUIRED_META", "NeuralRateController", "PolicyContractError", "PolicyOutputError",
-           "read_metadata"]
+__all__ = ["META_PREFIX", "NeuralRateController", "PolicyContractError", "PolicyOutputError", "read_metadata"]
 
 
 class PolicyOutputError(RuntimeError):

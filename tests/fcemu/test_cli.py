@@ -65,7 +65,7 @@ def files(tmp_path: Path) -> dict[str, Path]:
     return {"corrupt": corrupt, "garbage": garbage, "wrong_shape": wrong_shaped(tmp_path / "wide.onnx"),
             "lying_rate": lying(tmp_path / "nan_rate.onnx", "loop_rate_hz", "nan"),
             "lying_throttle": lying(tmp_path / "throttle.onnx", "throttle", "[0.9, 0.1]"),
-            "directory": tmp_path}
+            "directory": (tmp_path / "folder.onnx").mkdir() or tmp_path / "folder.onnx"}
 
 
 @pytest.mark.parametrize(("case", "words"), [
@@ -75,6 +75,7 @@ def files(tmp_path: Path) -> dict[str, Path]:
     ("wrong_shape", ("input shape",)),
     ("lying_rate", ("loop_rate_hz",)),
     ("lying_throttle", ("throttle",)),
+    ("directory", ("not a loadable ONNX model",)),
 ])
 def test_a_bad_policy_file_is_one_line_and_exit_2(tmp_path: Path, files: dict[str, Path], case: str,
                                                    words: tuple[str, ...]) -> None:
