@@ -22,18 +22,20 @@ from sim_bridge.twin_server import SenderBudget, UdpTwinServer
 pytestmark = pytest.mark.timeout(90)
 ROOT = Path(__file__).resolve().parents[2]
 
-# Sends RESETs with fresh sequence numbers as fast as one Python process can, from one socket.
+# Sends RESETs with fresh sequence numbers as fast as one Python process can, from `n_socks` sockets.
 STORM = """
 import socket, sys, time
 from sim_bridge.protocol import encode_reset
-host, port, seconds = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
-s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-s.setblocking(False)
-s.connect((host, port))
-packets = [encode_reset(seq, seed=1) for seq in range(1, 200_001)]
+host, port, seconds, n_socks = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
+socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n_socks)]
+for s in socks:
+    s.setblocking(False)
+    s.connect((host, port))
+packets = [encode_reset(seq, seed=1) for seq in range(1, 100_001)]
 sent, end = 0, time.monotonic() + seconds
 print("storming", flush=True)
 while time.monotonic() < end:
+    s = socks[(sent // 1000) % n_socks]
     for p in packets[sent % 100_000: sent % 100_000 + 1000]:
         try:
             s.send(p)
@@ -54,8 +56,9 @@ def served() -> Iterator[tuple[str, int]]:
         proc.wait(10)
 
 
-def storm(address: tuple[str, int], seconds: float) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-c", STORM, address[0], str(address[1]), str(seconds)],
+def storm(address: tuple[str, int], seconds: float, sockets: int = 1) -> subprocess.Popen:
+    args = [address[0], str(address[1]), str(seconds), str(sockets)]
+    proc = subprocess.Popen([sys.executable, "-c", STORM, *args],
                             stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert proc.stdout is not None and proc.stdout.readline().strip() == "storming"
     return proc
@@ -70,11 +73,12 @@ def fly(client: UdpTwinClient, seconds: float) -> int:
     return steps
 
 
-def test_a_reset_storm_does_not_starve_the_session_owner(served: tuple[str, int]) -> None:
+@pytest.mark.parametrize("sockets", [1, 50])
+def test_a_reset_storm_does_not_starve_the_session_owner(served: tuple[str, int], sockets: int) -> None:
     with UdpTwinClient(*served, timeout=0.1, retries=20) as owner:
         owner.reset(seed=1)
         baseline = fly(owner, 1.0)
-        stormer = storm(served, 4.0)
+        stormer = storm(served, 4.0, sockets)
         try:
             under_storm = fly(owner, 3.0)  # a LinkTimeout here is the bug
         finally:
