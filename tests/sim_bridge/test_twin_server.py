@@ -32,8 +32,9 @@ for s in socks:
     s.setblocking(False)
     s.connect((host, port))
 packets = [encode_reset(seq, seed=1) for seq in range(1, 100_001)]
+print("ready", flush=True)
+sys.stdin.readline()
 sent, end = 0, time.monotonic() + seconds
-print("storming", flush=True)
 while time.monotonic() < end:
     s = socks[(sent // 1000) % n_socks]
     for p in packets[sent % 100_000: sent % 100_000 + 1000]:
@@ -57,10 +58,18 @@ def served() -> Iterator[tuple[str, int]]:
 
 
 def storm(address: tuple[str, int], seconds: float, sockets: int = 1) -> subprocess.Popen:
+    """A stormer process, ready to start on `go(proc)`."""
     args = [address[0], str(address[1]), str(seconds), str(sockets)]
-    proc = subprocess.Popen([sys.executable, "-c", STORM, *args],
+    proc = subprocess.Popen([sys.executable, "-c", STORM, *args], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert proc.stdout is not None and proc.stdout.readline().strip() == "storming"
+    assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+    return proc
+
+
+def go(proc: subprocess.Popen) -> subprocess.Popen:
+    assert proc.stdin is not None
+    proc.stdin.write("go\n")
+    proc.stdin.flush()
     return proc
 
 
@@ -75,10 +84,11 @@ def fly(client: UdpTwinClient, seconds: float) -> int:
 
 @pytest.mark.parametrize("sockets", [1, 50])
 def test_a_reset_storm_does_not_starve_the_session_owner(served: tuple[str, int], sockets: int) -> None:
+    stormer = storm(served, 4.0, sockets)
     with UdpTwinClient(*served, timeout=0.1, retries=20) as owner:
         owner.reset(seed=1)
         baseline = fly(owner, 1.0)
-        stormer = storm(served, 4.0, sockets)
+        go(stormer)
         try:
             under_storm = fly(owner, 3.0)  # a LinkTimeout here is the bug
         finally:
@@ -93,7 +103,7 @@ def test_a_reset_storm_does_not_starve_the_session_owner(served: tuple[str, int]
 
 
 def test_a_storm_started_first_cannot_hold_the_session(served: tuple[str, int]) -> None:
-    stormer = storm(served, 6.0)
+    stormer = go(storm(served, 6.0))
     try:
         time.sleep(0.5)  # the storm has the session now (today: for as long as it storms)
         with UdpTwinClient(*served, timeout=0.1, retries=20) as late:
