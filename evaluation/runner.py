@@ -92,7 +92,7 @@ class _Recorder:
 def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
                    on_episode: Callable[[int], None] | None = None) -> Traces:
     """Fly `spec` (pid, pid:<preset>, FILE.onnx) over the evaluation set; return its traces."""
-    controllers = {"main": load_controller(spec)}
+    controllers = {"main": load_controller(spec, cfg.rate_hz)}
     neural = not spec.startswith("pid")
     if neural:
         controllers[FALLBACK] = load_controller(FALLBACK)

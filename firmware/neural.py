@@ -3,7 +3,7 @@
 The model carries its contract in metadata (written by `fcemu export`): the observation
 spec, the action mapping and the loop rate it was trained at. The firmware builds the
 observation with `firmware.observation` from that spec and refuses a model whose
-contract it cannot honour, with a message that says what differs.
+contract (`firmware.contract`) it cannot honour, with a message that says what differs.
 
 Containment, as documented for users: actions are clipped to [-1, 1] as in training; a
 non-finite action raises `PolicyOutputError`, and the flight loop hands that tick to
@@ -20,17 +20,13 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from firmware.action import ACTION_MAPPINGS, action_to_pwm, throttle_pwm_one
+from firmware.action import action_to_pwm, throttle_pwm_one
+from firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
 from firmware.controller import RateSetpoint
-from firmware.observation import FIELDS, OBS_VERSION, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import FIELDS, ObservationHistory, observe_step
 from firmware.sensors import SensorFrame
 
-META_PREFIX = "fcemu."
-REQUIRED_META = ("observation", "action_mapping", "loop_rate_hz")
-
-
-class PolicyContractError(ValueError):
-    """The ONNX file is not a policy this firmware can fly."""
+__all__ = ["META_PREFIX", "NeuralRateController", "PolicyContractError", "PolicyOutputError", "read_metadata"]
 
 
 class PolicyOutputError(RuntimeError):
@@ -45,6 +41,11 @@ def read_metadata(path: str | Path) -> dict[str, str]:
 def _fcemu_metadata(session: ort.InferenceSession) -> dict[str, str]:
     raw = session.get_modelmeta().custom_metadata_map
     return {k[len(META_PREFIX):]: v for k, v in raw.items() if k.startswith(META_PREFIX)}
+
+
+def _first_line(exc: BaseException, limit: int = 200) -> str:
+    text = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    return text if len(text) <= limit else f"{text[:limit - 1]}…"
 
 
 def _session(path: Path) -> ort.InferenceSession:
@@ -66,9 +67,14 @@ class NeuralRateController:
         try:
             self._session = _session(self.path)
         except Exception as exc:  # onnxruntime raises several unrelated types for a bad file
-            raise PolicyContractError(f"{self.path}: not a loadable ONNX model ({exc})") from exc
+            raise PolicyContractError(f"{self.path}: not a loadable ONNX model ({_first_line(exc)})") from exc
         self.metadata = _fcemu_metadata(self._session)
-        self.spec, self.action_mapping, self.trained_rate_hz = self._check_contract(loop_rate_hz)
+        self.contract = PolicyContract.from_metadata(self.metadata, str(self.path), loop_rate_hz)
+        self.contract.check_graph(self._session.get_inputs(), self._session.get_outputs(), str(self.path))
+        self.spec, self.action_mapping = self.contract.observation, self.contract.action_mapping
+        self.trained_rate_hz = self.contract.loop_rate_hz
+        self._input_name = self._session.get_inputs()[0].name
+        self._output_name = self._session.get_outputs()[0].name
         self.name = f"neural:{self.path.stem}"
         self._history = ObservationHistory(self.spec)
         self._fresh = True
@@ -81,43 +87,18 @@ class NeuralRateController:
         self._binding.bind_cpu_input(self._input_name, self._input)
         self._binding.bind_output(self._output_name, "cpu", element_type=np.float32, shape=(1, 4),
                                   buffer_ptr=self._output.ctypes.data)
+        self._probe()
 
-    def _check_contract(self, loop_rate_hz: float | None) -> tuple[ObservationSpec, str, float]:
-        where = str(self.path)
-        missing = [k for k in REQUIRED_META if k not in self.metadata]
-        if missing:
-            raise PolicyContractError(
-                f"{where}: metadata lacks {', '.join(META_PREFIX + k for k in missing)}; "
-                "export policies with `fcemu export`")
+    def _probe(self) -> None:
+        """Run the model once on observations from its flight range: it must run and answer in range."""
+        probe = self.contract.probe_observations()
+        actions = np.empty((len(probe), 4))
         try:
-            spec = ObservationSpec.from_json(self.metadata["observation"])
-        except (ValueError, TypeError, KeyError) as exc:
-            raise PolicyContractError(f"{where}: observation spec not understood ({exc})") from exc
-        if spec.version != OBS_VERSION:
-            raise PolicyContractError(f"{where}: observation version {spec.version}, this firmware "
-                                      f"builds version {OBS_VERSION}")
-        mapping = self.metadata["action_mapping"]
-        if mapping not in ACTION_MAPPINGS:
-            raise PolicyContractError(
-                f"{where}: action mapping {mapping!r} unknown (known: {ACTION_MAPPINGS})")
-        inputs, outputs = self._session.get_inputs(), self._session.get_outputs()
-        if len(inputs) != 1 or len(outputs) < 1:
-            raise PolicyContractError(f"{where}: expected one input and one output, found "
-                                      f"{len(inputs)} and {len(outputs)}")
-        in_shape, out_shape = inputs[0].shape, outputs[0].shape
-        if len(in_shape) != 2 or in_shape[1] != spec.size:
-            raise PolicyContractError(f"{where}: input shape {in_shape} does not match the observation "
-                                      f"spec (batch, {spec.size}) = memory {spec.memory} × {spec.step_size}")
-        if len(out_shape) != 2 or out_shape[1] != 4:
-            raise PolicyContractError(f"{where}: output shape {out_shape}, expected (batch, 4) motor actions")
-        if inputs[0].type != "tensor(float)" or outputs[0].type != "tensor(float)":
-            raise PolicyContractError(f"{where}: input/output must be float32 tensors")
-        trained_rate = float(self.metadata["loop_rate_hz"])
-        if loop_rate_hz is not None and abs(trained_rate - loop_rate_hz) > 1e-6:
-            raise PolicyContractError(f"{where}: trained for a {trained_rate:.0f} Hz loop, asked to run at "
-                                      f"{loop_rate_hz:.0f} Hz")
-        self._input_name, self._output_name = inputs[0].name, outputs[0].name
-        return spec, mapping, trained_rate
+            for i, obs in enumerate(probe):  # one at a time, through the binding the loop uses
+                actions[i] = self.infer(obs)
+        except Exception as exc:  # onnxruntime raises several unrelated types for a graph that cannot run
+            raise PolicyContractError(f"{self.path}: the model does not run ({_first_line(exc)})") from exc
+        self.contract.check_outputs(actions, str(self.path))
 
     def describe(self) -> dict[str, object]:
         meta = {k: v for k, v in self.metadata.items() if k != "observation"}
