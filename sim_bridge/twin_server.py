@@ -16,7 +16,7 @@ import sys
 import threading
 import time
 
-from sim_bridge.link import _FRAME, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
+from sim_bridge.link import _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
 from sim_bridge.protocol import (
     FRAME_MSG,
     MAGIC,
@@ -33,6 +33,7 @@ from sim_bridge.protocol import (
     Reset,
     decode,
     encode_error,
+    pack_frame_into,
 )
 from sim_bridge.twin import Twin
 
@@ -103,7 +104,7 @@ class UdpTwinServer:
     def serve_forever(self) -> None:
         buf, view, reply, counters = self._rx, memoryview(self._rx), self._reply, self.counters
         receive, sendto = self._receive, self._sock.sendto
-        unpack_pwm, pack_frame, step = PWM_MSG.unpack_from, FRAME_MSG.pack_into, self.twin.step
+        unpack_pwm, pack_frame, step = PWM_MSG.unpack_from, pack_frame_into, self.twin.step
         monotonic = time.monotonic
         while not self._stopping:
             try:
@@ -127,8 +128,7 @@ class UdpTwinServer:
                     except ValueError as exc:
                         self._bad("bad_argument", addr, str(exc), seq, ErrorCode.BAD_ARGUMENT)
                         continue
-                    pack_frame(reply, 0, MAGIC, VERSION, _FRAME, 0, seq, frame.t_us,
-                               *frame.gyro.tolist(), *frame.accel.tolist(), *frame.rotor_speed.tolist())
+                    pack_frame(reply, seq, frame)
                     self._last_seq, self._last_request, self._owner_seen = seq, bytes(view[:n]), now
                     counters["steps"] += 1
                     sendto(reply, addr)
@@ -197,8 +197,7 @@ class UdpTwinServer:
         except ValueError as exc:
             self._bad("bad_argument", addr, str(exc), msg.seq, ErrorCode.BAD_ARGUMENT)
             return
-        FRAME_MSG.pack_into(self._reply, 0, MAGIC, VERSION, MsgType.FRAME, 0, msg.seq, frame.t_us,
-                            *frame.gyro.tolist(), *frame.accel.tolist(), *frame.rotor_speed.tolist())
+        pack_frame_into(self._reply, msg.seq, frame)
         self._owner, self._owner_seen, self._last_seq, self._last_request = addr, now, msg.seq, request
         self._sock.sendto(self._reply, addr)
 
