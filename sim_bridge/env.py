@@ -166,7 +166,8 @@ class RateTask:
         """(observation, reward, info) after the physics step: `rate` is what the reward judges."""
         pwm = np.asarray(pwm, dtype=float)  # float32 actions give float32 PWM; Δu is float64
         u = (pwm - PWM_MIN) / PWM_SPAN
-        reward, terms = self.reward(setpoint, rate, u, self._previous_u, self._first)
+        np.copyto(self._previous_u, u, where=self._first[..., None])  # a first step has no Δu
+        reward, terms = self.reward(setpoint, rate, u, self._previous_u)
         self._previous_u[...] = u
         self._first[...] = False
         obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed))

@@ -9,7 +9,8 @@ each term is reported in `info`; the terms add up to the reward:
   once a spinning vehicle passes the paper's clip every action scores the same and there
   is nothing to learn from, unclipped the way back always pays.
 - `reward_action_rate`: −action_rate_penalty · mean|Δu| over the four motors,
-  u = (PWM − 1000)/1000 (zero on an episode's first step), the output-oscillation term.
+  u = (PWM − 1000)/1000 (zero on an episode's first step, which has no Δu), the
+  output-oscillation term.
 
 `info` also carries `paper_reward`, the paper's reward whatever is trained on (what the
 evaluation compares), and `action_rate`, mean|Δu| before weighting.
@@ -59,9 +60,12 @@ class RateReward:
             raise ValueError(f"omega_max must be > 0, got {self.omega_max}")
         object.__setattr__(self, "axis_weights", weights)
 
-    def __call__(self, setpoint: np.ndarray, rate: np.ndarray, u: np.ndarray, previous_u: np.ndarray,
-                 first: np.ndarray | bool) -> tuple[np.ndarray, dict[str, Any]]:
-        """(reward, terms) for rates (..., 3) and motor outputs (..., 4); `first` marks episode starts."""
+    def __call__(self, setpoint: np.ndarray, rate: np.ndarray, u: np.ndarray,
+                 previous_u: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+        """(reward, terms) for rates (..., 3) and motor outputs (..., 4).
+
+        `previous_u` is the step before's u; on an episode's first step, u itself (Δu = 0).
+        """
         paper = rate_reward(setpoint, rate, self.omega_max)
         if self.kind == "paper":
             tracking = paper
@@ -70,7 +74,8 @@ class RateReward:
             w = self.axis_weights
             scale = 1.0 / (3.0 * self.omega_max)
             tracking = -((w[0] * e[..., 0] + w[1] * e[..., 1] + w[2] * e[..., 2]) * scale)
-        action_rate = np.where(first, 0.0, motor_output_rate(u, previous_u))
+        action_rate = motor_output_rate(u, previous_u)
         penalty = self.action_rate_penalty * action_rate
-        terms = dict(zip(REWARD_TERMS, (tracking, -penalty, paper, action_rate), strict=True))
+        terms = {"reward_tracking": tracking, "reward_action_rate": -penalty, "paper_reward": paper,
+                 "action_rate": action_rate}  # REWARD_TERMS
         return tracking - penalty, terms
