@@ -31,7 +31,7 @@ from firmware.action import ACTION_MAPPINGS, PWM_MIN, PWM_SPAN, action_to_pwm
 from firmware.observation import FIELDS, ObservationHistory, ObservationSpec, observe_step
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
 from sim_bridge.plant import SensorNoise
-from sim_bridge.reward import REWARD_TERMS, UNWEIGHTED, RateReward
+from sim_bridge.reward import UNWEIGHTED, RateReward
 from sim_bridge.tasks import (
     HOLD_S,
     OMEGA_MAX,
@@ -144,7 +144,8 @@ class RateTask:
         self.config, self.spec, self.reward = cfg, cfg.observation_spec, cfg.rate_reward
         self.history = ObservationHistory(self.spec, batch_shape)
         self._previous_u = np.zeros((*batch_shape, 4))
-        self._first = np.ones(batch_shape, dtype=bool)
+        self._first = np.ones(batch_shape, dtype=bool)  # episode starts: no previous output
+        self._any_first = True
 
     def pwm(self, action: np.ndarray, throttle: np.ndarray | float) -> np.ndarray:
         return action_to_pwm(self.config.action_mapping, np.asarray(action, dtype=np.float32), throttle)
@@ -153,6 +154,7 @@ class RateTask:
               rows: np.ndarray | None = None) -> np.ndarray:
         """The first observation of a new episode; with a mask `rows`, of those copies (given theirs)."""
         step = observe_step(self.spec, setpoint, gyro, rotor_speed)
+        self._any_first = True
         if rows is None:
             self._first[...] = True
             return self.history.reset(step)
@@ -166,10 +168,11 @@ class RateTask:
         """(observation, reward, info) after the physics step: `rate` is what the reward judges."""
         pwm = np.asarray(pwm, dtype=float)  # float32 actions give float32 PWM; Δu is float64
         u = (pwm - PWM_MIN) / PWM_SPAN
-        np.copyto(self._previous_u, u, where=self._first[..., None])  # a first step has no Δu
+        if self._any_first:  # a first step has no Δu: its previous output is its own
+            np.copyto(self._previous_u, u, where=self._first[..., None])
+            self._first[...], self._any_first = False, False
         reward, terms = self.reward(setpoint, rate, u, self._previous_u)
-        self._previous_u[...] = u
-        self._first[...] = False
+        self._previous_u = u
         obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed))
         return obs, reward, {"setpoint": setpoint, "rate": rate, "gyro": gyro, "pwm": pwm, **terms}
 
@@ -240,8 +243,6 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         setpoint = self._episode.setpoints[self._t].copy()
         obs, reward, info = self._task.step(setpoint, self._rate(frame.gyro), frame.gyro, frame.rotor_speed,
                                             pwm)
-        for key in REWARD_TERMS:
-            info[key] = float(info[key])
         return obs, float(reward), False, self._t >= self._n_steps, info
 
     def _set_twin(self, airframe: Airframe) -> None:
