@@ -4,7 +4,7 @@ Like Gymnasium's MuJoCo environments, the weights are constructor arguments
 (`RateControlEnv(reward="unclipped", axis_weights=(1, 1, 2), action_rate_penalty=2)`) and
 each term is reported in `info`; the terms add up to the reward:
 
-- `reward_tracking`: the rate error. ``paper`` (Koch et al. 2019):
+- `reward_tracking`: the rate error. ``paper`` (Koch et al.):
   −clip(Σ|Ω* − Ω| / (3·Ω_max), 0, 1). ``unclipped``: −Σ w_axis·|Ω* − Ω| / (3·Ω_max);
   once a spinning vehicle passes the paper's clip every action scores the same and there
   is nothing to learn from, unclipped the way back always pays.
