@@ -17,7 +17,7 @@ import sys
 import threading
 import time
 
-from sim_bridge.link import _DONTWAIT, _FRAME, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
+from sim_bridge.link import _DONTWAIT, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
 from sim_bridge.protocol import (
     FRAME_MSG,
     MAGIC,
@@ -34,6 +34,7 @@ from sim_bridge.protocol import (
     Reset,
     decode,
     encode_error,
+    pack_frame_into,
 )
 from sim_bridge.twin import Twin
 
@@ -163,7 +164,7 @@ class UdpTwinServer:
     def serve_forever(self) -> None:
         buf, view, reply, counters = self._rx, memoryview(self._rx), self._reply, self.counters
         receive, sendto = self._receive, self._sock.sendto
-        unpack_pwm, pack_frame, step = PWM_MSG.unpack_from, FRAME_MSG.pack_into, self.twin.step
+        unpack_pwm, pack_frame, step = PWM_MSG.unpack_from, pack_frame_into, self.twin.step
         monotonic = time.monotonic
         while not self._stopping:
             try:
@@ -187,8 +188,7 @@ class UdpTwinServer:
                     except ValueError as exc:
                         self._bad("bad_argument", addr, str(exc), seq, ErrorCode.BAD_ARGUMENT)
                         continue
-                    pack_frame(reply, 0, MAGIC, VERSION, _FRAME, 0, seq, frame.t_us,
-                               *frame.gyro.tolist(), *frame.accel.tolist(), *frame.rotor_speed.tolist())
+                    pack_frame(reply, seq, frame)
                     self._last_seq, self._last_request, self._owner_seen = seq, bytes(view[:n]), now
                     counters["steps"] += 1
                     sendto(reply, addr)
@@ -322,8 +322,7 @@ class UdpTwinServer:
         except ValueError as exc:
             self._bad("bad_argument", addr, str(exc), msg.seq, ErrorCode.BAD_ARGUMENT)
             return
-        FRAME_MSG.pack_into(self._reply, 0, MAGIC, VERSION, MsgType.FRAME, 0, msg.seq, frame.t_us,
-                            *frame.gyro.tolist(), *frame.accel.tolist(), *frame.rotor_speed.tolist())
+        pack_frame_into(self._reply, msg.seq, frame)
         if addr != self._owner:
             self._set_owner(addr)
         self._owner_seen, self._last_seq, self._last_request = now, msg.seq, request
