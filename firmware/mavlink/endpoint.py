@@ -7,14 +7,12 @@ from __future__ import annotations
 
 import hashlib
 import socket
-import time
 from pathlib import Path
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from firmware.mavlink.signing import SigningState, signing_now
 from firmware.mavlink.tlog import TlogWriter
-
-SIGNING_EPOCH = 1420070400  # 2015-01-01, MAVLink 2 signing timestamps count 10 µs from here
 
 
 def load_signing_key(path: str | Path) -> bytes:
@@ -52,7 +50,7 @@ class _Writer:
 
 class Endpoint:
     def __init__(self, name: str, host: str, port: int, sysid: int, link_id: int,
-                 signing_key: bytes | None = None, tlog: TlogWriter | None = None) -> None:
+                 signing: SigningState | None = None, tlog: TlogWriter | None = None) -> None:
         self.name = name
         self.address = (host, port)
         self.tlog = tlog
@@ -64,14 +62,16 @@ class Endpoint:
         self.mav.robust_parsing = True
         self.tx = self.tx_errors = self.rx = self.bad = 0
         self.peer_seen: tuple[int, int] | None = None  # (sysid, compid) of the last HEARTBEAT
-        self.signed = signing_key is not None
-        if signing_key is not None:
+        self.signing = signing
+        self.signed = signing is not None
+        if signing is not None:
             s = self.mav.signing
-            s.secret_key = signing_key
+            s.secret_key = signing.key
             s.link_id = link_id
-            s.timestamp = int((max(time.time(), SIGNING_EPOCH) - SIGNING_EPOCH) * 100_000)
+            s.timestamp = signing_now()
             s.sign_outgoing = True
             s.allow_unsigned_callback = lambda _mav, _msgid: False
+            self.mav.check_signature = signing.check  # verifies before it remembers (see signing.py)
 
     def fileno(self) -> int:
         return self.sock.fileno()

@@ -21,6 +21,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware.mavlink import ipc, telemetry
 from firmware.mavlink.endpoint import Endpoint, load_signing_key
 from firmware.mavlink.handlers import Handlers
+from firmware.mavlink.signing import SigningState
 from firmware.mavlink.tlog import TlogWriter
 from firmware.params import ParamTable
 from firmware.vehicle import STABILIZED, custom_mode
@@ -59,12 +60,13 @@ class Station:
         self.ipc = ipc_sock
         self.tlog = TlogWriter(config["tlog"]) if config.get("tlog") else None
         key = load_signing_key(config["signing_key"]) if config.get("signing_key") else None
+        self.signing = SigningState(key) if key is not None else None  # one per vehicle, every link
         any_marked = any(p["signed"] for p in config["peers"])
         self.endpoints: list[Endpoint] = []
         self._schedulers: dict[int, telemetry.Scheduler] = {}
         for i, peer in enumerate(config["peers"]):
-            peer_key = key if key is not None and (peer["signed"] or not any_marked) else None
-            ep = Endpoint(peer["name"], peer["host"], int(peer["port"]), self.sysid, i, peer_key, self.tlog)
+            signing = self.signing if peer["signed"] or not any_marked else None
+            ep = Endpoint(peer["name"], peer["host"], int(peer["port"]), self.sysid, i, signing, self.tlog)
             self.endpoints.append(ep)
             self._schedulers[id(ep)] = telemetry.Scheduler(self.has_position)
         self.handlers = Handlers(self)
@@ -231,7 +233,7 @@ class Station:
         c["rx_frames"] = sum(ep.rx for ep in self.endpoints)
         c["rx_bad"] = sum(ep.bad for ep in self.endpoints)
         c["tx_frames"] = sum(ep.tx for ep in self.endpoints)
-        c["sig_rejected"] = sum(ep.mav.signing.reject_count + ep.mav.signing.badsig_count
+        c["sig_rejected"] = sum(ep.mav.signing.reject_count
                                 for ep in self.endpoints if ep.signed)
         return c
 
