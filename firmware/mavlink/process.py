@@ -305,7 +305,7 @@ def main(argv: list[str]) -> int:
     # When the CPU is short (a flood of input, a busy host), the flight loop goes first: the
     # MAVLink side can fall behind and drop, the 1 kHz tick must not.
     try:
-        os.nice(NICE)
+        os.setpriority(os.PRIO_PROCESS, 0, NICE)  # absolute: not relative to a raised parent
     except OSError:
         pass
     sock = socket.socket(fileno=spec["fd"])

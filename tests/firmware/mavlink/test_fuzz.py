@@ -33,12 +33,13 @@ class Flight:
     def __init__(self, off, gcs) -> None:
         self.off, self.gcs = off, gcs
         self.rates = (0.0, 0.0, 0.0)
+        self.thrust = HOVER
         self._next = 0.0
 
     def tick(self) -> None:
         now = time.monotonic()
         if now >= self._next:
-            self.off.mav.set_attitude_target_send(0, 1, 1, 128, [1, 0, 0, 0], *self.rates, HOVER)
+            self.off.mav.set_attitude_target_send(0, 1, 1, 128, [1, 0, 0, 0], *self.rates, self.thrust)
             self._next = now + SETPOINT_EVERY_S
 
     def fly(self, seconds: float) -> None:
@@ -184,7 +185,7 @@ def test_fuzzed_frames_are_refused_without_disturbing_the_flight_or_the_loop(sit
         if m is not None:
             rates.append(m.rollspeed)
     assert len(rates) > 10 and statistics.median(rates) == pytest.approx(1.0, abs=0.1)
-    flight.rates = (0.0, 0.0, 0.0)
+    flight.rates, flight.thrust = (0.0, 0.0, 0.0), 0.0  # motors to idle: a disarm needs the land detector
     flight.fly(0.5)
     assert command(off, ARM, 0).result == M.MAV_RESULT_ACCEPTED
     wait_for(gcs, "HEARTBEAT", lambda m: not m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED, timeout=5)
