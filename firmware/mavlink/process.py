@@ -19,6 +19,7 @@ import time
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware.mavlink import ipc, telemetry
+from firmware.mavlink.budget import ParamStreams
 from firmware.mavlink.endpoint import Endpoint, load_signing_key
 from firmware.mavlink.handlers import Handlers
 from firmware.mavlink.signing import SigningState
@@ -36,7 +37,7 @@ REJECT_TEXT_EVERY_S = 5.0
 REJECT_TEXTS_PER_S = 5
 PARAM_SAVE_DELAY_S = 0.2
 NICE = 5
-REPORTED = ("rx_frames", "rx_bad", "rx_rejected", "rx_foreign", "sig_rejected")
+REPORTED = ("rx_frames", "rx_bad", "rx_rejected", "rx_foreign", "sig_rejected", "rx_shed")
 COUNTERS = ("rx_bad", "rx_rejected", "rx_foreign", "rx_unsupported", "rx_unhandled", "sig_rejected")
 
 
@@ -70,6 +71,7 @@ class Station:
             self.endpoints.append(ep)
             self._schedulers[id(ep)] = telemetry.Scheduler(self.has_position)
         self.handlers = Handlers(self)
+        self.param_streams = ParamStreams(lambda: len(self.params), self._send_param_index)
         self.snap = idle_snapshot()
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters.update(rx_frames=0, tx_frames=0, ipc_bad=0, snapshots=0, acks_timed_out=0)
@@ -84,6 +86,7 @@ class Station:
         self._last_reject_text = 0.0
         self._text_window = 0.0
         self._texts_in_window = 0
+        self._text_id = 0
 
     # ---- used by the handlers ----
     def count(self, what: str, n: int = 1) -> None:
@@ -110,8 +113,10 @@ class Station:
             if self._texts_in_window >= REJECT_TEXTS_PER_S:
                 return
             self._texts_in_window += 1
+        self._text_id = self._text_id % 0xFFFF + 1
         for e in [ep] if ep is not None else self.endpoints:
-            e.send(e.mav.statustext_encode(severity, text[:50].encode(), 0, 0))
+            for message in telemetry.statustext(e.mav, severity, text, self._text_id):
+                e.send(message)
 
     def ack(self, ep: Endpoint, msg, command: int, result: int, text: str = "") -> None:
         ep.send(ep.mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
@@ -147,6 +152,11 @@ class Station:
         for e in [ep] if ep is not None else self.endpoints:
             e.send(e.mav.param_value_encode(name.encode(), table.encode_wire(name), table.specs[name].kind,
                                             len(table), index))
+
+    def _send_param_index(self, ep: Endpoint, index: int) -> None:
+        names = self.params.names
+        if index < len(names):
+            self.send_param(ep, names[index], index)
 
     def param_changed(self, name: str) -> None:
         self._flush_setpoints(time.monotonic(), force=True)
@@ -218,7 +228,7 @@ class Station:
             try:
                 self.params.save(self.params_file)
             except OSError as exc:
-                self.say(3, f"Param save failed: {exc}"[:50])
+                self.say(3, f"Param save failed: {exc}")
 
     def _flush_setpoints(self, now: float, force: bool = False) -> None:
         if (self._latest_sp or self._latest_sticks) and (force or now - self._sp_sent >= SETPOINT_MIN_GAP_S):
@@ -235,6 +245,8 @@ class Station:
         c["tx_frames"] = sum(ep.tx for ep in self.endpoints)
         c["sig_rejected"] = sum(ep.mav.signing.reject_count
                                 for ep in self.endpoints if ep.signed)
+        c["rx_shed"] = sum(ep.budget.shed + ep.kernel_dropped for ep in self.endpoints)
+        c["param_lists_refused"] = self.param_streams.refused
         return c
 
     def _report(self, now: float) -> None:
@@ -257,23 +269,25 @@ class Station:
         next_hb = time.monotonic()
         next_stats = next_hb + STATS_EVERY_S
         next_stream = next_hb
-        fds = [self.ipc, *self.endpoints]
         self.ipc.setblocking(False)
         try:
             while True:
                 now = time.monotonic()
                 wait = min(next_hb, next_stats, next_stream) - now
-                if self._latest_sp or self._latest_sticks:
+                if self._latest_sp or self._latest_sticks or self.param_streams.pending():
                     wait = min(wait, SETPOINT_MIN_GAP_S)
+                fds = [self.ipc, *(ep for ep in self.endpoints if ep.readable(now))]
                 ready, _, _ = select.select(fds, [], [], max(0.0, wait))
                 for r in ready:
                     if r is self.ipc:
                         if not self._read_ipc():
                             return
                     else:
-                        for msg in r.receive():
+                        for msg in r.receive(now):
                             self.handlers.handle(r, msg)
                 now = time.monotonic()
+                if self.param_streams.pending():
+                    self.param_streams.pump(now)
                 if now >= next_stream:
                     self._stream()
                     next_stream = max(next_stream + STREAM_POLL_S, now)
