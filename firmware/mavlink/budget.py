@@ -64,7 +64,7 @@ class ParamStreams:
         self.max_peers = max_peers
         self._lists: dict[object, dict[tuple[int, int], int]] = {}  # link → peer → next index
         self._credit: dict[object, float] = {}
-        self._last = 0.0
+        self._last: float | None = None
         self.refused = 0
 
     def request(self, link: object, peer: tuple[int, int]) -> None:
@@ -80,7 +80,7 @@ class ParamStreams:
 
     def pump(self, now: float) -> None:
         """Send what the budget allows since the last call, round robin over each link's lists."""
-        elapsed = min(max(now - self._last, 0.0), WINDOW_S)
+        elapsed = WINDOW_S if self._last is None else min(max(now - self._last, 0.0), WINDOW_S)
         self._last = now
         total = self._count()
         for link, lists in self._lists.items():

@@ -128,3 +128,17 @@ def test_a_signed_frame_captured_on_one_link_is_refused_when_replayed_on_another
         assert param(gcs, b"COM_OF_LOSS_T") == pytest.approx(0.9)
     rejected = wait_for(gcs, "NAMED_VALUE_INT", lambda m: m.name == "sig_reject" and m.value >= 2, timeout=5)
     assert rejected.value >= 2
+
+
+def test_signing_state_remembers_nothing_from_a_frame_with_a_bad_signature() -> None:
+    from firmware.mavlink.signing import SigningState, signing_now
+
+    state = SigningState(KEY)
+    forged = bytearray(forged_frame(250, 190, (1 << 48) - 10))
+    assert not state.check(forged, 250, 190) and state.streams == {} and state.bad_signature == 1
+    mav = M.MAVLink(None, srcSystem=250, srcComponent=190)
+    mav.signing.secret_key, mav.signing.link_id, mav.signing.sign_outgoing = KEY, 0, True
+    mav.signing.timestamp = signing_now()
+    good = bytearray(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
+    assert state.check(good, 250, 190)
+    assert not state.check(good, 250, 190) and state.replayed == 1  # the same frame again
