@@ -36,7 +36,8 @@ STATS_EVERY_S = 1.0
 REJECT_TEXT_EVERY_S = 5.0
 REJECT_TEXTS_PER_S = 5
 PARAM_SAVE_DELAY_S = 0.2
-NICE = 5
+NICE = -10  # below the flight loop's -20 (timing.LOOP_NICE), above any other local process
+NICE_UNPRIVILEGED = 5
 REPORTED = ("rx_frames", "rx_bad", "rx_rejected", "rx_foreign", "sig_rejected", "rx_shed")
 COUNTERS = ("rx_bad", "rx_rejected", "rx_foreign", "rx_unsupported", "rx_unhandled", "sig_rejected")
 
@@ -316,12 +317,16 @@ def main(argv: list[str]) -> int:
     spec = json.loads(argv[1])
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the flight process's; we end with it
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
-    # When the CPU is short (a flood of input, a busy host), the flight loop goes first: the
-    # MAVLink side can fall behind and drop, the 1 kHz tick must not.
+    # When the CPU is short (a flood of input, a busy host), the flight loop goes first, then this
+    # process: a local flooder must not starve the links a flight depends on. Where raising
+    # priority is not allowed the loop cannot be raised either, so this process goes below it.
     try:
-        os.setpriority(os.PRIO_PROCESS, 0, NICE)  # absolute: not relative to a raised parent
+        os.setpriority(os.PRIO_PROCESS, 0, NICE)
     except OSError:
-        pass
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, NICE_UNPRIVILEGED)
+        except OSError:
+            pass
     sock = socket.socket(fileno=spec["fd"])
     station = Station(spec["config"], spec["params"], sock, ipc.SnapshotSlot(spec["slot"]))
     station._to_flight(("ready", {ep.name: ep.sock.getsockname()[1] for ep in station.endpoints}))
