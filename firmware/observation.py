@@ -18,7 +18,7 @@ into preallocated buffers, so the 1 kHz tick allocates next to nothing.
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from functools import cached_property
 from operator import itemgetter, mul
@@ -103,7 +103,9 @@ class ObservationSpec:
         return tuple(scale for _, d, scale in self.layout for _ in SOURCE_COLUMNS[d.source])
 
     @cached_property
-    def _pick_sources(self) -> itemgetter:
+    def _pick_sources(self) -> Callable[[list], Sequence]:
+        if self.column_sources == tuple(range(len(self.column_sources))):
+            return lambda sources: sources
         return itemgetter(*self.column_sources)
 
     def integral_slice(self) -> slice | None:
@@ -138,7 +140,8 @@ def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
     holds them, e.g. a batch of one). One vehicle in float64 runs `_step_columns` on plain
     floats, which costs less than numpy's per-call overhead on 3-vectors; anything else on
     arrays, in the inputs' precision."""
-    if setpoint.ndim == gyro.ndim == 1 and setpoint.dtype == gyro.dtype == rotor_speed.dtype == _FLOAT64:
+    # `is`: numpy's float64 descriptor is one object; an equal one that is not takes the array path.
+    if setpoint.dtype is gyro.dtype is rotor_speed.dtype is _FLOAT64 and setpoint.ndim == gyro.ndim == 1:
         values = _step_columns(spec, setpoint.tolist(), gyro.tolist(), rotor_speed.tolist())
         if out is None:
             return np.array(values, dtype=np.float32)
