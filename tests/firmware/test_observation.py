@@ -71,3 +71,10 @@ def test_history_keeps_the_newest_first_and_reset_fills_it():
     np.testing.assert_array_equal(hist.view.reshape(3, -1)[:, 0], [2, 1, 0])
     hist.start(steps[3])
     np.testing.assert_array_equal(hist.view, 3)
+
+
+def test_the_field_table_flattens_to_one_source_column_and_scale_per_observation_column():
+    spec = ObservationSpec(fields=("rotor_speed", "rate_error", INTEGRAL))
+    assert spec.column_sources == (3, 4, 5, 6, 0, 1, 2, 0, 1, 2)
+    assert spec.column_scales == (spec.rotor_speed_scale,) * 4 + (spec.rate_scale,) * 6
+    assert spec.step_size == 10 and spec.integral_slice() == slice(7, 10)
