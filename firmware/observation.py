@@ -19,11 +19,9 @@ the model) and a batch (arrays with any leading shape), with the same IEEE opera
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from functools import cached_property
 from operator import itemgetter, mul
-from typing import TypeVar
 
 import numpy as np
 
@@ -34,7 +32,6 @@ INTEGRAL = "rate_error_integral"
 # setpoint − gyro (rad/s, FRD), then the rotor speeds (rad/s, motor order).
 SOURCE_COLUMNS = {"rate_error": (0, 1, 2), "rotor_speed": (3, 4, 5, 6)}
 
-V = TypeVar("V", float, np.ndarray)
 _FLOAT64 = np.dtype(np.float64)
 
 
@@ -127,33 +124,31 @@ class ObservationSpec:
         return cls(**raw)
 
 
-def _step_columns(spec: ObservationSpec, setpoint: Sequence[V], gyro: Sequence[V],
-                 rotor_speed: Sequence[V]) -> list[V]:
-    """One step's columns in `spec.fields` order from the sources' columns: each a float (one
-    vehicle) or an array over a batch, in the inputs' precision. An integrated field holds the
-    integrator's input, the scaled error; `ObservationHistory` integrates it."""
-    sources = [setpoint[0] - gyro[0], setpoint[1] - gyro[1], setpoint[2] - gyro[2], *rotor_speed]
-    return list(map(mul, spec._pick_sources(sources), spec.column_scales))  # loops in C: every tick runs this
-
-
 def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
                  rotor_speed: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """One step's features, (..., step_size) float32, into `out` if given (any shape that
-    holds them, e.g. a batch of one). One vehicle in float64 runs `_step_columns` on plain
-    floats, which costs less than numpy's per-call overhead on 3-vectors; anything else on
-    arrays, in the inputs' precision."""
+    holds them, e.g. a batch of one): each field's source times its scale, in the inputs'
+    precision. An integrated field holds the integrator's input, the scaled error;
+    `ObservationHistory` integrates it.
+
+    One float64 vehicle runs on plain floats, column by column from the flattened table
+    (numpy's per-call overhead on 3-vectors would cost more than the model each tick);
+    anything else runs on arrays, field by field. The products are the same either way.
+    """
     # `is`: numpy's float64 descriptor is one object; an equal one that is not takes the array path.
     if setpoint.dtype is gyro.dtype is rotor_speed.dtype is _FLOAT64 and setpoint.ndim == gyro.ndim == 1:
-        values = _step_columns(spec, setpoint.tolist(), gyro.tolist(), rotor_speed.tolist())
+        s, g = setpoint.tolist(), gyro.tolist()
+        sources = [s[0] - g[0], s[1] - g[1], s[2] - g[2], *rotor_speed.tolist()]
+        values = list(map(mul, spec._pick_sources(sources), spec.column_scales))  # loops in C
         if out is None:
             return np.array(values, dtype=np.float32)
         out[...] = values  # rounds each float64 to float32, as astype does
         return out
-    columns = _step_columns(spec, [setpoint[..., i] for i in range(3)], [gyro[..., i] for i in range(3)],
-                           [rotor_speed[..., i] for i in range(4)])
+    sources = {"rate_error": np.subtract(setpoint, gyro), "rotor_speed": rotor_speed}
+    values = np.concatenate([sources[d.source] * scale for _, d, scale in spec.layout], axis=-1)
     if out is None:
-        return np.stack(columns, axis=-1, dtype=np.float32, casting="same_kind")
-    out[...] = np.stack(columns, axis=-1)
+        return values.astype(np.float32)
+    out[...] = values
     return out
 
 
