@@ -18,7 +18,7 @@ import numpy as np
 
 from firmware.action import ACTION_MAPPINGS
 from firmware.errors import UserError
-from firmware.observation import FIELD_SIZES, OBS_VERSION, ObservationSpec, observe_step
+from firmware.observation import FIELD_DEFS, OBS_VERSION, ObservationSpec, observe_step
 
 META_PREFIX = "fcemu."
 REQUIRED_META = ("observation", "action_mapping", "loop_rate_hz")
@@ -150,9 +150,9 @@ def _observation(text: str, where: str) -> ObservationSpec:
                                   f"in 1..{MAX_MEMORY}")
     fields = raw["fields"]
     if (not isinstance(fields, list) or not fields or not all(isinstance(f, str) for f in fields)
-            or set(fields) - set(FIELD_SIZES) or len(set(fields)) != len(fields)):
+            or set(fields) - set(FIELD_DEFS) or len(set(fields)) != len(fields)):
         raise PolicyContractError(f"{where}: observation spec not understood (fields {_short(fields)}; "
-                                  f"known: {sorted(FIELD_SIZES)}, each at most once)")
+                                  f"known: {sorted(FIELD_DEFS)}, each at most once)")
     defaults = ObservationSpec()
     for key, physical in (("rate_scale", RATE_BOUND), ("rotor_speed_scale", ROTOR_SPEED_MAX)):
         value = raw.get(key, getattr(defaults, key))

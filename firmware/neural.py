@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from firmware.action import action_to_pwm, throttle_pwm_one
+from firmware.action import action_to_pwm
 from firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
 from firmware.controller import RateSetpoint
-from firmware.observation import FIELDS, ObservationHistory, observe_step
+from firmware.observation import ObservationHistory, observe_step
 from firmware.sensors import SensorFrame
 
 __all__ = ["META_PREFIX", "NeuralRateController", "PolicyContractError", "PolicyOutputError", "read_metadata"]
@@ -76,18 +76,24 @@ class NeuralRateController:
         self._input_name = self._session.get_inputs()[0].name
         self._output_name = self._session.get_outputs()[0].name
         self.name = f"neural:{self.path.stem}"
-        self._history = ObservationHistory(self.spec)
+        # One vehicle is a batch of one: the step and the history are preallocated and the
+        # history's buffer is bound as the model's input, so a tick allocates next to nothing.
+        self._history = ObservationHistory(self.spec, (1,))
         self._fresh = True
-        # The shipped spec (m = 1, rate error + rotor speeds) skips the general path's array
-        # building: each tick's numpy calls on 3- and 4-vectors cost more than the model.
-        self._direct = self.spec.memory == 1 and self.spec.fields == FIELDS
-        self._input = np.zeros((1, self.spec.size), dtype=np.float32)
+        self._step = self._history.staging
+        self._step_values = self._step.reshape(-1)  # a view of the same memory
         self._output = np.zeros((1, 4), dtype=np.float32)
-        self._binding = self._session.io_binding()
-        self._binding.bind_cpu_input(self._input_name, self._input)
-        self._binding.bind_output(self._output_name, "cpu", element_type=np.float32, shape=(1, 4),
-                                  buffer_ptr=self._output.ctypes.data)
+        self._binding = self._bind(self._history.view)
+        self._infer_input = np.zeros((1, self.spec.size), dtype=np.float32)
+        self._infer_binding = self._bind(self._infer_input)
         self._probe()
+
+    def _bind(self, observation: np.ndarray) -> ort.IOBinding:
+        binding = self._session.io_binding()
+        binding.bind_cpu_input(self._input_name, observation)
+        binding.bind_output(self._output_name, "cpu", element_type=np.float32, shape=(1, 4),
+                            buffer_ptr=self._output.ctypes.data)
+        return binding
 
     def _probe(self) -> None:
         """Run the model once on observations from its flight range: it must run and answer in range."""
@@ -108,46 +114,22 @@ class NeuralRateController:
         self._fresh = True
 
     def infer(self, observation: np.ndarray) -> np.ndarray:
-        """Raw policy output for one observation (no clipping, no checks)."""
-        self._input[0] = observation
-        self._session.run_with_iobinding(self._binding)
+        """Raw policy output for one observation (no clipping, no checks); the history is kept."""
+        self._infer_input[0] = observation
+        self._session.run_with_iobinding(self._infer_binding)
         return self._output[0]
 
     def update(self, setpoint: RateSetpoint, frame: SensorFrame, dt: float) -> np.ndarray:
-        if self._direct:
-            return self._update_direct(setpoint, frame)
-        step = observe_step(self.spec, setpoint.rates, frame.gyro, frame.rotor_speed)
-        if not np.isfinite(step).all():  # the step holds every input the policy reads
+        observe_step(self.spec, setpoint.rates, frame.gyro, frame.rotor_speed, out=self._step_values)
+        if not all(map(math.isfinite, self._step_values.tolist())):  # the step holds every input read
             raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
         if self._fresh:
-            obs = self._history.reset(step)
+            self._history.start(self._step)
             self._fresh = False
         else:
-            obs = self._history.push(step)
-        action = self.infer(obs)
-        if not np.isfinite(action).all():
-            raise PolicyOutputError(f"policy output {action} is not finite")
-        return self._pwm(action, setpoint.throttle)
-
-    def _pwm(self, action: np.ndarray, throttle: float) -> np.ndarray:
-        if self.action_mapping == "throttle":
-            return throttle_pwm_one(action, throttle)
-        return action_to_pwm(self.action_mapping, action, throttle)
-
-    def _update_direct(self, setpoint: RateSetpoint, frame: SensorFrame) -> np.ndarray:
-        """`update` for m = 1 and the default fields, in plain floats written straight into
-        the bound input buffer: `observe_step`'s float64 operations in the same order, rounded
-        to float32 on the store, so the model sees bit for bit what training produced."""
-        spec = self.spec
-        sp, gyro, rotor = setpoint.rates.tolist(), frame.gyro.tolist(), frame.rotor_speed.tolist()
-        rs, ws = spec.rate_scale, spec.rotor_speed_scale
-        values = [(sp[0] - gyro[0]) * rs, (sp[1] - gyro[1]) * rs, (sp[2] - gyro[2]) * rs,
-                  rotor[0] * ws, rotor[1] * ws, rotor[2] * ws, rotor[3] * ws]
-        if not all(map(math.isfinite, values)):
-            raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
-        self._input[0] = values
+            self._history.record(self._step)
         self._session.run_with_iobinding(self._binding)
         action = self._output[0]
         if not all(map(math.isfinite, action.tolist())):
             raise PolicyOutputError(f"policy output {action} is not finite")
-        return self._pwm(action, setpoint.throttle)
+        return action_to_pwm(self.action_mapping, action, setpoint.throttle)
