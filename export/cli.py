@@ -15,8 +15,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="the .onnx file to write (--target c: a directory)")
     p.add_argument("--target", choices=("onnx", "c"), default="onnx")
     p.add_argument("--parity-samples", type=int, default=10_000)
+    _add_tanh(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler="export.cli:export_command")
+
+
+def _add_tanh(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--tanh", choices=("fast", "libm"), default="fast",
+                   help="--target c: the network's tanh, a rational approximation within 7 ULP "
+                        "(fast, default) or libm's tanhf")
 
 
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
@@ -24,6 +31,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
                                          "instructions and estimated time per inference")
     p.add_argument("--model", default=None, help="a policy .onnx (default: the shipped policy)")
     p.add_argument("--out", default=None, help="keep the exported sources and the firmware image here")
+    _add_tanh(p)
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler="export.cli:bench_mcu_command")
 
@@ -56,7 +64,7 @@ def _export_c(args) -> int:
     from export.c.build import CExportError, export_c
 
     try:
-        report = export_c(args.checkpoint, args.out, args.parity_samples)
+        report = export_c(args.checkpoint, args.out, args.parity_samples, args.tanh)
     except CExportError as exc:
         return _error(exc)
     if args.json:
@@ -73,7 +81,7 @@ def bench_mcu_command(args) -> int:
     from export.c.target import REPORT_KEYS, bench_mcu, budget_verdict
 
     try:
-        details = bench_mcu(args.model, args.out)
+        details = bench_mcu(args.model, args.out, tanh=args.tanh)
     except CExportError as exc:
         return _error(exc)
     report = {k: details[k] for k in REPORT_KEYS}
@@ -89,6 +97,6 @@ def bench_mcu_command(args) -> int:
           f"{target['max_abs_diff_vs_onnx']:.2e}, {target['max_ulp_vs_onnx']} ULP; vs host C: "
           f"{target['max_abs_diff_vs_host']:.2e}, {target['max_ulp_vs_host']} ULP")
     print(f"RAM = {target['static_ram_bytes']} static + {target['stack_bytes']} stack (painted); "
-          f"time = instructions × CPI {details['cpi_assumed']} / clock")
+          f"time = instructions × CPI {details['cpi_assumed']} / clock; tanh: {details['tanh']}")
     print(budget_verdict(report))
     return 0

@@ -4,7 +4,8 @@ The network comes from emx-onnx-cgen (batch pinned to 1, every temporary on the 
 weights inline as const arrays); the contract code from `export.c.contract`; golden
 vectors from onnxruntime. The sources are then compiled with the host C compiler into
 `libfcemu_policy.so` (what `--controller DIR` flies) and compared with onnxruntime on
-≥ 10,000 observations; the figures go to DIR/parity.json.
+≥ 10,000 observations; the figures go to DIR/parity.json. `tanh` picks the network's
+tanh (`export.c.tanh`): the fast rational approximation (default) or libm's `tanhf`.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from export.c.contract import (
     c_float,
     contract_sources,
 )
+from export.c.tanh import DEFAULT_TANH, FAST_TANH_HEADER, TANH_CHOICES, TANH_HEADER, use_fast_tanh
 from firmware.neural import NeuralRateController, PolicyContractError
 from firmware.observation import FIELD_DEFS
 
@@ -130,27 +132,47 @@ def load_contract(model: Path) -> tuple[Contract, dict[str, str]]:
     return Contract(policy.spec, policy.action_mapping, policy.trained_rate_hz), policy.metadata
 
 
-def export_c(model: str | Path, out_dir: str | Path, parity_samples: int = 10_000) -> dict:
+def choose_tanh(net_c: Path, tanh: str) -> None:
+    """Point the generated network at the chosen tanh (see `export.c.tanh`)."""
+    header = net_c.parent / TANH_HEADER
+    header.unlink(missing_ok=True)
+    if tanh == "libm":
+        return
+    try:
+        source = use_fast_tanh(net_c.read_text())
+    except ValueError as exc:
+        raise CExportError(str(exc)) from exc
+    if TANH_HEADER in source:
+        header.write_text(FAST_TANH_HEADER)
+        net_c.write_text(source)
+
+
+def export_c(model: str | Path, out_dir: str | Path, parity_samples: int = 10_000,
+             tanh: str = DEFAULT_TANH) -> dict:
     """Write the C sources, build them for the host, check parity; returns the parity report."""
     model, out_dir = Path(model), Path(out_dir)
     if not model.exists():
         raise CExportError(f"no policy file {model}")
     if parity_samples < 1:
         raise CExportError(f"--parity-samples must be >= 1, got {parity_samples}")
+    if tanh not in TANH_CHOICES:
+        raise CExportError(f"--tanh must be one of {', '.join(TANH_CHOICES)}, got {tanh!r}")
     contract, metadata = load_contract(model)
     out_dir.mkdir(parents=True, exist_ok=True)
     run_emx(model, out_dir / "fcemu_net.c")
+    choose_tanh(out_dir / "fcemu_net.c", tanh)
     for name, text in contract_sources(contract).items():
         (out_dir / name).write_text(text)
     obs = sample_observations(contract.spec, max(parity_samples, GOLDEN_COUNT))
     reference = onnx_outputs(model, obs)
     (out_dir / "fcemu_golden.c").write_text(golden_source(obs[:GOLDEN_COUNT], reference[:GOLDEN_COUNT]))
     (out_dir / "contract.json").write_text(json.dumps(
-        {"model": str(model), "metadata": metadata, "self_test_tolerance": SELF_TEST_TOLERANCE}, indent=1))
+        {"model": str(model), "metadata": metadata, "tanh": tanh, "self_test_tolerance": SELF_TEST_TOLERANCE},
+        indent=1))
     lib = load_host_library(compile_host(out_dir))
     ours = host_outputs(lib, obs)
     report = {
-        "model": str(model), "out": str(out_dir), "compiler": "cc " + " ".join(C_FLAGS),
+        "model": str(model), "out": str(out_dir), "compiler": "cc " + " ".join(C_FLAGS), "tanh": tanh,
         "parity_samples": len(obs),
         "max_abs_diff": float(np.max(np.abs(ours - reference))),
         "max_ulp": int(ulp_distance(ours, reference).max()),

@@ -35,6 +35,7 @@ from export.c.build import (
     sample_observations,
     ulp_distance,
 )
+from export.c.tanh import DEFAULT_TANH
 
 CPI = 1.25
 REPORT_KEYS = ("model", "max_abs_diff", "max_ulp", "flash_bytes", "ram_bytes", "instructions_per_inference",
@@ -126,7 +127,8 @@ def run_qemu(elf: Path, n_vectors: int) -> dict:
 
 
 def bench_mcu(model: str | Path | None = None, out: str | Path | None = None,
-              parity_samples: int = 10_000, target_vectors: int = TARGET_VECTORS) -> dict:
+              parity_samples: int = 10_000, target_vectors: int = TARGET_VECTORS,
+              tanh: str = DEFAULT_TANH) -> dict:
     """`REPORT_KEYS` (what `fcemu bench mcu --json` prints) and the details behind them, which
     also go to OUT/mcu.json when `out` is given."""
     from firmware.controllers import DEFAULT_POLICY
@@ -138,7 +140,7 @@ def bench_mcu(model: str | Path | None = None, out: str | Path | None = None,
     with tempfile.TemporaryDirectory(prefix="fcemu_mcu_") as tmp:
         root = Path(out) if out is not None else Path(tmp)
         src, build = root / "c", root / "build"
-        parity = export_c(model, src, parity_samples)
+        parity = export_c(model, src, parity_samples, tanh)
         contract = json.loads((src / "contract.json").read_text())
         from firmware.observation import ObservationSpec
 
@@ -168,7 +170,7 @@ def bench_mcu(model: str | Path | None = None, out: str | Path | None = None,
         "est_us_at_480mhz": round(instructions * CPI / CLOCKS_MHZ["480"], 1),
     }
     details = {
-        **report, "cpi_assumed": CPI,
+        **report, "cpi_assumed": CPI, "tanh": tanh,
         "host": {k: parity[k] for k in ("parity_samples", "max_abs_diff", "max_ulp")},
         "target": {"vectors": len(obs), "max_abs_diff_vs_onnx": float(np.max(np.abs(ours - reference))),
                    "max_ulp_vs_onnx": int(ulp_distance(ours, reference).max()),

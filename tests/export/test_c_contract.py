@@ -53,7 +53,7 @@ def libraries(tmp_path_factory) -> dict[str, ctypes.CDLL]:
     export_c(root / "p.onnx", root / "throttle", parity_samples=1000)
     gymfc = root / "gymfc"  # the same network and golden vectors, the other mapping's contract code
     gymfc.mkdir()
-    for name in ("fcemu_net.c", "fcemu_golden.c"):
+    for name in ("fcemu_net.c", "fcemu_tanh.h", "fcemu_golden.c"):
         shutil.copy(root / "throttle" / name, gymfc / name)
     for name, text in contract_sources(Contract(SPEC, "gymfc", 1000.0)).items():
         (gymfc / name).write_text(text)
