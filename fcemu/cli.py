@@ -15,7 +15,8 @@ from collections.abc import Sequence
 from fcemu import __version__
 
 # Packages that contribute commands, in the order `fcemu --help` lists them.
-_COMMAND_MODULES = ("firmware.cli", "sim_bridge.cli", "training.cli", "export.cli", "evaluation.cli")
+_COMMAND_MODULES = ("firmware.cli", "sim_bridge.cli", "training.cli", "export.cli", "evaluation.cli",
+                    "sitl.cli")
 
 
 def build_parser() -> argparse.ArgumentParser:
