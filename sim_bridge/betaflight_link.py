@@ -149,6 +149,7 @@ class BetaflightBridge:
         self.outputs = (0.0, 0.0, 0.0, 0.0)
         self.pwm = motor_pwm(self.outputs)
         self.frame: SensorFrame = twin.reset()
+        self.silent_steps = 0  # consecutive steps without an answer
         self._k = 0  # twin steps since the bridge started: the FDM clock, never reset
         self._t0 = time.perf_counter()
 
@@ -207,6 +208,7 @@ class BetaflightBridge:
             fresh = self._await_motors(time.perf_counter() + self.reply_timeout_s, sent_at)
             if not fresh:
                 self.stats.lost += 1
+        self.silent_steps = 0 if fresh else self.silent_steps + 1
         pwm = self.pwm
         self.frame = self.twin.step(pwm)
         self._k = k + 1

@@ -18,6 +18,7 @@ the sticks on the same step, as `fcemu eval` starts its episodes.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -33,6 +34,7 @@ ARM_CH_US = 1900
 DISARM_CH_US = 1000
 MIN_CHECK_US = 1050  # Betaflight's min_check default
 MOTOR_IDLE = 0.055  # Betaflight's motor_idle 550 (percent · 100), PWM protocol
+STALL_STEPS = 10  # consecutive unanswered FDM packets that mean the SITL has stopped
 
 # The CLI configuration `fcemu betaflight` applies on top of Betaflight 4.6's defaults. The first
 # block is what flying on the rig needs; the second switches off what acts on the RC link or on
@@ -105,6 +107,10 @@ class RcMap:
         return (out_low + (2000.0 - out_low) * self.bf_throttle(channel) - 1000.0) / 1000.0
 
 
+class _Stalled(Exception):
+    """The SITL stopped answering FDM packets."""
+
+
 def _channel(us: float) -> int:
     return int(min(max(round(us), 1000), 2000))
 
@@ -114,8 +120,10 @@ class BetaflightFlight:
 
     def __init__(self, run_dir: str | Path, twin, rc: RcMap | None = None,
                  settings: Sequence[str] = CROSSCHECK_SETTINGS, speed: float = 1.0,
-                 ready_timeout_s: float = 20.0) -> None:
+                 ready_timeout_s: float = 20.0, retries: int = 3) -> None:
         self.speed = speed
+        self.retries = retries
+        self.restarts = 0
         self.run_dir = Path(run_dir)
         self.twin = twin
         self.rc = rc or RcMap()
@@ -157,19 +165,34 @@ class BetaflightFlight:
 
     def wait_ready(self) -> None:
         """Stream the twin at rest, switch low, until Betaflight has no reason not to arm
-        (gyro calibration, RX, boot grace)."""
+        (gyro calibration, RX). A SITL whose scheduler never starts (it can happen at boot on a
+        loaded host: no answers, or BOOTGRACE, which is 0 s here, never clears) is restarted."""
+        assert self.bridge is not None
+        for attempt in range(self.retries + 1):
+            if attempt:
+                self.sitl.stop()
+                self.sitl.start()
+                self.restarts += 1
+            if self._ready():
+                return
+        raise BetaflightError(f"Betaflight SITL did not start flying after {self.retries + 1} starts; "
+                              f"see {self.sitl.log_path}")
+
+    def _ready(self) -> bool:
         assert self.bridge is not None
         waited, flags = 0.0, ["?"]
         while waited < self.ready_timeout_s:
-            self.bridge.reset_twin()
-            self.bridge.idle(self.centre, 0.25)
+            for _ in range(round(0.25 / self.bridge.dt)):
+                self.bridge.reset_twin()
+                self.bridge.step(self.centre)
+                if self.bridge.silent_steps >= STALL_STEPS and waited >= 1.0:
+                    return False
             waited += 0.25
-            if self.bridge.stats.received == 0 and waited >= 2.0:
-                raise BetaflightError("Betaflight SITL sends no motor packets (UDP 9002) in answer to the "
-                                      f"twin's state (UDP 9003); see {self.sitl.log_path}")
             flags = self._flags()
             if not flags:
-                return
+                return True
+            if "BOOTGRACE" in flags and waited >= 2.0:
+                return False
         raise BetaflightError(f"Betaflight refuses to arm: arming disabled by {' '.join(flags)} "
                               f"after {self.ready_timeout_s:g} s")
 
@@ -180,6 +203,8 @@ class BetaflightFlight:
             self.bridge.step(rc)
             if min(self.bridge.outputs) > 0.5 * self.rc.motor_idle:
                 return
+            if self.bridge.silent_steps >= STALL_STEPS:
+                raise _Stalled
         self.bridge.idle(self.centre, 0.3)
         flags = self._flags()
         reason = " ".join(flags) if flags else "no flag set (it never saw the switch?)"
@@ -192,17 +217,45 @@ class BetaflightFlight:
             self.bridge.step(self.centre)
             if max(self.bridge.outputs) == 0.0:
                 return
+            if self.bridge.silent_steps >= STALL_STEPS:
+                raise _Stalled
         raise BetaflightError("Betaflight did not disarm when the arm switch went low")
+
+    def restart(self) -> None:
+        """A new SITL process on the saved eeprom (after it stopped answering)."""
+        self.sitl.stop()
+        self.sitl.start()
+        self.restarts += 1
+        self.wait_ready()
 
     def fly_episode(self, rates_frd: Sequence[float], throttle_ch: int, ticks: int,
                     rate: np.ndarray, pwm: np.ndarray) -> int:
         """Re-arm, put the twin at rest, hold the step for `ticks` steps; fills rate (gyro sent to
-        Betaflight) and pwm (what it answered) per step. Returns how many steps were late."""
+        Betaflight) and pwm (what it answered) per step. Returns how many steps were late.
+
+        An episode in which Betaflight lost an answer or disarmed is flown again on a restarted
+        SITL (its clock can break under host load; see README), at most `retries` times."""
+        assert self.bridge is not None
+        for attempt in range(self.retries + 1):
+            if attempt:
+                self.restart()
+            stats = self.bridge.stats
+            late0, lost0 = stats.late, stats.lost
+            try:
+                self._fly(rates_frd, throttle_ch, ticks, rate, pwm)
+            except _Stalled:
+                continue
+            if stats.lost == lost0 and pwm.min() > 1000.0:
+                return stats.late - late0
+        raise BetaflightError(f"Betaflight SITL kept dropping answers or disarming mid-episode "
+                              f"({self.retries + 1} tries); see {self.sitl.log_path}")
+
+    def _fly(self, rates_frd: Sequence[float], throttle_ch: int, ticks: int,
+             rate: np.ndarray, pwm: np.ndarray) -> None:
         assert self.bridge is not None
         self.disarm()
         self.bridge.idle(self.centre, 0.02)  # the arm switch must be seen low before it counts
         self.arm()
-        late0 = self.bridge.stats.late
         roll, pitch, yaw = self.rc.stick_channels(rates_frd)
         rc = [roll, pitch, throttle_ch, yaw, ARM_CH_US]
         self.bridge.reset_twin()
@@ -210,7 +263,8 @@ class BetaflightFlight:
             frame, out, _ = self.bridge.step(rc)
             rate[k] = frame.gyro
             pwm[k] = out
-        return self.bridge.stats.late - late0
+            if self.bridge.silent_steps >= STALL_STEPS:
+                raise _Stalled
 
     def fly_steps(self, commands: np.ndarray, throttle_ch: int, episode_s: float = 1.0,
                   on_episode: Callable[[int], None] | None = None) -> Traces:
@@ -223,13 +277,15 @@ class BetaflightFlight:
             late.append(self.fly_episode(cmd, throttle_ch, ticks, rate[i], pwm[i]))
             if on_episode is not None:
                 on_episode(i)
-        self.disarm()
+        with contextlib.suppress(_Stalled):
+            self.disarm()
         setpoint = np.broadcast_to(np.asarray(commands)[:, None, :], (n, ticks, 3)).copy()
         t = np.arange(ticks) * self.bridge.dt
         stats = self.bridge.stats
         return Traces(t, setpoint, rate, pwm, controller="betaflight-4.6.0-sitl", task="episodic",
                       extra={"throttle_channel": throttle_ch, "rate_dps": self.rc.rate_dps,
-                             "late_per_episode": late, "packets": stats.to_json(),
+                             "late_per_episode": late,
+                             "packets": {**stats.to_json(), "sitl_restarts": self.restarts},
                              "reply_us_p50": _pct(stats.reply_us, 50),
                              "reply_us_p99": _pct(stats.reply_us, 99),
                              "settings": self.settings})

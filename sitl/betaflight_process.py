@@ -49,6 +49,15 @@ def _compiler() -> str | None:
     return shutil.which("gcc") or shutil.which("cc")
 
 
+def _die_with_parent() -> None:
+    """In the child: SIGTERM when the parent dies, so no SITL outlives a killed fcemu (Linux)."""
+    with contextlib.suppress(OSError, AttributeError):
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
 def port_in_use(port: int, host: str = "127.0.0.1") -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.settimeout(0.2)
@@ -59,9 +68,9 @@ class BetaflightCli:
     """A CLI session over TCP: `command("get p_roll")` returns what Betaflight printed."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = CLI_PORT, timeout_s: float = 5.0) -> None:
-        self.timeout_s = timeout_s
-        end = time.monotonic() + timeout_s
-        while True:  # the SITL's TCP server may drop a connection made while it is still booting
+        end = time.monotonic() + 3 * timeout_s
+        self.timeout_s = 2.0
+        while True:  # the SITL's TCP server may drop or ignore a connection made while it boots
             try:
                 self._sock = socket.create_connection((host, port), timeout=timeout_s)
                 self._sock.sendall(b"#")
@@ -73,6 +82,7 @@ class BetaflightCli:
                     raise BetaflightError(f"Betaflight SITL does not answer on TCP {host}:{port}: "
                                           f"{exc}") from None
                 time.sleep(0.2)
+        self.timeout_s = timeout_s
         if "CLI" not in banner:
             raise BetaflightError(f"Betaflight SITL did not enter its CLI (got {banner[-120:]!r})")
 
@@ -217,7 +227,8 @@ class BetaflightSitl:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         log = open(self.log_path, "ab")  # the child keeps its own descriptor
         self.proc = subprocess.Popen([str(self.binary), self.host], cwd=self.run_dir, stdout=log,
-                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     preexec_fn=_die_with_parent)
         log.close()
         self.starts += 1
         end = time.monotonic() + self.start_timeout_s
@@ -230,6 +241,7 @@ class BetaflightSitl:
                 raise BetaflightError(f"Betaflight SITL does not answer on TCP {CLI_PORT} after "
                                       f"{self.start_timeout_s:g} s; see {self.log_path}")
             time.sleep(0.05)
+        time.sleep(0.5)  # its UART thread is up; let the rest of init finish before state streams in
 
     def wait_exit(self, timeout_s: float = 5.0) -> None:
         if self.proc is None:

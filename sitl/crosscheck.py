@@ -162,6 +162,9 @@ def _run(args) -> int:
     if args.crosscheck:
         fc = fly_fcemu(FCEMU_PRESET, commands, rc.fcemu_throttle(throttle_ch), ticks, progress)
         fc_metrics = compute_metrics(fc)
+        if args.save_traces:
+            path = Path(args.save_traces)
+            print(f"traces: {save_traces(path.with_name(path.stem + '_fcemu.npz'), fc)}", file=sys.stderr)
         result = {"betaflight": bf_metrics.to_json(), "fcemu": fc_metrics.to_json(),
                   "packets": bf.extra["packets"]}
         summary = {"episodes": args.episodes, "seed": args.seed, **result,
@@ -178,8 +181,6 @@ def _run(args) -> int:
             (out / "crosscheck.json").write_text(json.dumps(summary, indent=1) + "\n")
             (out / "README.md").write_text(markdown(summary, command))
             plot_overlay(bf, fc, out / "step_responses.png")
-            save_traces(out / "traces_betaflight.npz", bf)
-            save_traces(out / "traces_fcemu.npz", fc)
             print(f"report: {out / 'README.md'}", file=sys.stderr)
         if not args.json:
             for metric, axes in summary["comparison"].items():
