@@ -271,6 +271,35 @@ class BetaflightFlight:
             if self.bridge.silent_steps >= STALL_STEPS:
                 raise _Stalled
 
+    def fly_script(self, commander, duration_s: float) -> Traces:
+        """Fly a `firmware.loop` commander's setpoints and throttle as sticks (e.g. the free rig's
+        take-off and doublets of `fcemu sitl --no-mavlink`); one continuous-task trace."""
+        assert self.bridge is not None
+        self.disarm()
+        self.bridge.idle(self.centre, 0.02)
+        self.arm()
+        ticks = round(duration_s / self.bridge.dt)
+        setpoint, rate, pwm = np.zeros((1, ticks, 3)), np.zeros((1, ticks, 3)), np.zeros((1, ticks, 4))
+        frame = self.bridge.frame
+        top = 0.0
+        for k in range(ticks):
+            command = commander.command(k * self.bridge.twin.dt_us, frame)
+            sticks = self.rc.stick_channels(command.setpoint.rates)
+            rc = [sticks[0], sticks[1], self.rc.throttle_channel(command.setpoint.throttle), sticks[2],
+                  ARM_CH_US]
+            frame, out, _ = self.bridge.step(rc)
+            setpoint[0, k] = self.rc.setpoint(sticks)
+            rate[0, k] = frame.gyro
+            pwm[0, k] = out
+            top = max(top, -float(self.twin.truth().position[2]))
+        with contextlib.suppress(_Stalled):
+            self.disarm()
+        stats = self.bridge.stats
+        return Traces(np.arange(ticks) * self.bridge.dt, setpoint, rate, pwm,
+                      controller="betaflight-4.6.0-sitl", task="continuous",
+                      extra={"rig": self.twin.rig, "max_altitude_m": top,
+                             "packets": {**stats.to_json(), "sitl_restarts": self.restarts}})
+
     def fly_steps(self, commands: np.ndarray, throttle_ch: int, episode_s: float = 1.0,
                   on_episode: Callable[[int], None] | None = None) -> Traces:
         """Fly each (already quantised) FRD command as one episode; traces in fcemu's format."""

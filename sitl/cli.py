@@ -11,6 +11,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episodes", type=int, default=10)
     p.add_argument("--seed", type=int, default=0, help="the evaluator's command seed (as fcemu eval)")
     p.add_argument("--episode-s", type=float, default=1.0)
+    p.add_argument("--rig", choices=("rig", "free"), default="rig",
+                   help="rig: seeded steps on the ball joint; free: take-off, doublets and descent, "
+                        "all from RC sticks")
+    p.add_argument("--duration", type=float, default=8.0, help="--rig free: seconds of flight")
     p.add_argument("--crosscheck", action="store_true",
                    help="also fly fcemu's pid:betaflight preset on the same commands and compare")
     p.add_argument("--speed", type=float, default=1.0,

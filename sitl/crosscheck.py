@@ -149,6 +149,8 @@ def _run(args) -> int:
         raise BetaflightError("--speed must be positive")
     progress = sys.stderr.isatty() and not args.json
     rc = RcMap(rate_dps=args.rate_dps)
+    if args.rig == "free":
+        return _run_free(args, rc)
     commands = rc.quantise(episodic_commands(args.seed, args.episodes))
     hover = (load_airframe().hover_pwm() - 1000.0) / 1000.0
     throttle_ch = rc.throttle_channel(hover)
@@ -195,4 +197,26 @@ def _run(args) -> int:
     if not args.json:
         p = result["packets"]
         print(f"packets: sent {p['sent']}, received {p['received']}, late {p['late']}, lost {p['lost']}")
+    return 0
+
+
+def _run_free(args, rc: RcMap) -> int:
+    """The free rig: take-off, doublets on each axis, descent (`fcemu sitl --no-mavlink`'s script)."""
+    from firmware.sitl import scripted_flight
+
+    if args.crosscheck:
+        raise BetaflightError("--crosscheck flies the rig (ball joint); drop --rig free")
+    run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="fcemu_betaflight_"))
+    with BetaflightFlight(run_dir, Twin(rig="free"), rc, speed=args.speed) as flight:
+        traces = flight.fly_script(scripted_flight("free"), args.duration)
+    if args.save_traces:
+        print(f"traces: {save_traces(args.save_traces, traces)}", file=sys.stderr)
+    result = {"betaflight": compute_metrics(traces).to_json(), "packets": traces.extra["packets"],
+              "max_altitude_m": round(traces.extra["max_altitude_m"], 3)}
+    if args.json:
+        print(json.dumps(result))
+    else:
+        p = result["packets"]
+        print(f"free rig, {args.duration:g} s: climbed to {result['max_altitude_m']} m; "
+              f"packets: sent {p['sent']}, received {p['received']}, late {p['late']}, lost {p['lost']}")
     return 0
