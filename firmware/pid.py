@@ -2,11 +2,11 @@
 
 Per axis, in Betaflight's order (`pidController` in `src/main/flight/pid.c`):
 
-    gyro_f  = gyro lowpass(gyro)                       # before everything
+    gyro_f  = gyro lowpass2(gyro lowpass(gyro))        # before everything
     e       = Ω* − gyro_f
-    P       = kp·e
+    P       = kp·e                                     # yaw: through a PT1 (Betaflight's yaw_lowpass_hz)
     I      += ki·dt·e·relax·dyn_ci, clamped to ±iterm_limit
-    D       = −kd·d/dt[dterm lowpass(gyro_f)]          # on measurement, not on error
+    D       = −kd·d/dt[dterm lowpass2(dterm lowpass(gyro_f))]   # on measurement, not on error
     F       = kff·ff lowpass(dΩ*/dt)                   # setpoint rate of change
     demand  = clamp(P + I + D + F, ±pidsum_limit)
 
@@ -64,8 +64,13 @@ class PIDGains:
     pidsum_limit: Triple = (0.5, 0.5, 0.4)  # demand units (Betaflight 500 / 500 / 400)
     gyro_lowpass_hz: float = 0.0  # <= 0: off (the twin's gyro is noise-free by default)
     gyro_lowpass_type: str = "pt1"
+    gyro_lowpass2_hz: float = 0.0  # Betaflight's second gyro stage (gyro_lpf2); <= 0: off
+    gyro_lowpass2_type: str = "pt1"
     dterm_lowpass_hz: float = 100.0
     dterm_lowpass_type: str = "pt1"
+    dterm_lowpass2_hz: float = 0.0  # Betaflight's second D-term stage (dterm_lpf2); <= 0: off
+    dterm_lowpass2_type: str = "pt1"
+    yaw_p_lowpass_hz: float = 0.0  # Betaflight's yaw_lowpass_hz: a PT1 on the yaw P term; <= 0: off
     ff_lowpass_hz: float = 0.0  # smooths dΩ*/dt; <= 0: off
     iterm_relax: str = "rp"
     iterm_relax_cutoff_hz: float = 15.0
@@ -75,7 +80,8 @@ class PIDGains:
     def __post_init__(self) -> None:
         for name in ("kp", "ki", "kd", "kff", "iterm_limit", "pidsum_limit"):
             object.__setattr__(self, name, _triple(getattr(self, name), name))
-        for kind in (self.gyro_lowpass_type, self.dterm_lowpass_type):
+        for kind in (self.gyro_lowpass_type, self.dterm_lowpass_type, self.gyro_lowpass2_type,
+                     self.dterm_lowpass2_type):
             if kind not in LOWPASS_TYPES:
                 raise ValueError(f"unknown lowpass type {kind!r}; choose one of {LOWPASS_TYPES}")
         if self.iterm_relax not in RELAX_MODES:
@@ -107,7 +113,7 @@ class _Axis:
 
     __slots__ = (  # noqa: RUF023 - grouped: coefficients, filters, state, last terms
         "i_inc_only", "ilim", "kd", "kff", "ki_dt", "kp", "relax", "relax_inv", "sumlim",
-        "dterm_lpf", "ff_lpf", "gyro_lpf", "relax_lpf",
+        "dterm_lpf", "dterm_lpf2", "ff_lpf", "gyro_lpf", "gyro_lpf2", "p_lpf", "relax_lpf",
         "d_prev", "iterm", "sp_prev",
         "d", "f", "i", "p",
     )
@@ -150,6 +156,7 @@ class RatePID:
             ax.d_prev = None
             ax.relax_lpf.reset(0.0)
             ax.ff_lpf.reset(0.0)
+            ax.p_lpf.reset(0.0)
 
     def _configure(self, reset_state: bool) -> None:
         g, dt = self.gains, self.dt
@@ -168,15 +175,22 @@ class RatePID:
             ax.relax_inv = 1.0 / g.iterm_relax_threshold if ax.relax else 0.0
             if reset_state:
                 ax.gyro_lpf = make_lowpass(g.gyro_lowpass_type, g.gyro_lowpass_hz, dt)
+                ax.gyro_lpf2 = make_lowpass(g.gyro_lowpass2_type, g.gyro_lowpass2_hz, dt)
                 ax.dterm_lpf = make_lowpass(g.dterm_lowpass_type, g.dterm_lowpass_hz, dt)
+                ax.dterm_lpf2 = make_lowpass(g.dterm_lowpass2_type, g.dterm_lowpass2_hz, dt)
+                ax.p_lpf = PT1Filter(g.yaw_p_lowpass_hz if i == 2 else 0.0, dt)
                 ax.relax_lpf = PT1Filter(g.iterm_relax_cutoff_hz, dt)
                 ax.ff_lpf = PT1Filter(g.ff_lowpass_hz, dt)
             else:
-                gyro_lpf, dterm_lpf = ax.gyro_lpf, ax.dterm_lpf
-                ax.gyro_lpf = _reconfigured(gyro_lpf, g.gyro_lowpass_type, g.gyro_lowpass_hz, dt)
-                ax.dterm_lpf = _reconfigured(dterm_lpf, g.dterm_lowpass_type, g.dterm_lowpass_hz, dt)
-                if ax.gyro_lpf is not gyro_lpf or ax.dterm_lpf is not dterm_lpf:
+                old = (ax.gyro_lpf, ax.gyro_lpf2, ax.dterm_lpf, ax.dterm_lpf2)
+                ax.gyro_lpf = _reconfigured(old[0], g.gyro_lowpass_type, g.gyro_lowpass_hz, dt)
+                ax.gyro_lpf2 = _reconfigured(old[1], g.gyro_lowpass2_type, g.gyro_lowpass2_hz, dt)
+                ax.dterm_lpf = _reconfigured(old[2], g.dterm_lowpass_type, g.dterm_lowpass_hz, dt)
+                ax.dterm_lpf2 = _reconfigured(old[3], g.dterm_lowpass2_type, g.dterm_lowpass2_hz, dt)
+                new = (ax.gyro_lpf, ax.gyro_lpf2, ax.dterm_lpf, ax.dterm_lpf2)
+                if any(a is not b for a, b in zip(old, new, strict=True)):
                     ax.d_prev = None  # a new filter type: re-seed from the next gyro sample
+                ax.p_lpf.configure(g.yaw_p_lowpass_hz if i == 2 else 0.0, dt)
                 ax.relax_lpf.configure(g.iterm_relax_cutoff_hz, dt)
                 ax.ff_lpf.configure(g.ff_lowpass_hz, dt)
                 ax.iterm = min(max(ax.iterm, -ax.ilim), ax.ilim)
@@ -196,9 +210,11 @@ class RatePID:
             raw = gyro[i]
             if ax.d_prev is None:  # first tick after reset: start the filters where the gyro is
                 ax.gyro_lpf.reset(raw)
+                ax.gyro_lpf2.reset(raw)
                 ax.dterm_lpf.reset(raw)
+                ax.dterm_lpf2.reset(raw)
                 ax.d_prev = raw
-            g = ax.gyro_lpf.apply(raw)
+            g = ax.gyro_lpf2.apply(ax.gyro_lpf.apply(raw))
             err = sp - g
 
             i_err = err
@@ -213,8 +229,8 @@ class RatePID:
             iterm = lim if iterm > lim else -lim if iterm < -lim else iterm
             ax.iterm = iterm
 
-            p = ax.kp * err
-            gd = ax.dterm_lpf.apply(g)
+            p = ax.p_lpf.apply(ax.kp * err)
+            gd = ax.dterm_lpf2.apply(ax.dterm_lpf.apply(g))
             d = ax.kd * (ax.d_prev - gd)
             ax.d_prev = gd
             f = ax.kff * ax.ff_lpf.apply(sp - ax.sp_prev) if ax.kff else 0.0

@@ -1,7 +1,9 @@
 """The PID rate controller: `RatePID` + `QuadXMixer` behind the `RateController` protocol.
 
 Presets are data files in `firmware/presets/` (`pid_paper.json`: the paper's gains and
-Iris mixer; `pid_iris.json`: a tune for the twin, made by `benchmarks/tune_pid.py`).
+Iris mixer; `pid_iris.json`: a tune for the twin, made by `benchmarks/tune_pid.py`;
+`pid_betaflight.json`: Betaflight 4.6.0's defaults, checked against the real firmware by
+`fcemu betaflight --crosscheck`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from firmware.mixer import QuadXMixer
 from firmware.pid import PIDGains, RatePID
 from firmware.sensors import SensorFrame
 
-PRESETS = ("pid_iris", "pid_paper")
+PRESETS = ("pid_iris", "pid_paper", "pid_betaflight")
 DEFAULT_PRESET = "pid_iris"
 _RATE_CHANGE_TICKS = 8  # consecutive off-period ticks that mean a new loop rate, not jitter
 

@@ -1,0 +1,329 @@
+"""Real Betaflight flies the twin: configure the SITL over its CLI, arm it, fly rate steps, record.
+
+Sticks. Betaflight's channel map is AETR1234 and its rate axes are FLU-like (stick forward =
+nose down, its yaw sign flipped in `updateRcCommands`), so for FRD rates: roll and yaw channels
+= 1500 + 500·x, pitch = 1500 − 500·x. With ACTUAL rates whose centre sensitivity equals the
+maximum rate R (no expo), Betaflight's setpoint is exactly R·(channel − 1500)/500 deg/s, so
+`RcMap.setpoint` knows the command Betaflight flies to the µs it was sent with.
+
+Throttle. Betaflight's mixer throttle is `rcLookupThrottle((ch − min_check)·1000 // (2000 −
+min_check))`, linear by default, over its output range [1000 + motor_idle, 2000] µs; fcemu's
+throttle is a fraction of [1000, 2000] µs. `RcMap.fcemu_throttle` converts, so both mixers put
+the same µs on the motors at zero demand.
+
+Episodes. Betaflight's PID state lives in the firmware, so each episode starts by disarming and
+re-arming it (which clears the I-term), then puts the twin at rest and raises the throttle and
+the sticks on the same step, as `fcemu eval` starts its episodes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from evaluation.traces import Traces
+from sim_bridge.betaflight_link import BetaflightBridge
+from sitl.betaflight_process import BetaflightError, BetaflightMsp, BetaflightSitl
+
+ARM_CH_US = 1900
+DISARM_CH_US = 1000
+MIN_CHECK_US = 1050  # Betaflight's min_check default
+MOTOR_IDLE = 0.055  # Betaflight's motor_idle 550 (percent · 100), PWM protocol
+STALL_STEPS = 10  # consecutive unanswered FDM packets that mean the SITL has stopped
+MAX_LOST_PER_EPISODE = 3  # more lost answers than this and the episode is flown again
+
+# The CLI configuration `fcemu betaflight` applies on top of Betaflight 4.6's defaults. The first
+# block is what flying on the rig needs; the second switches off what acts on the RC link or on
+# throttle changes rather than in the rate loop (see README, "Real Betaflight on the twin").
+BASE_SETTINGS = (
+    "aux 0 0 0 1700 2100 0 0",  # ARM on AUX1 high
+    "set small_angle = 180",  # the rig may be at any attitude when an episode re-arms
+    "set pwr_on_arm_grace = 0",
+    "set runaway_takeoff_prevention = OFF",  # a take-off check: it disarms on saturated steps
+    "set motor_pwm_protocol = PWM",
+    "set rates_type = ACTUAL",
+)
+CROSSCHECK_SETTINGS = (
+    "set rc_smoothing = OFF",
+    "set f_roll = 0", "set f_pitch = 0", "set f_yaw = 0",
+    "set d_max_roll = 0", "set d_max_pitch = 0",
+    "set throttle_boost = 0",
+    "set anti_gravity_gain = 0",
+)
+
+
+@dataclass(frozen=True)
+class RcMap:
+    """FRD rate setpoints and throttle ↔ Betaflight RC channels (AETR1234, arm on AUX1)."""
+
+    rate_dps: float = 400.0  # ACTUAL rates: centre sensitivity = max rate, no expo → linear
+    min_check_us: int = MIN_CHECK_US
+    motor_idle: float = MOTOR_IDLE
+
+    def settings(self) -> list[str]:
+        r = round(self.rate_dps / 10)
+        if r * 10 != self.rate_dps or not 1 <= r <= 255:
+            raise ValueError(f"rate must be a multiple of 10 deg/s in 10..2550, got {self.rate_dps}")
+        axes = ("roll", "pitch", "yaw")
+        return [f"set {a}_{key} = {r}" for a in axes for key in ("rc_rate", "srate")] \
+            + [f"set {a}_expo = 0" for a in axes]
+
+    def stick_channels(self, rates_frd: Sequence[float]) -> tuple[int, int, int]:
+        """(roll, pitch, yaw) channel µs for FRD rates in rad/s, rounded to the µs."""
+        per_us = self.rate_dps / 500.0
+        p, q, r = (math.degrees(float(v)) / per_us for v in rates_frd)
+        return (_channel(1500 + p), _channel(1500 - q), _channel(1500 + r))
+
+    def setpoint(self, channels: tuple[int, int, int]) -> np.ndarray:
+        """The FRD rates (rad/s) Betaflight flies for those stick channels."""
+        roll, pitch, yaw = channels
+        per_us = self.rate_dps / 500.0
+        return np.radians([(roll - 1500) * per_us, (1500 - pitch) * per_us, (yaw - 1500) * per_us])
+
+    def quantise(self, rates_frd: np.ndarray) -> np.ndarray:
+        """Commands as Betaflight will fly them: (..., 3) rad/s in, the same shape out."""
+        flat = np.asarray(rates_frd, dtype=float).reshape(-1, 3)
+        out = np.array([self.setpoint(self.stick_channels(r)) for r in flat])
+        return out.reshape(np.shape(rates_frd))
+
+    def throttle_channel(self, fcemu_throttle: float) -> int:
+        """The throttle channel nearest to fcemu's throttle (fraction of 1000..2000 µs)."""
+        out_low = 1000.0 + 1000.0 * self.motor_idle
+        frac = (1000.0 + 1000.0 * fcemu_throttle - out_low) / (2000.0 - out_low)
+        return _channel(self.min_check_us + frac * (2000 - self.min_check_us))
+
+    def bf_throttle(self, channel: int) -> float:
+        """Betaflight's mixer throttle (0..1 of its output range) for a throttle channel."""
+        tmp = min(max(channel, self.min_check_us), 2000)
+        return ((tmp - self.min_check_us) * 1000 // (2000 - self.min_check_us)) / 1000.0
+
+    def fcemu_throttle(self, channel: int) -> float:
+        """fcemu's throttle giving the same zero-demand motor output as Betaflight at `channel`."""
+        out_low = 1000.0 + 1000.0 * self.motor_idle
+        return (out_low + (2000.0 - out_low) * self.bf_throttle(channel) - 1000.0) / 1000.0
+
+
+class _Stalled(Exception):
+    """The SITL stopped answering FDM packets."""
+
+
+def _channel(us: float) -> int:
+    return int(min(max(round(us), 1000), 2000))
+
+
+class BetaflightFlight:
+    """One SITL process and one bridge: configure, wait until armable, arm, fly, disarm."""
+
+    def __init__(self, run_dir: str | Path, twin, rc: RcMap | None = None,
+                 settings: Sequence[str] = CROSSCHECK_SETTINGS, speed: float = 1.0,
+                 ready_timeout_s: float = 20.0, retries: int = 3) -> None:
+        self.speed = speed
+        self.retries = retries
+        self.restarts = 0
+        self.run_dir = Path(run_dir)
+        self.twin = twin
+        self.rc = rc or RcMap()
+        self.settings = [*BASE_SETTINGS, *self.rc.settings(), *settings]
+        self.ready_timeout_s = ready_timeout_s
+        self.sitl = BetaflightSitl(self.run_dir)
+        self.bridge: BetaflightBridge | None = None
+        self.centre = [1500, 1500, 1000, 1500, DISARM_CH_US]
+
+    def __enter__(self) -> BetaflightFlight:
+        try:
+            self.start()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def start(self) -> None:
+        self.sitl.fresh_eeprom()
+        self.sitl.configure(self.settings)
+        self.bridge = BetaflightBridge(self.twin, speed=self.speed)
+        self.wait_ready()
+
+    def close(self) -> None:
+        if self.bridge is not None:
+            self.bridge.close()
+            self.bridge = None
+        self.sitl.stop()
+
+    def _flags(self) -> list[str]:
+        msp = BetaflightMsp()
+        try:
+            return msp.arming_disable_flags()
+        finally:
+            msp.close()
+
+    def wait_ready(self) -> None:
+        """Stream the twin at rest, switch low, until Betaflight has no reason not to arm
+        (gyro calibration, RX). A SITL whose scheduler never starts (it can happen at boot on a
+        loaded host: no answers, or BOOTGRACE, which is 0 s here, never clears) is restarted."""
+        assert self.bridge is not None
+        for attempt in range(self.retries + 1):
+            if attempt:
+                self.sitl.stop()
+                self.sitl.start()
+                self.restarts += 1
+            if self._ready():
+                return
+        raise BetaflightError(f"Betaflight SITL did not start flying after {self.retries + 1} starts; "
+                              f"see {self.sitl.log_path}")
+
+    def _ready(self) -> bool:
+        assert self.bridge is not None
+        waited, flags = 0.0, ["?"]
+        while waited < self.ready_timeout_s:
+            for _ in range(round(0.25 / self.bridge.dt)):
+                self.bridge.reset_twin()
+                self.bridge.step(self.centre)
+                if self.bridge.silent_steps >= STALL_STEPS and waited >= 1.0:
+                    return False
+            waited += 0.25
+            flags = self._flags()
+            if not flags:
+                return True
+            if "BOOTGRACE" in flags and waited >= 2.0:
+                return False
+        raise BetaflightError(f"Betaflight refuses to arm: arming disabled by {' '.join(flags)} "
+                              f"after {self.ready_timeout_s:g} s")
+
+    def arm(self, timeout_s: float = 1.0) -> None:
+        assert self.bridge is not None
+        rc = [1500, 1500, 1000, 1500, ARM_CH_US]
+        for _ in range(round(timeout_s / self.bridge.dt)):
+            self.bridge.step(rc)
+            if min(self.bridge.outputs) > 0.5 * self.rc.motor_idle:
+                return
+            if self.bridge.silent_steps >= STALL_STEPS:
+                raise _Stalled
+        self.bridge.idle(self.centre, 0.3)
+        flags = self._flags()
+        reason = " ".join(flags) if flags else "no flag set (it never saw the switch?)"
+        raise BetaflightError(f"Betaflight refuses to arm: arming disabled by {reason}")
+
+    def disarm(self, timeout_s: float = 1.0) -> None:
+        assert self.bridge is not None
+        for _ in range(round(timeout_s / self.bridge.dt)):
+            self.bridge.reset_twin()
+            self.bridge.step(self.centre)
+            if max(self.bridge.outputs) == 0.0:
+                return
+            if self.bridge.silent_steps >= STALL_STEPS:
+                raise _Stalled
+        raise BetaflightError("Betaflight did not disarm when the arm switch went low")
+
+    def restart(self) -> None:
+        """A new SITL process on the saved eeprom (after it stopped answering)."""
+        self.sitl.stop()
+        self.sitl.start()
+        self.restarts += 1
+        self.wait_ready()
+
+    def fly_episode(self, rates_frd: Sequence[float], throttle_ch: int, ticks: int,
+                    rate: np.ndarray, pwm: np.ndarray) -> int:
+        """Re-arm, put the twin at rest, hold the step for `ticks` steps; fills rate (gyro sent to
+        Betaflight) and pwm (what it answered) per step. Returns how many steps were late.
+
+        An episode in which Betaflight lost an answer or disarmed is flown again on a restarted
+        SITL (its clock can break under host load; see README), at most `retries` times."""
+        assert self.bridge is not None
+        why = ""
+        for attempt in range(self.retries + 1):
+            if attempt:
+                self.restart()
+            stats = self.bridge.stats
+            late0, lost0 = stats.late, stats.lost
+            try:
+                self._fly(rates_frd, throttle_ch, ticks, rate, pwm)
+            except _Stalled:
+                why = "it stopped answering"
+                continue
+            lost = stats.lost - lost0
+            if lost <= MAX_LOST_PER_EPISODE and pwm.min() > 1000.0:
+                return stats.late - late0
+            why = f"{lost} answers lost" if lost > MAX_LOST_PER_EPISODE else "it disarmed mid-episode"
+        raise BetaflightError(f"Betaflight SITL failed an episode {self.retries + 1} times (last: {why}); "
+                              f"see {self.sitl.log_path}")
+
+    def _fly(self, rates_frd: Sequence[float], throttle_ch: int, ticks: int,
+             rate: np.ndarray, pwm: np.ndarray) -> None:
+        assert self.bridge is not None
+        self.disarm()
+        self.bridge.idle(self.centre, 0.02)  # the arm switch must be seen low before it counts
+        self.arm()
+        roll, pitch, yaw = self.rc.stick_channels(rates_frd)
+        rc = [roll, pitch, throttle_ch, yaw, ARM_CH_US]
+        self.bridge.reset_twin()
+        for k in range(ticks):
+            frame, out, _ = self.bridge.step(rc)
+            rate[k] = frame.gyro
+            pwm[k] = out
+            if self.bridge.silent_steps >= STALL_STEPS:
+                raise _Stalled
+
+    def fly_script(self, commander, duration_s: float) -> Traces:
+        """Fly a `firmware.loop` commander's setpoints and throttle as sticks (e.g. the free rig's
+        take-off and doublets of `fcemu sitl --no-mavlink`); one continuous-task trace."""
+        assert self.bridge is not None
+        self.disarm()
+        self.bridge.idle(self.centre, 0.02)
+        self.arm()
+        ticks = round(duration_s / self.bridge.dt)
+        setpoint, rate, pwm = np.zeros((1, ticks, 3)), np.zeros((1, ticks, 3)), np.zeros((1, ticks, 4))
+        frame = self.bridge.frame
+        top = 0.0
+        for k in range(ticks):
+            command = commander.command(k * self.bridge.twin.dt_us, frame)
+            sticks = self.rc.stick_channels(command.setpoint.rates)
+            rc = [sticks[0], sticks[1], self.rc.throttle_channel(command.setpoint.throttle), sticks[2],
+                  ARM_CH_US]
+            frame, out, _ = self.bridge.step(rc)
+            setpoint[0, k] = self.rc.setpoint(sticks)
+            rate[0, k] = frame.gyro
+            pwm[0, k] = out
+            top = max(top, -float(self.twin.truth().position[2]))
+        with contextlib.suppress(_Stalled):
+            self.disarm()
+        stats = self.bridge.stats
+        return Traces(np.arange(ticks) * self.bridge.dt, setpoint, rate, pwm,
+                      controller="betaflight-4.6.0-sitl", task="continuous",
+                      extra={"rig": self.twin.rig, "max_altitude_m": top,
+                             "packets": {**stats.to_json(), "sitl_restarts": self.restarts}})
+
+    def fly_steps(self, commands: np.ndarray, throttle_ch: int, episode_s: float = 1.0,
+                  on_episode: Callable[[int], None] | None = None) -> Traces:
+        """Fly each (already quantised) FRD command as one episode; traces in fcemu's format."""
+        assert self.bridge is not None
+        n, ticks = len(commands), round(episode_s / self.bridge.dt)
+        rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))
+        late = []
+        for i, cmd in enumerate(commands):
+            late.append(self.fly_episode(cmd, throttle_ch, ticks, rate[i], pwm[i]))
+            if on_episode is not None:
+                on_episode(i)
+        with contextlib.suppress(_Stalled):
+            self.disarm()
+        setpoint = np.broadcast_to(np.asarray(commands)[:, None, :], (n, ticks, 3)).copy()
+        t = np.arange(ticks) * self.bridge.dt
+        stats = self.bridge.stats
+        return Traces(t, setpoint, rate, pwm, controller="betaflight-4.6.0-sitl", task="episodic",
+                      extra={"throttle_channel": throttle_ch, "rate_dps": self.rc.rate_dps,
+                             "late_per_episode": late,
+                             "packets": {**stats.to_json(), "sitl_restarts": self.restarts},
+                             "reply_us_p50": _pct(stats.reply_us, 50),
+                             "reply_us_p99": _pct(stats.reply_us, 99),
+                             "settings": self.settings})
+
+
+def _pct(values: list[int], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None

@@ -1,0 +1,222 @@
+"""`fcemu betaflight`: real Betaflight on the rig, and fcemu's `pid:betaflight` on the same commands.
+
+Both fly the evaluator's seeded episodic commands (`sim_bridge.tasks.episodic_commands`),
+quantised to the µs of the stick channels Betaflight receives, from rest, at the same collective,
+on the same twin; both are scored by `evaluation.metrics.compute_metrics`.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from evaluation.metrics import AXES, EvalMetrics, compute_metrics
+from evaluation.traces import Traces, save_traces
+from firmware.controller import RateSetpoint
+from firmware.controllers import load_controller
+from firmware.loop import Command, FlightLoop, TickSample
+from firmware.sensors import SensorFrame
+from firmware.timing import LockstepClock
+from sim_bridge.airframe import load_airframe
+from sim_bridge.link import InProcessLink
+from sim_bridge.tasks import episodic_commands
+from sim_bridge.twin import Twin
+from sitl.betaflight import BetaflightFlight, RcMap
+from sitl.betaflight_process import BetaflightError
+
+FCEMU_PRESET = "pid:betaflight"
+TOLERANCE = 0.15
+COMPARED = ("rise_ms", "peak_pct", "error")
+
+
+class _Hold:
+    def __init__(self, setpoint: np.ndarray, throttle: float) -> None:
+        self.command_ = Command(True, RateSetpoint(setpoint, throttle), "main")
+
+    def command(self, t_us: int, frame: SensorFrame) -> Command:
+        return self.command_
+
+
+class _Record:
+    def __init__(self, rate: np.ndarray, pwm: np.ndarray) -> None:
+        self.rate, self.pwm, self.k = rate, pwm, 0
+
+    def publish(self, sample: TickSample) -> None:
+        self.rate[self.k] = sample.frame.gyro
+        self.pwm[self.k] = sample.pwm
+        self.k += 1
+
+
+def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, progress: bool = False) -> Traces:
+    """fcemu's firmware loop, lockstep on the rig, each command from rest (as `fcemu eval`)."""
+    controller = load_controller(spec)
+    twin = Twin(rig="rig")
+    n = len(commands)
+    rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))
+    for i in tqdm(range(n), desc=spec, unit="ep", disable=not progress, leave=False):
+        loop = FlightLoop(InProcessLink(twin), twin.reset(), {"main": controller},
+                          _Hold(commands[i], throttle), LockstepClock(), 1000.0, [_Record(rate[i], pwm[i])])
+        for k in range(ticks):
+            loop.tick(k * loop.period_us)
+    setpoint = np.broadcast_to(commands[:, None, :], (n, ticks, 3)).copy()
+    return Traces(np.arange(ticks) * twin.dt, setpoint, rate, pwm, controller=spec, task="episodic",
+                  extra={"throttle": throttle})
+
+
+def fly_betaflight(commands: np.ndarray, throttle_ch: int, ticks: int, run_dir: Path, speed: float,
+                   rc: RcMap, progress: bool = False) -> Traces:
+    bar = tqdm(total=len(commands), desc="betaflight", unit="ep", disable=not progress, leave=False)
+    with BetaflightFlight(run_dir, Twin(rig="rig"), rc, speed=speed) as flight:
+        traces = flight.fly_steps(commands, throttle_ch, ticks / 1000.0, on_episode=lambda _: bar.update())
+    bar.close()
+    return traces
+
+
+def comparison(bf: EvalMetrics, fc: EvalMetrics) -> dict[str, dict[str, Any]]:
+    """Per metric and axis: Betaflight, fcemu, relative difference, within TOLERANCE."""
+    out: dict[str, dict[str, Any]] = {}
+    for metric in COMPARED:
+        out[metric] = {}
+        for axis in AXES:
+            b, f = bf.stat(metric, axis).mean, fc.stat(metric, axis).mean
+            rel = abs(f - b) / abs(b) if b else float("nan")
+            out[metric][axis] = {"betaflight": round(b, 2), "fcemu": round(f, 2), "rel_diff": round(rel, 3),
+                                 "within": bool(rel <= TOLERANCE)}
+    return out
+
+
+def plot_overlay(bf: Traces, fc: Traces, path: Path, episodes: int = 3) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = min(episodes, bf.n_episodes)
+    fig, axes = plt.subplots(n, 3, figsize=(13, 2.6 * n), sharex=True, squeeze=False)
+    t_ms = bf.t * 1e3
+    for i in range(n):
+        for a, name in enumerate(AXES):
+            ax = axes[i][a]
+            ax.plot(t_ms, bf.setpoint[i, :, a], "k--", lw=1, label="setpoint")
+            ax.plot(t_ms, bf.rate[i, :, a], lw=1.3, label="Betaflight 4.6 SITL")
+            ax.plot(t_ms, fc.rate[i, :, a], lw=1.3, label="fcemu pid:betaflight")
+            ax.set_title(f"episode {i}, {name}", fontsize=9)
+            ax.grid(alpha=0.3)
+            if a == 0:
+                ax.set_ylabel("rad/s")
+    for ax in axes[-1]:
+        ax.set_xlabel("ms")
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def markdown(result: dict[str, Any], command: str) -> str:
+    lines = ["# Betaflight 4.6.0 SITL vs fcemu `pid:betaflight`", "", f"Made by `{command}`.", "",
+             f"{result['episodes']} seeded episodic commands (seed {result['seed']}), each from rest on the "
+             "ball-joint rig, hover collective; metrics as `fcemu eval` (mean over episodes).", "",
+             "| metric | axis | Betaflight | fcemu | rel. diff | within 15 % |", "|---|---|---|---|---|---|"]
+    for metric, axes in result["comparison"].items():
+        for axis, c in axes.items():
+            lines.append(f"| {metric} | {axis} | {c['betaflight']} | {c['fcemu']} | {c['rel_diff']:.1%} | "
+                         f"{'yes' if c['within'] else 'no'} |")
+    p = result["packets"]
+    lines += ["", f"Packets: {p['sent']} FDM sent, {p['received']} motor answers, {p['late']} late "
+              f"(sim time slowed for them), {p['lost']} lost.", "",
+              "![step responses](step_responses.png)", ""]
+    return "\n".join(lines)
+
+
+def betaflight_command(args) -> int:
+    try:
+        return _run(args)
+    except BetaflightError as exc:
+        print(f"fcemu: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args) -> int:
+    if args.episodes < 1:
+        raise BetaflightError("--episodes must be >= 1")
+    if not args.speed > 0:
+        raise BetaflightError("--speed must be positive")
+    progress = sys.stderr.isatty() and not args.json
+    rc = RcMap(rate_dps=args.rate_dps)
+    if args.rig == "free":
+        return _run_free(args, rc)
+    commands = rc.quantise(episodic_commands(args.seed, args.episodes))
+    hover = (load_airframe().hover_pwm() - 1000.0) / 1000.0
+    throttle_ch = rc.throttle_channel(hover)
+    ticks = round(args.episode_s * 1000)
+    run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="fcemu_betaflight_"))
+    bf = fly_betaflight(commands, throttle_ch, ticks, run_dir, args.speed, rc, progress)
+    bf_metrics = compute_metrics(bf)
+    result: dict[str, Any] = {"betaflight": bf_metrics.to_json(), "packets": bf.extra["packets"]}
+    if args.save_traces:
+        print(f"traces: {save_traces(args.save_traces, bf)}", file=sys.stderr)
+    if args.crosscheck:
+        fc = fly_fcemu(FCEMU_PRESET, commands, rc.fcemu_throttle(throttle_ch), ticks, progress)
+        fc_metrics = compute_metrics(fc)
+        if args.save_traces:
+            path = Path(args.save_traces)
+            print(f"traces: {save_traces(path.with_name(path.stem + '_fcemu.npz'), fc)}", file=sys.stderr)
+        result = {"betaflight": bf_metrics.to_json(), "fcemu": fc_metrics.to_json(),
+                  "packets": bf.extra["packets"]}
+        summary = {"episodes": args.episodes, "seed": args.seed, **result,
+                   "comparison": comparison(bf_metrics, fc_metrics),
+                   "setup": {"speed": args.speed, "rate_dps": args.rate_dps, "throttle_channel": throttle_ch,
+                             "fcemu_throttle": rc.fcemu_throttle(throttle_ch), "preset": FCEMU_PRESET,
+                             "betaflight_cli": bf.extra["settings"],
+                             "reply_us_p50": bf.extra["reply_us_p50"],
+                             "reply_us_p99": bf.extra["reply_us_p99"]}}
+        if args.out:
+            out = Path(args.out)
+            out.mkdir(parents=True, exist_ok=True)
+            command = "fcemu " + " ".join(sys.argv[1:])
+            (out / "crosscheck.json").write_text(json.dumps(summary, indent=1) + "\n")
+            (out / "README.md").write_text(markdown(summary, command))
+            plot_overlay(bf, fc, out / "step_responses.png")
+            print(f"report: {out / 'README.md'}", file=sys.stderr)
+        if not args.json:
+            for metric, axes in summary["comparison"].items():
+                cells = "  ".join(f"{a} {c['betaflight']}/{c['fcemu']} ({c['rel_diff']:.0%})"
+                                  for a, c in axes.items())
+                print(f"{metric:>9} betaflight/fcemu: {cells}")
+    if args.json:
+        print(json.dumps(result))
+    elif not args.crosscheck:
+        m = result["betaflight"]
+        print("betaflight  " + "  ".join(f"{k} {v}" for k, v in m.items() if k in COMPARED))
+    if not args.json:
+        p = result["packets"]
+        print(f"packets: sent {p['sent']}, received {p['received']}, late {p['late']}, lost {p['lost']}")
+    return 0
+
+
+def _run_free(args, rc: RcMap) -> int:
+    """The free rig: take-off, doublets on each axis, descent (`fcemu sitl --no-mavlink`'s script)."""
+    from firmware.sitl import scripted_flight
+
+    if args.crosscheck:
+        raise BetaflightError("--crosscheck flies the rig (ball joint); drop --rig free")
+    run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="fcemu_betaflight_"))
+    with BetaflightFlight(run_dir, Twin(rig="free"), rc, speed=args.speed) as flight:
+        traces = flight.fly_script(scripted_flight("free"), args.duration)
+    if args.save_traces:
+        print(f"traces: {save_traces(args.save_traces, traces)}", file=sys.stderr)
+    result = {"betaflight": compute_metrics(traces).to_json(), "packets": traces.extra["packets"],
+              "max_altitude_m": round(traces.extra["max_altitude_m"], 3)}
+    if args.json:
+        print(json.dumps(result))
+    else:
+        p = result["packets"]
+        print(f"free rig, {args.duration:g} s: climbed to {result['max_altitude_m']} m; "
+              f"packets: sent {p['sent']}, received {p['received']}, late {p['late']}, lost {p['lost']}")
+    return 0
