@@ -170,6 +170,7 @@ def run_trial(point: dict[str, Any], spec: dict[str, Any], runs: str, threads: i
 
 # ── 3. Ray Tune: start or join Ray, grid over the space, ASHA, restore ────────────────
 def tune_sweep(spec: SweepSpec, out: Path, args) -> Any:
+    """Ray started or joined; a Tuner over the grid, or the interrupted one restored."""
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # the classic reporter: a table on stderr
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
     import logging
@@ -192,8 +193,7 @@ def tune_sweep(spec: SweepSpec, out: Path, args) -> Any:
     path = os.path.join(storage, EXPERIMENT)
     if tune.Tuner.can_restore(path):
         print(f"fcemu sweep: resuming the sweep in {out}", file=sys.stderr)
-        tuner = tune.Tuner.restore(path, trainable, resume_unfinished=True, restart_errored=True)
-        return tuner.fit()
+        return tune.Tuner.restore(path, trainable, resume_unfinished=True, restart_errored=True)
 
     evals = max(1, spec.train["steps"] // spec.train["eval_every"])
     if args.no_early_stop:
@@ -212,7 +212,27 @@ def tune_sweep(spec: SweepSpec, out: Path, args) -> Any:
         tune_config=tune.TuneConfig(metric=METRIC, mode="min", scheduler=scheduler),
         run_config=tune.RunConfig(name=EXPERIMENT, storage_path=storage, progress_reporter=reporter,
                                   verbose=1))
-    return tuner.fit()
+    return tuner
+
+
+def _second_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def fit(tuner) -> tuple[Any, bool]:
+    """Tune's results, and whether Ctrl-C ended the run (its state saved for a resume).
+
+    On the first SIGINT Tune saves the experiment, ends the run and puts back the handler it
+    found: ours, which makes a second Ctrl-C a plain KeyboardInterrupt and tells us it happened.
+    """
+    import signal
+
+    previous = signal.signal(signal.SIGINT, _second_interrupt)
+    try:
+        results = tuner.fit()
+        return results, signal.getsignal(signal.SIGINT) is _second_interrupt
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 # ── 4. Results: a row per trial, the table, the best policy flown in the firmware ─────
@@ -319,8 +339,8 @@ def sweep_command(args) -> int:
     with stdout_to_stderr():
         print(f"fcemu sweep: {spec.n_trials} trials ({len(spec.seeds)} seeds × "
               f"{spec.n_trials // len(spec.seeds)} settings) of {spec.train['steps']} steps", file=sys.stderr)
-        results = tune_sweep(spec, out, args)
-        if results.num_terminated + results.num_errors < len(results):  # Ctrl-C: Tune saved its state
+        results, interrupted = fit(tune_sweep(spec, out, args))
+        if interrupted:
             import ray
 
             ray.shutdown()

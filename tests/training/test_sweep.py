@@ -37,6 +37,28 @@ def test_seeds_and_space_parse():
         parse_seeds("a-b")
 
 
+def test_spec_from_yaml_and_command_line(tmp_path):
+    from fcemu.cli import build_parser
+    from training.cli import SWEEP_DEFAULTS
+    from training.sweep import spec_from_args
+
+    path = tmp_path / "sweep.yaml"
+    path.write_text("seeds: 0-2\nsteps: 300000\nsquash: true\naction_rate_penalty: 1.0\n"
+                    "space:\n  action_rate_penalty: [1, 2]\n  learning_rate: [lin_3e-4, lin_1e-4]\n")
+    args = build_parser().parse_args(["sweep", "--config", str(path), "--steps", "500000",
+                                      "--hp", "gamma=0.98,0.99"])
+    spec = spec_from_args(args, SWEEP_DEFAULTS)
+    assert spec.seeds == [0, 1, 2] and spec.n_trials == 3 * 2 * 2 * 2
+    assert spec.space == {"action_rate_penalty": [1, 2], "learning_rate": ["lin_3e-4", "lin_1e-4"],
+                          "gamma": [0.98, 0.99]}
+    assert spec.train["steps"] == 500_000 and spec.train["squash"] and spec.train["eval_every"] == 250_000
+    cfg = spec.config(2, {"action_rate_penalty": 4, "gamma": 0.98}, "runs/x", threads=1)
+    assert (cfg.seed, cfg.action_rate_penalty, cfg.hyper["gamma"], cfg.squash) == (2, 4, 0.98, True)
+    path.write_text("seeds: 0\nlearning_rat: 1\n")
+    with pytest.raises(ValueError, match="unknown options"):
+        spec_from_args(build_parser().parse_args(["sweep", "--config", str(path)]), SWEEP_DEFAULTS)
+
+
 @pytest.fixture(scope="module")
 def sweep(tmp_path_factory) -> tuple[Path, dict, str]:
     out = tmp_path_factory.mktemp("sweep") / "out"
@@ -99,8 +121,8 @@ def test_a_different_sweep_in_the_same_directory_is_refused(sweep):
 
 def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
     out = tmp_path / "out"
-    args = ["sweep", "--seeds", "0-1", *SHORT, "--cpus", "1", "--no-early-stop", "--best-episodes", "0",
-            "--out", str(out), "--json"]
+    args = ["sweep", "--seeds", "0-1", *SHORT, "--hp", "batch_size=256", "--cpus", "1", "--no-early-stop",
+            "--best-episodes", "0", "--out", str(out), "--json"]
     proc = fcemu(*args)
     deadline = time.monotonic() + 400
     # One CPU: the second trial starts (writes its config) only once Tune has closed the first.
