@@ -28,6 +28,10 @@ from typing import Any
 from training.config import FIELDS, TrainConfig
 
 EXPERIMENT = "sweep"
+
+
+class SweepError(RuntimeError):
+    """Ray or the trials failed: `fcemu: error: ...`, exit status 1."""
 METRIC = "best_error_ratio"  # the in-training Error sum over the best PID's; lower is better
 
 
@@ -179,10 +183,13 @@ def tune_sweep(spec: SweepSpec, out: Path, args) -> Any:
     from ray import tune
     from ray.tune.schedulers import ASHAScheduler, FIFOScheduler
 
-    if args.address:
-        ray.init(address=args.address, logging_level=logging.ERROR)
-    else:
-        ray.init(num_cpus=args.cpus, include_dashboard=False, logging_level=logging.ERROR)
+    try:
+        if args.address:
+            ray.init(address=args.address, logging_level=logging.ERROR)
+        else:
+            ray.init(num_cpus=args.cpus, include_dashboard=False, logging_level=logging.ERROR)
+    except Exception as exc:  # Ray's start-up failures include a bare Exception
+        raise SweepError(f"Ray did not start{' at ' + args.address if args.address else ''}: {exc}") from None
 
     gpus = args.gpus_per_trial or 0
     trainable = tune.with_resources(
@@ -291,7 +298,8 @@ def export_best(rows: list[dict[str, Any]], spec: SweepSpec, out: Path, episodes
 
     ranked = [r for r in rows if r["best_error_ratio"] is not None and r["best_checkpoint"]]
     if not ranked:
-        raise RuntimeError("no trial reached an in-training evaluation; nothing to export")
+        raise SweepError("no trial reached an in-training evaluation; nothing to export "
+                         f"(the trials' errors: {out / 'ray' / EXPERIMENT})")
     best = min(ranked, key=lambda r: r["best_error_ratio"])
     (out / "best").mkdir(parents=True, exist_ok=True)
     export = export_policy(best["best_checkpoint"], out / "best" / "policy.onnx")
@@ -335,34 +343,42 @@ def sweep_command(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     saved.write_text(json.dumps(dataclasses.asdict(spec), indent=2, default=list) + "\n")
 
+    try:
+        with stdout_to_stderr():
+            payload = run_sweep(spec, out, args)
+    except SweepError as exc:
+        print(f"fcemu: error: {exc}", file=sys.stderr)
+        return 1
+    if payload is None:
+        print(f"fcemu sweep: interrupted; the same command resumes it from {out}", file=sys.stderr)
+        return 130
+    if args.json:
+        print(json.dumps(payload, default=str))
+        return 0
+    print((out / "results.md").read_text(), end="")
+    best = payload["best"]
+    bar = best.get("eval", {}).get("bar")
+    verdict = "" if bar is None else f"; flown: Error ×{bar['error_ratio']:.3f} vs {bar['best_pid']}"
+    print(f"best: trial {best['trial']} (seed {best['seed']}) ×{best['best_error_ratio']:.3f} in training"
+          f"{verdict}; policy {best['policy']}")
+    return 0
+
+
+def run_sweep(spec: SweepSpec, out: Path, args) -> dict[str, Any] | None:
+    """The sweep's JSON payload; None when Ctrl-C interrupted it."""
+    import ray
+
     t0 = time.perf_counter()
-    with stdout_to_stderr():
-        print(f"fcemu sweep: {spec.n_trials} trials ({len(spec.seeds)} seeds × "
-              f"{spec.n_trials // len(spec.seeds)} settings) of {spec.train['steps']} steps", file=sys.stderr)
+    print(f"fcemu sweep: {spec.n_trials} trials ({len(spec.seeds)} seeds × "
+          f"{spec.n_trials // len(spec.seeds)} settings) of {spec.train['steps']} steps", file=sys.stderr)
+    try:
         results, interrupted = fit(tune_sweep(spec, out, args))
         if interrupted:
-            import ray
-
-            ray.shutdown()
-            print(f"fcemu sweep: interrupted; the same command resumes it from {out}", file=sys.stderr)
-            return 130
+            return None
         rows = trial_rows(results)
         write_tables(rows, out)
         best = export_best(rows, spec, out, args.best_episodes)
-        import ray
-
+    finally:
         ray.shutdown()
-    import ray
-
-    payload = {"engine": "ray", "ray_version": ray.__version__, "out": str(out), "steps": spec.train["steps"],
-               "wall_s": round(time.perf_counter() - t0, 1), "trials": rows, "best": best}
-    if args.json:
-        print(json.dumps(payload, default=str))
-    else:
-        print((out / "results.md").read_text(), end="")
-        bar = best.get("eval", {}).get("bar")
-        verdict = "" if bar is None else (f"; through the firmware loop Error ×{bar['error_ratio']:.3f} "
-                                          f"vs {bar['best_pid']}")
-        print(f"best: trial {best['trial']} (seed {best['seed']}) ×{best['best_error_ratio']:.3f} in training"
-              f"{verdict}; policy {best['policy']}")
-    return 0
+    return {"engine": "ray", "ray_version": ray.__version__, "out": str(out), "steps": spec.train["steps"],
+            "wall_s": round(time.perf_counter() - t0, 1), "trials": rows, "best": best}
