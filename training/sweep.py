@@ -140,7 +140,7 @@ def _race_reporting_to_tune(cfg: TrainConfig):
         def _on_step(self) -> bool:
             n = len(self.history)
             keep_going = super()._on_step()
-            if len(self.history) > n:
+            if len(self.history) > n and self.num_timesteps < self.cfg.steps:  # the last: in the final report
                 tune.report(trial_metrics(self.history, self.best))
             return keep_going
 
@@ -205,7 +205,7 @@ def tune_sweep(spec: SweepSpec, out: Path, args) -> Any:
     evals = max(1, spec.train["steps"] // spec.train["eval_every"])
     if args.no_early_stop:
         scheduler = FIFOScheduler()
-    else:  # max_t past the last evaluation: the trial's own end, not ASHA, closes a good run
+    else:  # reports: the evaluations before the end, then the final one (after the export)
         scheduler = ASHAScheduler(time_attr="training_iteration", max_t=evals + 1,
                                   grace_period=args.grace or max(1, evals // 4), reduction_factor=2)
     reporter = tune.CLIReporter(
