@@ -18,6 +18,7 @@ import ast
 import contextlib
 import csv
 import dataclasses
+import itertools
 import json
 import os
 import sys
@@ -111,7 +112,10 @@ def spec_from_args(args, defaults: dict[str, Any]) -> SweepSpec:
             raise ValueError(f"--config {args.config}: expected a mapping")
     seeds = parse_seeds(args.seeds if args.seeds is not None else data.pop("seeds", 0))
     data.pop("seeds", None)
-    space = {k: v if isinstance(v, list) else [v] for k, v in (data.pop("space", None) or {}).items()}
+    space = data.pop("space", None) or {}
+    if not isinstance(space, dict):
+        raise ValueError(f"--config {args.config}: space must map options to lists of values")
+    space = {k: v if isinstance(v, list) else [v] for k, v in space.items()}
     space.update(parse_space(args.hp))
     unknown = sorted(set(data) - set(FIELDS))
     if unknown:
@@ -122,10 +126,14 @@ def spec_from_args(args, defaults: dict[str, Any]) -> SweepSpec:
     given = {k: getattr(args, k) for k in FIELDS if hasattr(args, k) and k != "hp"}  # --hp: the space
     train = {**defaults, **data, **given}
     cfg = TrainConfig(**train)  # validates the fixed options
-    if cfg.eval_every <= 0:
-        raise ValueError("a sweep needs --eval-every > 0: early stopping and the best trial read it")
-    return SweepSpec(seeds, space, {k: v for k, v in dataclasses.asdict(cfg).items()
+    if not 0 < cfg.eval_every <= cfg.steps:
+        raise ValueError("a sweep needs 0 < --eval-every <= --steps: early stopping and the choice "
+                         "of the best trial read the in-training evaluations")
+    spec = SweepSpec(seeds, space, {k: v for k, v in dataclasses.asdict(cfg).items()
                                     if k not in ("seed", "out", "threads", "progress")})
+    for point in itertools.product(*space.values()):  # a bad value fails here, not in a trial
+        spec.config(seeds[0], dict(zip(space, point, strict=True)), "unused", threads=1)
+    return spec
 
 
 # ── 2. One trial: one `fcemu train` run, its race against the PID reported to Tune ─────

@@ -54,6 +54,9 @@ def test_spec_from_yaml_and_command_line(tmp_path):
     assert spec.train["steps"] == 500_000 and spec.train["squash"] and spec.train["eval_every"] == 250_000
     cfg = spec.config(2, {"action_rate_penalty": 4, "gamma": 0.98}, "runs/x", threads=1)
     assert (cfg.seed, cfg.action_rate_penalty, cfg.hyper["gamma"], cfg.squash) == (2, 4, 0.98, True)
+    bad = build_parser().parse_args(["sweep", "--hp", "algo=ppo,a2c"])
+    with pytest.raises(ValueError, match="a2c"):
+        spec_from_args(bad, SWEEP_DEFAULTS)
     path.write_text("seeds: 0\nlearning_rat: 1\n")
     with pytest.raises(ValueError, match="unknown options"):
         spec_from_args(build_parser().parse_args(["sweep", "--config", str(path)]), SWEEP_DEFAULTS)
