@@ -185,6 +185,9 @@ def tune_sweep(spec: SweepSpec, out: Path, args) -> Any:
     """Ray started or joined; a Tuner over the grid, or the interrupted one restored."""
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # the classic reporter: a table on stderr
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    # Ray nices its workers (15) to keep its own daemons responsive; here the trials are the
+    # work, and niced they starve behind any other job on a shared machine.
+    os.environ.setdefault("RAY_worker_niceness", "0")
     import logging
 
     import ray
