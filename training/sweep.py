@@ -194,13 +194,19 @@ def tune_sweep(spec: SweepSpec, out: Path, args) -> Any:
     from ray import tune
     from ray.tune.schedulers import ASHAScheduler, FIFOScheduler
 
-    try:
-        if args.address:
-            ray.init(address=args.address, logging_level=logging.ERROR)
-        else:
-            ray.init(num_cpus=args.cpus, include_dashboard=False, logging_level=logging.ERROR)
-    except Exception as exc:  # Ray's start-up failures include a bare Exception
-        raise SweepError(f"Ray did not start{' at ' + args.address if args.address else ''}: {exc}") from None
+    for attempt in range(3):  # a local Ray gives its raylet a fixed 30 s, short on a loaded machine
+        try:
+            if args.address:
+                ray.init(address=args.address, logging_level=logging.ERROR)
+            else:
+                ray.init(num_cpus=args.cpus, include_dashboard=False, logging_level=logging.ERROR)
+            break
+        except Exception as exc:  # Ray's start-up failures include a bare Exception
+            ray.shutdown()
+            if args.address or attempt == 2:
+                where = f" at {args.address}" if args.address else ""
+                raise SweepError(f"Ray did not start{where}: {exc}") from None
+            print(f"fcemu sweep: Ray did not start ({exc}); trying again", file=sys.stderr)
 
     gpus = args.gpus_per_trial or 0
     trainable = tune.with_resources(
