@@ -46,22 +46,29 @@ class _CappedRace(PidRaceCallback):
 
 
 def bench_train(args) -> int:
+    from training.cli import user_error
+    from training.config import from_args
+
     with tempfile.TemporaryDirectory(prefix="fcemu-bench-train-") as tmp:
-        out = Path(args.out) if args.out else Path(tmp) / "run"
         # --steps sets the learning-rate schedule (decay over the run, as `fcemu train`);
         # the wall-time cap or the target usually ends the race first.
-        cfg = TrainConfig(algo=args.algo, steps=args.steps, seed=args.seed, out=str(out), envs=args.envs,
-                          eval_commands=args.eval_commands, eval_episodes=0, threads=args.threads,
-                          checkpoint_every=10**9, progress=not args.json and sys.stderr.isatty())
+        try:
+            cfg = from_args(args, out=args.out or str(Path(tmp) / "run"),
+                            progress=not args.json and sys.stderr.isatty())
+        except ValueError as exc:
+            return user_error(str(exc))
+        if cfg.eval_every <= 0:
+            return user_error("the race needs --eval-every > 0")
         load_before = os.getloadavg()
-        race = _CappedRace(cfg, args.eval_every, args.target, args.max_minutes * 60.0)
+        race = _CappedRace(cfg, cfg.eval_every, args.target, args.max_minutes * 60.0)
         summary = train(cfg, race=race)
     train_s = summary["train_wall_s"]
     reached = race.reached
     result = {
-        "algo": args.algo,
+        "algo": cfg.algo,
         "n_envs": cfg.n_envs,
-        "torch_threads": args.threads,
+        "hyperparameters": {k: v for k, v in cfg.hyper.items() if k != "policy_kwargs"},
+        "torch_threads": cfg.threads,
         "steps": summary["steps"],
         "wall_s": train_s,
         "steps_per_s": round(summary["steps"] / max(train_s - race.eval_s, 1e-9), 1),
@@ -71,7 +78,7 @@ def bench_train(args) -> int:
         "cap_s": args.max_minutes * 60.0,
         "pid": race.history[-1]["best_pid"] if race.history else None,
         "pid_error_sum": race.history[-1]["pid_error_sum"] if race.history else None,
-        "eval_commands": args.eval_commands,
+        "eval_commands": cfg.eval_commands,
         "evaluations": [{"steps": h["steps"], "wall_s": round(h["wall_s"], 1),
                          "error_ratio": round(h["error_ratio"], 4), "meets_bar": h["meets_bar"]}
                         for h in race.history],
@@ -84,6 +91,6 @@ def bench_train(args) -> int:
     else:
         beat = ("not reached" if reached is None else
                 f"{result['time_to_beat_pid_s']:.0f} s ({result['steps_to_beat_pid']} steps)")
-        print(f"{args.algo}: {result['steps_per_s']:.0f} steps/s over {result['steps']} steps; "
+        print(f"{cfg.algo}: {result['steps_per_s']:.0f} steps/s over {result['steps']} steps; "
               f"time to {args.target} {result['pid']}: {beat}; load {result['loadavg_after']}")
     return 0

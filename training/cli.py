@@ -1,69 +1,70 @@
-"""`fcemu train` and `fcemu bench train` (argparse only: torch loads when a command runs)."""
+"""`fcemu train`, `fcemu bench train` and `fcemu sweep` (argparse only: torch loads when a command runs).
+
+Their training options are generated from `training.config.TrainConfig`, declared once there.
+"""
 
 from __future__ import annotations
 
 import argparse
 
-ALGOS = ("ppo", "trpo", "ddpg", "td3", "sac")
+from training import config
+
+# What `fcemu bench train` runs unless told otherwise: the shipped run's length (it sets
+# the learning-rate decay; the race usually ends first), evaluations every 250 k steps,
+# no checkpoints and no final evaluation.
+BENCH_DEFAULTS = {"steps": 10_000_000, "eval_every": 250_000, "checkpoint_every": 10**9, "eval_episodes": 0}
+# A sweep's trials evaluate in training (what early stopping and the choice of the best
+# read); only the best trial's policy is flown through the firmware loop.
+SWEEP_DEFAULTS = {"eval_every": 250_000, "eval_episodes": 0}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="RL training of a rate controller (SB3 / sb3-contrib)")
-    p.add_argument("--algo", choices=ALGOS, default="ppo")
-    p.add_argument("--memory", type=int, default=1, help="observation history length m")
-    p.add_argument("--squash", action="store_true",
-                   help="PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
-                        "--action-rate-penalty smooth the motors instead of saturating them")
-    p.add_argument("--integral", action="store_true",
-                   help="add a leaky integral of the rate error to the observation (rate_error_integral)")
-    p.add_argument("--steps", type=int, default=3_000_000, help="environment steps (1 ms each)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--envs", type=int, default=None, help="parallel twins (default: per algorithm)")
-    p.add_argument("--out", default=None, help="run directory (default runs/ALGO)")
-    p.add_argument("--task", choices=("episodic", "continuous"), default="episodic")
-    p.add_argument("--action-mapping", choices=("gymfc", "throttle"), default="throttle")
-    p.add_argument("--throttle", type=float, nargs="+", default=None, metavar="T",
-                   help="collective for the throttle mapping: one value, or LO HI drawn per episode "
-                        "(default 0.5 0.9)")
-    p.add_argument("--action-rate-penalty", type=float, default=0.0,
-                   help="weight of Neuroflight's output-oscillation penalty (mean |Δu| per step); "
-                        "use with --squash")
-    p.add_argument("--reward", choices=("paper", "unclipped"), default="unclipped",
-                   help="paper: −clip(Σ|e|/(3·Ω_max), 0, 1); unclipped: the same without the clip")
-    p.add_argument("--axis-weights", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("R", "P", "Y"),
-                   help="weights of the roll, pitch, yaw error in the unclipped reward")
-    p.add_argument("--norm-reward", action=argparse.BooleanOptionalAction, default=None,
-                   help="VecNormalize reward scaling (default: per algorithm)")
-    p.add_argument("--norm-obs", action=argparse.BooleanOptionalAction, default=True,
-                   help="VecNormalize observation normalisation (folded into the exported ONNX graph)")
-    p.add_argument("--hp", nargs="*", metavar="KEY=VALUE", help="override algorithm hyper-parameters")
-    p.add_argument("--checkpoint-every", type=int, default=1_000_000, help="steps between checkpoints")
-    p.add_argument("--eval-every", type=int, default=0,
-                   help="steps between in-training evaluations against the PID (0: none)")
-    p.add_argument("--export", choices=("best", "final"), default="best",
-                   help="best: the in-training evaluation's best (needs --eval-every); final: the last model")
-    p.add_argument("--eval-episodes", type=int, default=1000,
-                   help="final evaluation commands through the firmware loop (0: skip)")
-    p.add_argument("--eval-seed", type=int, default=1)
-    p.add_argument("--threads", type=int, default=1, help="torch threads")
-    p.add_argument("--no-progress", action="store_true")
+    config.add_arguments(p)
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.set_defaults(handler="training.train:train_command")
+
+    p = sub.add_parser("sweep", help="many training runs over seeds and settings on Ray Tune, "
+                                     "locally or on a cluster")
+    p.add_argument("--seeds", default=None, help="seeds: 0-4, 0,2,5 or a mix (default 0)")
+    p.add_argument("--out", default=None, help="sweep directory; an interrupted sweep there resumes "
+                                               "(default runs/sweep)")
+    p.add_argument("--hp", nargs="*", default=[], metavar="KEY=V1,V2",
+                   help="search space: each value of each key (a `fcemu train` option such as "
+                        "action_rate_penalty, else an algorithm hyper-parameter) is tried with each seed")
+    p.add_argument("--config", default=None, help="YAML file: seeds, space (KEY: [values]) and any "
+                                                  "`fcemu train` option; the command line wins")
+    p.add_argument("--address", default=None, help="join this Ray cluster (e.g. ray://head:10001 or "
+                                                   "auto) instead of starting Ray on this machine")
+    p.add_argument("--cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
+    p.add_argument("--cpus-per-trial", type=int, default=1, help="CPUs per trial (also its torch threads)")
+    p.add_argument("--gpus-per-trial", type=float, default=None,
+                   help="GPUs per trial (default: none; the 64×64 networks train on the CPU)")
+    p.add_argument("--grace", type=int, default=None,
+                   help="ASHA: in-training evaluations before a trial can be stopped "
+                        "(default: a quarter of the run)")
+    p.add_argument("--no-early-stop", action="store_true", help="run every trial to the end")
+    p.add_argument("--best-episodes", type=int, default=1000,
+                   help="commands of the best policy's evaluation through the firmware loop")
+    config.add_arguments(p, exclude=("seed", "out", "hp", "threads", "progress"), defaults=SWEEP_DEFAULTS,
+                         only_given=True)
+    p.add_argument("--json", action="store_true", help="print one JSON object: trials and the best")
+    p.set_defaults(handler="training.sweep:sweep_command")
 
 
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     p = bench_sub.add_parser("train", help="training steps/s and wall time until the policy beats the PID")
-    p.add_argument("--algo", choices=ALGOS, default="ppo")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--envs", type=int, default=None)
+    config.add_arguments(p, exclude=("eval_seed", "export", "progress"), defaults=BENCH_DEFAULTS)
     p.add_argument("--max-minutes", type=float, default=15.0, help="cap on the race against the PID")
-    p.add_argument("--steps", type=int, default=10_000_000,
-                   help="the run's length, which sets the learning-rate decay (default: the shipped run's)")
-    p.add_argument("--eval-every", type=int, default=250_000, help="steps between evaluations")
-    p.add_argument("--eval-commands", type=int, default=64, help="fixed commands per evaluation")
     p.add_argument("--target", choices=("beat", "bar"), default="beat",
                    help="stop when the Error sum beats the PID's (beat) or meets issue 5's bar (bar)")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--out", default=None, help="keep the run here (default: a temporary directory)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler="training.bench:bench_train")
+
+
+def user_error(message: str) -> int:
+    """`fcemu: error: ...` on one line, exit status 2."""
+    import sys
+
+    print(f"fcemu: error: {message}", file=sys.stderr)
+    return 2

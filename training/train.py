@@ -13,12 +13,9 @@ eval.json, report/.
 
 from __future__ import annotations
 
-import ast
-import copy
 import json
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,104 +26,13 @@ from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
 from evaluation.metrics import compute_metrics
 from fcemu import __version__
-from sim_bridge.reward import REWARDS
 from training import quick_eval
+from training.config import ALGOS, TrainConfig, parse_hp
 
-# ── 1. Defaults per algorithm ─────────────────────────────────────────────────────────
-# 1 ms steps and 1000-step episodes: a horizon of ~100 ms (γ 0.99, λ 0.95: a yaw rise
-# and its settling) credits an action with what it does to the rate, not with the whole
-# episode; γ 0.98 / λ 0.9 (~50 ms) beat the tuned PID on 1 seed of 4, γ 0.99 on 2 of 3.
-# Exploration is state-dependent (gSDE, noise redrawn once per rollout): white noise on
-# every 1 ms action is filtered away by the motors, tells the critic nothing, and PPO
-# with it drifts into spinning the vehicle (docs/training_notes.md).
-_ON_POLICY_NET = {"net_arch": {"pi": [64, 64], "vf": [64, 64]}, "log_std_init": -1.0}
-_OFF_POLICY = {"learning_rate": 1e-3, "gamma": 0.98, "batch_size": 256, "buffer_size": 1_000_000,
-               "learning_starts": 10_000, "train_freq": 1, "gradient_steps": 1, "tau": 0.005,
-               "policy_kwargs": {"net_arch": [64, 64]}}
-ALGOS: dict[str, dict[str, Any]] = {
-    "ppo": {"envs": 64, "norm_reward": True, "hp": {
-        "n_steps": 128, "batch_size": 2048, "n_epochs": 5, "learning_rate": "lin_3e-4", "gamma": 0.99,
-        "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
-        "use_sde": True, "sde_sample_freq": -1, "policy_kwargs": _ON_POLICY_NET}},
-    "trpo": {"envs": 64, "norm_reward": True, "hp": {
-        "n_steps": 128, "batch_size": 2048, "learning_rate": 1e-3, "gamma": 0.98, "gae_lambda": 0.9,
-        "target_kl": 0.01, "use_sde": True, "sde_sample_freq": -1, "policy_kwargs": _ON_POLICY_NET}},
-    "ddpg": {"envs": 8, "norm_reward": False, "hp": _OFF_POLICY},
-    "td3": {"envs": 8, "norm_reward": False, "hp": _OFF_POLICY},
-    "sac": {"envs": 8, "norm_reward": False, "hp": {**_OFF_POLICY, "ent_coef": "auto", "use_sde": True}},
-}
+# ── 1. Defaults per algorithm (ALGOS) and 2. the configuration (TrainConfig): training.config ──
+__all__ = ["ALGOS", "PID_PRESETS", "TrainConfig", "parse_hp", "train"]
 PID_PRESETS = ("pid", "pid:paper")  # the bar compares with the best of these
 NOISE_STD = 0.1  # DDPG/TD3 Gaussian exploration noise on actions in [-1, 1]
-
-
-# ── 2. Configuration ──────────────────────────────────────────────────────────────────
-@dataclass
-class TrainConfig:
-    algo: str = "ppo"
-    steps: int = 2_000_000
-    seed: int = 0
-    out: str = "runs/ppo"
-    memory: int = 1
-    integral: bool = False  # + firmware.observation's rate_error_integral field
-    squash: bool = False  # PPO/TRPO: tanh-squashed gSDE actions (SAC, TD3 and DDPG squash already)
-    envs: int | None = None  # None: the algorithm's default
-    action_mapping: str = "throttle"
-    throttle: float | tuple[float, float] | None = (0.5, 0.9)  # the collective training draws from
-    task: str = "episodic"
-    action_rate_penalty: float = 0.0
-    reward: str = "unclipped"  # see REWARDS / RewardOption
-    axis_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)  # roll, pitch, yaw error (unclipped only)
-    norm_reward: bool | None = None
-    norm_obs: bool = True
-    hp: dict[str, Any] = field(default_factory=dict)  # overrides of ALGOS[algo]["hp"]
-    checkpoint_every: int = 1_000_000  # steps
-    eval_every: int = 0  # steps between in-training evaluations against the PID; 0: none
-    eval_commands: int = 64
-    eval_episodes: int = 1000  # final evaluation, through the firmware loop; 0: skip
-    eval_seed: int = 1
-    export: str = "best"  # best: the in-training evaluation's best checkpoint (if any); final
-    threads: int = 1
-    progress: bool = True
-
-    def __post_init__(self) -> None:
-        if self.algo not in ALGOS:
-            raise ValueError(f"unknown algorithm {self.algo!r}; choose one of {tuple(ALGOS)}")
-        if self.reward == "paper" and tuple(self.axis_weights) != (1.0, 1.0, 1.0):
-            raise ValueError("axis weights need --reward unclipped")
-        if self.reward not in REWARDS:
-            raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
-        if self.squash and self.algo not in ("ppo", "trpo"):
-            raise ValueError(f"--squash is for PPO and TRPO; {self.algo.upper()} squashes already")
-        if isinstance(self.throttle, list):
-            self.throttle = tuple(self.throttle)
-
-    @property
-    def obs_fields(self) -> tuple[str, ...]:
-        from firmware.observation import FIELDS, INTEGRAL
-
-        return (*FIELDS, INTEGRAL) if self.integral else FIELDS
-
-    @property
-    def n_envs(self) -> int:
-        return self.envs or ALGOS[self.algo]["envs"]
-
-    @property
-    def hyper(self) -> dict[str, Any]:
-        hp = copy.deepcopy({**ALGOS[self.algo]["hp"], **self.hp})  # SB3 writes into policy_kwargs
-        if self.squash:
-            hp["policy_kwargs"] = {**hp.get("policy_kwargs", {}), "squash_output": True}
-        return hp
-
-    @property
-    def normalise_reward(self) -> bool:
-        return ALGOS[self.algo]["norm_reward"] if self.norm_reward is None else self.norm_reward
-
-    def env_kwargs(self) -> dict[str, Any]:
-        return {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields,
-                "action_mapping": self.action_mapping, "throttle": self.throttle,
-                "reward": self.reward, "axis_weights": tuple(self.axis_weights),
-                "action_rate_penalty": self.action_rate_penalty}
-
 
 # ── 3. Environment ────────────────────────────────────────────────────────────────────
 def make_vec_env(cfg: TrainConfig) -> VecEnv:
@@ -225,8 +131,10 @@ class PidRaceCallback(BaseCallback):
     def evaluate(self) -> dict[str, Any]:
         vecnorm = self.model.get_vec_normalize_env()
         traces = self.evaluator.traces(quick_eval.sb3_actor(self.model, vecnorm))
-        verdict = quick_eval.bar_verdict(compute_metrics(traces), self.pids)
-        verdict.update(steps=self.num_timesteps, wall_s=time.perf_counter() - self._t0)
+        metrics = compute_metrics(traces)
+        verdict = quick_eval.bar_verdict(metrics, self.pids)
+        verdict.update(steps=self.num_timesteps, wall_s=time.perf_counter() - self._t0,
+                       smoothness=metrics.stat("smoothness", "roll").mean)  # one figure, the same per axis
         self.history.append(verdict)
         rise = "/".join(f"{p:.0f}<{r:.0f}" for p, r in verdict["rise_ms_policy_vs_pid"].values())
         print(f"[eval] {self.num_timesteps} steps {verdict['wall_s']:.0f} s: error "
@@ -346,42 +254,17 @@ def print_summary(summary: dict[str, Any]) -> None:
 
 
 # ── 8. Command line ───────────────────────────────────────────────────────────────────
-def parse_hp(items: list[str] | None) -> dict[str, Any]:
-    """`key=value` pairs; values are Python literals (numbers, lists, dicts), else strings."""
-    hp: dict[str, Any] = {}
-    for item in items or []:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"--hp {item!r}: expected key=value")
-        try:
-            hp[key] = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            hp[key] = value
-    return hp
-
-
-def config_from_args(args) -> TrainConfig:
-    throttle = args.throttle
-    if throttle is not None:
-        throttle = tuple(throttle) if len(throttle) == 2 else throttle[0]
-    return TrainConfig(algo=args.algo, steps=args.steps, seed=args.seed, out=args.out or f"runs/{args.algo}",
-                       memory=args.memory, integral=args.integral, squash=args.squash, envs=args.envs,
-                       action_mapping=args.action_mapping,
-                       throttle=throttle if args.throttle is not None else TrainConfig.throttle,
-                       task=args.task, action_rate_penalty=args.action_rate_penalty, reward=args.reward,
-                       axis_weights=tuple(args.axis_weights),
-                       norm_reward=args.norm_reward, norm_obs=args.norm_obs, hp=parse_hp(args.hp),
-                       checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
-                       eval_episodes=args.eval_episodes, eval_seed=args.eval_seed, export=args.export,
-                       threads=args.threads, progress=not args.no_progress)
-
-
 def train_command(args) -> int:
-    cfg = config_from_args(args)
+    from training.cli import user_error
+    from training.config import from_args
+
+    try:
+        cfg = from_args(args)
+    except ValueError as exc:
+        return user_error(str(exc))
     summary = train(cfg)
     if args.json:
         print(json.dumps(summary, default=float))
     else:
         print_summary(summary)
     return 0
-

@@ -10,10 +10,9 @@ import pytest
 
 from evaluation.metrics import AXES, compute_metrics
 from evaluation.runner import EvalConfig, run_controller
-from fcemu.cli import build_parser
 from firmware.neural import NeuralRateController
 from training import quick_eval
-from training.train import ALGOS, TrainConfig, parse_hp, train
+from training.train import TrainConfig, train
 
 pytestmark = pytest.mark.slow
 
@@ -119,34 +118,6 @@ def test_bar_verdict_names_each_criterion(run):
     assert verdict["error_ratio"] > 1.0
     same = quick_eval.bar_verdict(compute_metrics(pid), {"pid": compute_metrics(pid)})
     assert same["error_ratio"] == 1.0 and not same["checks"]["error_ratio"] and same["checks"]["rise"]
-
-
-def test_config_and_cli():
-    assert set(ALGOS) == {"ppo", "trpo", "ddpg", "td3", "sac"}
-    with pytest.raises(ValueError, match="unknown algorithm"):
-        TrainConfig(algo="a2c")
-    with pytest.raises(ValueError, match="unknown reward"):
-        TrainConfig(reward="shaped")
-    assert parse_hp(["gamma=0.97", "n_steps=64", "net=[32, 32]", "name=x"]) == {
-        "gamma": 0.97, "n_steps": 64, "net": [32, 32], "name": "x"}
-    argv = "train --algo sac --memory 3 --steps 10 --seed 4 --envs 2 --out runs/x --throttle 0.6 0.8"
-    args = build_parser().parse_args(argv.split())
-    assert args.handler == "training.train:train_command"
-    from training.train import config_from_args
-
-    cfg = config_from_args(args)
-    got = (cfg.algo, cfg.memory, cfg.steps, cfg.seed, cfg.n_envs, cfg.throttle)
-    assert got == ("sac", 3, 10, 4, 2, (0.6, 0.8))
-    assert cfg.obs_fields == ("rate_error", "rotor_speed") and "integral" not in argv
-    cfg = config_from_args(build_parser().parse_args([*argv.split(), "--integral"]))
-    assert cfg.obs_fields[-1] == "rate_error_integral" and cfg.env_kwargs()["obs_fields"] == cfg.obs_fields
-    with pytest.raises(ValueError, match="squash"):
-        config_from_args(build_parser().parse_args([*argv.split(), "--squash"]))  # SAC squashes already
-    ppo = config_from_args(build_parser().parse_args(["train", "--squash", "--action-rate-penalty", "2"]))
-    assert ppo.hyper["policy_kwargs"]["squash_output"] and ppo.hyper["use_sde"]
-    assert "squash_output" not in TrainConfig().hyper["policy_kwargs"]
-    bench = build_parser().parse_args(["bench", "train", "--json", "--max-minutes", "1"])
-    assert bench.handler == "training.bench:bench_train" and bench.max_minutes == 1.0
 
 
 def test_unclipped_reward_weights_the_axes_and_never_saturates():

@@ -1,0 +1,105 @@
+"""`TrainConfig`, declared once: `fcemu train`, `bench train` and `sweep` options are generated from it."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from fcemu.cli import build_parser
+from training.config import ALGOS, FIELDS, TrainConfig, from_args, parse_hp
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _flags(argv: list[str]) -> set[str]:
+    parser = build_parser()
+    sub = parser._subparsers._group_actions[0].choices
+    for name in argv:
+        sub = sub[name]
+        if name != argv[-1]:
+            sub = sub._subparsers._group_actions[0].choices
+    return {opt for action in sub._actions for opt in action.option_strings}
+
+
+def test_every_field_is_a_train_option_with_its_help():
+    flags = _flags(["train"])
+    for name, f in FIELDS.items():
+        assert "--" + name.replace("_", "-") in flags, name
+        assert f.metadata["help"], name
+    assert {"--no-progress", "--no-squash", "--no-norm-obs", "--json"} <= flags
+    algo = next(a for a in build_parser()._subparsers._group_actions[0].choices["train"]._actions
+                if a.dest == "algo")
+    assert tuple(algo.choices) == tuple(ALGOS)  # the algorithm list lives in ALGOS only
+
+
+def test_bench_and_sweep_take_the_same_options():
+    fields = {"--" + n.replace("_", "-") for n in FIELDS}
+    assert fields - _flags(["bench", "train"]) == {"--eval-seed", "--export", "--progress"}
+    assert fields - _flags(["sweep"]) == {"--seed", "--threads", "--progress"}  # --out, --hp: its own
+    assert {"--seeds", "--out", "--hp", "--config", "--address", "--json"} <= _flags(["sweep"])
+
+
+def test_the_command_line_builds_the_config():
+    argv = "train --algo sac --memory 3 --steps 10 --seed 4 --envs 2 --out runs/x --throttle 0.6 0.8"
+    args = build_parser().parse_args(argv.split())
+    assert args.handler == "training.train:train_command"
+    cfg = from_args(args)
+    got = (cfg.algo, cfg.memory, cfg.steps, cfg.seed, cfg.n_envs, cfg.throttle, cfg.out)
+    assert got == ("sac", 3, 10, 4, 2, (0.6, 0.8), "runs/x")
+    assert cfg.obs_fields == ("rate_error", "rotor_speed") and "integral" not in argv
+    cfg = from_args(build_parser().parse_args([*argv.split(), "--integral", "--throttle", "0.7"]))
+    assert cfg.obs_fields[-1] == "rate_error_integral" and cfg.env_kwargs()["obs_fields"] == cfg.obs_fields
+    assert cfg.throttle == 0.7
+    with pytest.raises(ValueError, match="squash"):
+        from_args(build_parser().parse_args([*argv.split(), "--squash"]))  # SAC squashes already
+    ppo = from_args(build_parser().parse_args(["train", "--squash", "--action-rate-penalty", "2",
+                                               "--hp", "gamma=0.97", "--no-progress"]))
+    assert ppo.hyper["policy_kwargs"]["squash_output"] and ppo.hyper["use_sde"] and ppo.hyper["gamma"] == 0.97
+    assert ppo.out == "runs/ppo" and not ppo.progress
+    default = from_args(build_parser().parse_args(["train"]))
+    assert dataclasses.asdict(default) == dataclasses.asdict(TrainConfig())
+    bench = build_parser().parse_args(["bench", "train", "--max-minutes", "1", "--hp", "n_epochs=1"])
+    assert bench.handler == "training.bench:bench_train" and bench.max_minutes == 1.0
+    cfg = from_args(bench)
+    assert (cfg.steps, cfg.eval_every, cfg.eval_episodes, cfg.hyper["n_epochs"]) == (10**7, 250_000, 0, 1)
+
+
+def test_validation():
+    with pytest.raises(ValueError, match="unknown algorithm"):
+        TrainConfig(algo="a2c")
+    with pytest.raises(ValueError, match="unknown reward"):
+        TrainConfig(reward="shaped")
+    with pytest.raises(ValueError, match="throttle"):
+        TrainConfig(throttle=(0.5, 0.6, 0.7))
+    assert parse_hp(["gamma=0.97", "n_steps=64", "net=[32, 32]", "name=x"]) == {
+        "gamma": 0.97, "n_steps": 64, "net": [32, 32], "name": "x"}
+    with pytest.raises(ValueError, match="key=value"):
+        parse_hp(["gamma"])
+    assert "squash_output" not in TrainConfig().hyper["policy_kwargs"]
+
+
+def _fcemu(*args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    return subprocess.run([sys.executable, "-m", "fcemu", *args], env=env, capture_output=True, text=True,
+                          timeout=120)
+
+
+def test_a_bad_option_is_one_line_and_exit_2():
+    for argv in (["train", "--throttle", "0.5", "0.6", "0.7"], ["train", "--hp", "gamma"],
+                 ["sweep", "--seeds", "x-y"], ["sweep", "--eval-every", "0"]):
+        proc = _fcemu(*argv)
+        assert proc.returncode == 2 and proc.stderr.startswith("fcemu: error:"), (argv, proc.stderr)
+        assert proc.stderr.count("\n") == 1 and proc.stdout == ""
+
+
+def test_building_the_parsers_loads_neither_torch_nor_ray():
+    code = ("import sys; from fcemu.cli import build_parser; build_parser(); "
+            "print(sorted(m for m in ('torch', 'ray', 'mujoco', 'stable_baselines3') if m in sys.modules))")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip() == "[]", out.stderr

@@ -1,0 +1,146 @@
+"""`fcemu sweep` on a real local Ray: two short trials, the table, the best policy, resume."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from firmware.neural import NeuralRateController
+from training.sweep import parse_seeds, parse_space
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # Ray start-up on a loaded machine
+ROOT = Path(__file__).resolve().parents[2]
+# Two trials of 2048 steps (8 twins, rollouts of 1024), two evaluations each on 2 commands.
+SHORT = ["--steps", "2048", "--envs", "8", "--eval-every", "1024", "--eval-commands", "2",
+         "--checkpoint-every", "1024", "--best-episodes", "2"]
+
+
+def fcemu(*args: str, **kwargs) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    return subprocess.Popen([sys.executable, "-m", "fcemu", *args], env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kwargs)
+
+
+def test_seeds_and_space_parse():
+    assert parse_seeds("0-4") == [0, 1, 2, 3, 4] and parse_seeds("0-1,7,1") == [0, 1, 7]
+    assert parse_space(["learning_rate=1e-4,3e-4", "net=[64, 64]", "lr=lin_3e-4,lin_1e-4"]) == {
+        "learning_rate": [1e-4, 3e-4], "net": [[64, 64]], "lr": ["lin_3e-4", "lin_1e-4"]}
+    with pytest.raises(ValueError, match="seeds"):
+        parse_seeds("a-b")
+
+
+def test_spec_from_yaml_and_command_line(tmp_path):
+    from fcemu.cli import build_parser
+    from training.cli import SWEEP_DEFAULTS
+    from training.sweep import spec_from_args
+
+    path = tmp_path / "sweep.yaml"
+    path.write_text("seeds: 0-2\nsteps: 300000\nsquash: true\naction_rate_penalty: 1.0\n"
+                    "space:\n  action_rate_penalty: [1, 2]\n  learning_rate: [lin_3e-4, lin_1e-4]\n")
+    args = build_parser().parse_args(["sweep", "--config", str(path), "--steps", "500000",
+                                      "--hp", "gamma=0.98,0.99"])
+    spec = spec_from_args(args, SWEEP_DEFAULTS)
+    assert spec.seeds == [0, 1, 2] and spec.n_trials == 3 * 2 * 2 * 2
+    assert spec.space == {"action_rate_penalty": [1, 2], "learning_rate": ["lin_3e-4", "lin_1e-4"],
+                          "gamma": [0.98, 0.99]}
+    assert spec.train["steps"] == 500_000 and spec.train["squash"] and spec.train["eval_every"] == 250_000
+    cfg = spec.config(2, {"action_rate_penalty": 4, "gamma": 0.98}, "runs/x", threads=1)
+    assert (cfg.seed, cfg.action_rate_penalty, cfg.hyper["gamma"], cfg.squash) == (2, 4, 0.98, True)
+    bad = build_parser().parse_args(["sweep", "--hp", "algo=ppo,a2c"])
+    with pytest.raises(ValueError, match="a2c"):
+        spec_from_args(bad, SWEEP_DEFAULTS)
+    path.write_text("seeds: 0\nlearning_rat: 1\n")
+    with pytest.raises(ValueError, match="unknown options"):
+        spec_from_args(build_parser().parse_args(["sweep", "--config", str(path)]), SWEEP_DEFAULTS)
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory) -> tuple[Path, dict, str]:
+    out = tmp_path_factory.mktemp("sweep") / "out"
+    proc = fcemu("sweep", "--seeds", "0-1", *SHORT, "--hp", "n_steps=128", "batch_size=256",
+                 "--cpus", "2", "--no-early-stop", "--out", str(out), "--json")
+    stdout, stderr = proc.communicate(timeout=600)
+    assert proc.returncode == 0, stderr[-3000:]
+    return out, json.loads(stdout), stderr  # stdout holds one JSON object and nothing else
+
+
+def test_one_json_object_with_a_row_per_trial(sweep):
+    out, payload, stderr = sweep
+    assert payload["engine"] == "ray" and payload["steps"] == 2048
+    trials = payload["trials"]
+    assert sorted(t["seed"] for t in trials) == [0, 1]
+    for t in trials:
+        assert t["status"] == "done" and t["steps"] == 2048
+        assert t["settings"] == {"n_steps": 128, "batch_size": 256}
+        assert t["best_error_ratio"] > 0 and len(t["success_pct"]) == 3 and t["smoothness"] >= 0
+        run = out / "runs" / t["trial"]  # each trial is a `fcemu train` run directory
+        for name in ("config.json", "model.zip", "vecnormalize.pkl", "policy.onnx", "summary.json"):
+            assert (run / name).is_file(), name
+        config = json.loads((run / "config.json").read_text())
+        assert config["seed"] == t["seed"] and config["hyperparameters"]["batch_size"] == 256
+        evals = json.loads((run / "summary.json").read_text())["in_training_evals"]
+        assert [e["steps"] for e in evals] == [1024, 2048]
+        assert t["best_error_ratio"] == pytest.approx(min(e["error_ratio"] for e in evals))
+    assert "best ratio" in stderr  # Tune's live table
+
+
+def test_tables_hold_every_trial(sweep):
+    out, payload, _ = sweep
+    with (out / "results.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["seed"]) for r in rows] == [0, 1]
+    assert {r["trial"] for r in rows} == {t["trial"] for t in payload["trials"]}
+    assert all(r["status"] == "done" and r["settings"] == "n_steps=128 batch_size=256" for r in rows)
+    md = (out / "results.md").read_text().splitlines()
+    assert md[0].startswith("| trial | seed |") and len(md) == 2 + len(rows)
+
+
+def test_the_best_trial_is_exported_and_flown(sweep):
+    out, payload, _ = sweep
+    best = payload["best"]
+    assert best["best_error_ratio"] == min(t["best_error_ratio"] for t in payload["trials"])
+    assert best["export"]["parity_ok"] and Path(best["policy"]) == out / "best" / "policy.onnx"
+    meta = NeuralRateController(out / "best" / "policy.onnx").metadata
+    assert meta["seed"] == str(best["seed"]) and meta["training_steps"] == str(best["best_steps"])
+    flown = json.loads((out / "best" / "eval.json").read_text())
+    assert flown["episodes"] == 2 and flown["bar"] == best["eval"]["bar"]
+    assert flown["results"][-1]["controller"] == str(out / "best" / "policy.onnx")
+
+
+def test_a_different_sweep_in_the_same_directory_is_refused(sweep):
+    out, _, _ = sweep
+    proc = fcemu("sweep", "--seeds", "0-2", *SHORT, "--out", str(out))
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and stderr.startswith("fcemu: error:") and "different sweep" in stderr
+
+
+def test_an_interrupted_sweep_resumes_without_redoing_finished_trials(tmp_path):
+    out = tmp_path / "out"
+    args = ["sweep", "--seeds", "0-1", *SHORT, "--hp", "batch_size=256", "--cpus", "1", "--no-early-stop",
+            "--best-episodes", "0", "--out", str(out), "--json"]
+    proc = fcemu(*args)
+    deadline = time.monotonic() + 400
+    # One CPU: the second trial starts (writes its config) only once Tune has closed the first.
+    while len(list((out / "runs").glob("*/config.json"))) < 2:
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()[1][-3000:]
+        time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and "resumes" in stderr, stderr[-3000:]
+    (first,) = list((out / "runs").glob("*/summary.json"))
+    stamp = first.stat().st_mtime_ns
+
+    proc = fcemu(*args)
+    stdout, stderr = proc.communicate(timeout=600)
+    assert proc.returncode == 0 and "resuming" in stderr, stderr[-3000:]
+    payload = json.loads(stdout)
+    assert [t["status"] for t in payload["trials"]] == ["done", "done"]
+    assert first.stat().st_mtime_ns == stamp  # the finished trial was kept, not trained again

@@ -1,0 +1,210 @@
+"""One declaration of a training run's options: `TrainConfig`, and the command line made from it.
+
+Every option of `fcemu train` is a field here; its metadata (help, choices, nargs, a
+parser for the raw value) is all the command line needs, so `fcemu train`, `fcemu bench
+train` and `fcemu sweep` generate their options from this class (`add_arguments`) and
+build it back (`from_args`), as CleanRL builds its command line from one dataclass with
+tyro. This module imports neither torch nor MuJoCo: `fcemu --help` builds every parser.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import copy
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any
+
+from sim_bridge.reward import REWARDS
+
+# ── Defaults per algorithm ─────────────────────────────────────────────────────────────
+# 1 ms steps and 1000-step episodes: a horizon of ~100 ms (γ 0.99, λ 0.95: a yaw rise
+# and its settling) credits an action with what it does to the rate, not with the whole
+# episode; γ 0.98 / λ 0.9 (~50 ms) beat the tuned PID on 1 seed of 4, γ 0.99 on 2 of 3.
+# Exploration is state-dependent (gSDE, noise redrawn once per rollout): white noise on
+# every 1 ms action is filtered away by the motors, tells the critic nothing, and PPO
+# with it drifts into spinning the vehicle (docs/training_notes.md).
+_ON_POLICY_NET = {"net_arch": {"pi": [64, 64], "vf": [64, 64]}, "log_std_init": -1.0}
+_OFF_POLICY = {"learning_rate": 1e-3, "gamma": 0.98, "batch_size": 256, "buffer_size": 1_000_000,
+               "learning_starts": 10_000, "train_freq": 1, "gradient_steps": 1, "tau": 0.005,
+               "policy_kwargs": {"net_arch": [64, 64]}}
+ALGOS: dict[str, dict[str, Any]] = {
+    "ppo": {"envs": 64, "norm_reward": True, "hp": {
+        "n_steps": 128, "batch_size": 2048, "n_epochs": 5, "learning_rate": "lin_3e-4", "gamma": 0.99,
+        "gae_lambda": 0.95, "clip_range": 0.2, "ent_coef": 0.0, "vf_coef": 0.5, "max_grad_norm": 0.5,
+        "use_sde": True, "sde_sample_freq": -1, "policy_kwargs": _ON_POLICY_NET}},
+    "trpo": {"envs": 64, "norm_reward": True, "hp": {
+        "n_steps": 128, "batch_size": 2048, "learning_rate": 1e-3, "gamma": 0.98, "gae_lambda": 0.9,
+        "target_kl": 0.01, "use_sde": True, "sde_sample_freq": -1, "policy_kwargs": _ON_POLICY_NET}},
+    "ddpg": {"envs": 8, "norm_reward": False, "hp": _OFF_POLICY},
+    "td3": {"envs": 8, "norm_reward": False, "hp": _OFF_POLICY},
+    "sac": {"envs": 8, "norm_reward": False, "hp": {**_OFF_POLICY, "ent_coef": "auto", "use_sde": True}},
+}
+def parse_hp(items: list[str] | dict[str, Any] | None) -> dict[str, Any]:
+    """`key=value` pairs; values are Python literals (numbers, lists, dicts), else strings."""
+    if isinstance(items, dict):
+        return dict(items)
+    hp: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--hp {item!r}: expected key=value")
+        try:
+            hp[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            hp[key] = value
+    return hp
+
+
+def option(default: Any, help: str, **argparse_kwargs: Any) -> Any:
+    """A field with its command-line description: `help` plus any argparse keyword
+    (choices, nargs, metavar) and `parse`, applied to the parsed value."""
+    return field(default=default, metadata={"help": help, **argparse_kwargs})
+
+
+# ── The configuration ──────────────────────────────────────────────────────────────────
+@dataclass
+class TrainConfig:
+    algo: str = option("ppo", "RL algorithm (SB3 / sb3-contrib)", choices=tuple(ALGOS))
+    steps: int = option(3_000_000, "environment steps (1 ms each)")
+    seed: int = option(0, "seed of the environments and the networks")
+    out: str | None = option(None, "run directory (default runs/ALGO)")
+    memory: int = option(1, "observation history length m")
+    integral: bool = option(False, "add a leaky integral of the rate error to the observation "
+                                   "(rate_error_integral)")
+    squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
+                                 "--action-rate-penalty smooth the motors instead of saturating them")
+    envs: int | None = option(None, "parallel twins (default: per algorithm)")
+    action_mapping: str = option("throttle", "how the 4 actions become motor commands",
+                                 choices=("gymfc", "throttle"))
+    throttle: float | tuple[float, float] | None = option(
+        (0.5, 0.9), "collective for the throttle mapping: one value, or LO HI drawn per episode",
+        nargs="+", metavar="T")
+    task: str = option("episodic", "training task", choices=("episodic", "continuous"))
+    action_rate_penalty: float = option(0.0, "weight of Neuroflight's output-oscillation penalty "
+                                             "(mean |Δu| per step); use with --squash")
+    reward: str = option("unclipped", "paper: −clip(Σ|e|/(3·Ω_max), 0, 1); unclipped: the same without "
+                                      "the clip", choices=REWARDS)
+    axis_weights: tuple[float, float, float] = option(
+        (1.0, 1.0, 1.0), "weights of the roll, pitch, yaw error in the unclipped reward",
+        metavar=("R", "P", "Y"))
+    norm_reward: bool | None = option(None, "VecNormalize reward scaling (default: per algorithm)")
+    norm_obs: bool = option(True, "VecNormalize observation normalisation (folded into the exported "
+                                  "ONNX graph)")
+    hp: dict[str, Any] = field(default_factory=dict, metadata={
+        "help": "override algorithm hyper-parameters", "nargs": "*", "metavar": "KEY=VALUE",
+        "parse": parse_hp})
+    checkpoint_every: int = option(1_000_000, "steps between checkpoints")
+    eval_every: int = option(0, "steps between in-training evaluations against the PID (0: none)")
+    eval_commands: int = option(64, "fixed commands per in-training evaluation")
+    eval_episodes: int = option(1000, "final evaluation commands through the firmware loop (0: skip)")
+    eval_seed: int = option(1, "seed of the evaluation commands")
+    export: str = option("best", "best: the in-training evaluation's best (needs --eval-every); "
+                                 "final: the last model", choices=("best", "final"))
+    threads: int = option(1, "torch threads")
+    progress: bool = option(True, "progress bar")
+
+    def __post_init__(self) -> None:
+        if self.algo not in ALGOS:
+            raise ValueError(f"unknown algorithm {self.algo!r}; choose one of {tuple(ALGOS)}")
+        if self.reward == "paper" and tuple(self.axis_weights) != (1.0, 1.0, 1.0):
+            raise ValueError("axis weights need --reward unclipped")
+        if self.reward not in REWARDS:
+            raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
+        if self.squash and self.algo not in ("ppo", "trpo"):
+            raise ValueError(f"--squash is for PPO and TRPO; {self.algo.upper()} squashes already")
+        if isinstance(self.throttle, list | tuple):
+            if len(self.throttle) not in (1, 2):
+                raise ValueError(f"--throttle takes one value or LO HI, not {len(self.throttle)} values")
+            self.throttle = float(self.throttle[0]) if len(self.throttle) == 1 else tuple(self.throttle)
+        self.axis_weights = tuple(self.axis_weights)
+        if self.out is None:
+            self.out = f"runs/{self.algo}"
+
+    @property
+    def obs_fields(self) -> tuple[str, ...]:
+        from firmware.observation import FIELDS, INTEGRAL
+
+        return (*FIELDS, INTEGRAL) if self.integral else FIELDS
+
+    @property
+    def n_envs(self) -> int:
+        return self.envs or ALGOS[self.algo]["envs"]
+
+    @property
+    def hyper(self) -> dict[str, Any]:
+        hp = copy.deepcopy({**ALGOS[self.algo]["hp"], **self.hp})  # SB3 writes into policy_kwargs
+        if self.squash:
+            hp["policy_kwargs"] = {**hp.get("policy_kwargs", {}), "squash_output": True}
+        return hp
+
+    @property
+    def normalise_reward(self) -> bool:
+        return ALGOS[self.algo]["norm_reward"] if self.norm_reward is None else self.norm_reward
+
+    def env_kwargs(self) -> dict[str, Any]:
+        return {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields,
+                "action_mapping": self.action_mapping, "throttle": self.throttle,
+                "reward": self.reward, "axis_weights": tuple(self.axis_weights),
+                "action_rate_penalty": self.action_rate_penalty}
+
+
+# ── The command line, generated from the fields ────────────────────────────────────────
+FIELDS = {f.name: f for f in dataclasses.fields(TrainConfig)}
+_TYPES = typing.get_type_hints(TrainConfig)
+
+
+def _scalar(hint: Any) -> tuple[Any, bool]:
+    """The argparse type of a hint, and whether it is optional (`X | None`)."""
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        return _scalar(args[0])[0], type(None) in typing.get_args(hint)
+    if typing.get_origin(hint) is tuple:
+        return args[0], False
+    if typing.get_origin(hint) is dict:  # KEY=VALUE items, parsed by the field's `parse`
+        return str, False
+    return hint, False
+
+
+def add_arguments(parser: argparse.ArgumentParser, exclude: tuple[str, ...] = (),
+                  defaults: dict[str, Any] | None = None, only_given: bool = False) -> None:
+    """One `--flag` per field of `TrainConfig` (minus `exclude`), its help and choices from
+    the field's metadata; `defaults` replaces a field's default for this command. With
+    `only_given`, an option not on the command line is absent from the namespace (so a
+    configuration file can fill it in)."""
+    defaults = defaults or {}
+    for name, f in FIELDS.items():
+        if name in exclude:
+            continue
+        meta = {k: v for k, v in f.metadata.items() if k != "parse"}
+        default = defaults.get(name, f.default_factory() if f.default_factory is not dataclasses.MISSING
+                               else f.default)
+        hint = _TYPES[name]
+        kind, _ = _scalar(hint)
+        flag = "--" + name.replace("_", "-")
+        if kind is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction,
+                                default=argparse.SUPPRESS if only_given else default, **meta)
+            continue
+        if typing.get_origin(hint) is tuple:
+            meta.setdefault("nargs", len(typing.get_args(hint)))
+        if default not in (None, (), [], {}) and "%(default)" not in meta["help"]:
+            shown = " ".join(map(str, default)) if isinstance(default, tuple) else default
+            meta["help"] += f" (default: {shown})"
+        parser.add_argument(flag, type=kind, default=argparse.SUPPRESS if only_given else default, **meta)
+
+
+def from_args(args: argparse.Namespace, **overrides: Any) -> TrainConfig:
+    """The `TrainConfig` an `add_arguments` parser produced; `overrides` win. Bad values
+    raise ValueError (the command line turns it into `fcemu: error: ...`)."""
+    values: dict[str, Any] = {}
+    for name, f in FIELDS.items():
+        if name in overrides or not hasattr(args, name):
+            continue
+        value = getattr(args, name)
+        parse = f.metadata.get("parse")
+        values[name] = parse(value) if parse is not None else value
+    return TrainConfig(**{**values, **overrides})
