@@ -1,4 +1,4 @@
-"""`fcemu train` and `fcemu bench train` (argparse only: torch loads when a command runs)."""
+"""`fcemu train` (argparse only: torch loads when a command runs)."""
 
 from __future__ import annotations
 
@@ -50,20 +50,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.set_defaults(handler="training.train:train_command")
 
-
-def register_bench(bench_sub: argparse._SubParsersAction) -> None:
-    p = bench_sub.add_parser("train", help="training steps/s and wall time until the policy beats the PID")
-    p.add_argument("--algo", choices=ALGOS, default="ppo")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--envs", type=int, default=None)
-    p.add_argument("--max-minutes", type=float, default=15.0, help="cap on the race against the PID")
-    p.add_argument("--steps", type=int, default=10_000_000,
-                   help="the run's length, which sets the learning-rate decay (default: the shipped run's)")
-    p.add_argument("--eval-every", type=int, default=250_000, help="steps between evaluations")
-    p.add_argument("--eval-commands", type=int, default=64, help="fixed commands per evaluation")
-    p.add_argument("--target", choices=("beat", "bar"), default="beat",
-                   help="stop when the Error sum beats the PID's (beat) or meets issue 5's bar (bar)")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--out", default=None, help="keep the run here (default: a temporary directory)")
-    p.add_argument("--json", action="store_true")
-    p.set_defaults(handler="training.bench:bench_train")

@@ -146,7 +146,7 @@ def test_config_and_cli():
     assert ppo.hyper["policy_kwargs"]["squash_output"] and ppo.hyper["use_sde"]
     assert "squash_output" not in TrainConfig().hyper["policy_kwargs"]
     bench = build_parser().parse_args(["bench", "train", "--json", "--max-minutes", "1"])
-    assert bench.handler == "training.bench:bench_train" and bench.max_minutes == 1.0
+    assert bench.handler == "benchmarks.train:bench_train" and bench.max_minutes == 1.0
 
 
 def test_unclipped_reward_weights_the_axes_and_never_saturates():

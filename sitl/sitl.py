@@ -109,6 +109,19 @@ def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
     return ScriptedCommander(schedule, controller=controller)
 
 
+def flying_line(controller: str) -> str:
+    """One line for the console saying which controller flies and from where."""
+    from firmware.c_policy import is_c_policy_dir
+    from firmware.controllers import DEFAULT_POLICY
+
+    if controller.endswith(".onnx") or is_c_policy_dir(controller):
+        kind = "neural" if controller.endswith(".onnx") else "c_policy"
+        return f"fcemu: flying {kind}:{Path(controller).stem} ({controller})"
+    if controller == "pid" and not DEFAULT_POLICY.exists():
+        return f"fcemu: flying pid (no policy found at {DEFAULT_POLICY})"
+    return f"fcemu: flying {controller}"
+
+
 def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
     """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks."""
     from firmware.c_policy import is_c_policy_dir
@@ -167,9 +180,13 @@ class StatusLine:
         sys.stderr.flush()
 
 
-def default_params_file() -> Path:
+GCS_PORT = 14550  # where every instance sends to a ground station, as PX4 SITL does
+OFFBOARD_PORT = 14540  # + the instance: each vehicle's own offboard API peer
+
+
+def default_params_file(instance: int = 0) -> Path:
     base = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
-    return base / "fcemu" / "params.json"
+    return base / "fcemu" / ("params.json" if instance == 0 else f"params-{instance}.json")
 
 
 @dataclass
@@ -227,11 +244,13 @@ def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float |
 def mavlink_config_from_args(args):
     from firmware.mavlink.bridge import MavlinkConfig, parse_peer
 
-    peers = [parse_peer(args.gcs, "gcs"), parse_peer(args.offboard, "offboard")]
+    instance = getattr(args, "instance", 0)
+    peers = [parse_peer(args.gcs or f"127.0.0.1:{GCS_PORT}", "gcs"),
+             parse_peer(args.offboard or f"127.0.0.1:{OFFBOARD_PORT + instance}", "offboard")]
     peers += [parse_peer(p, f"peer{i}") for i, p in enumerate(args.peer or [])]
-    params_file = args.params if args.params is not None else str(default_params_file())
-    return MavlinkConfig(peers=peers, sysid=args.sysid, tlog=args.tlog, signing_key=args.signing_key,
-                         params_file=params_file or None)
+    params_file = args.params if args.params is not None else str(default_params_file(instance))
+    return MavlinkConfig(peers=peers, sysid=args.sysid or 1 + instance, tlog=args.tlog,
+                         signing_key=args.signing_key, params_file=params_file or None)
 
 
 def sitl_command(args) -> int:
@@ -250,12 +269,13 @@ def sitl_command(args) -> int:
             from firmware.params import load_warning
 
             print(load_warning(vs.params_file, vs.param_problems), file=sys.stderr)
+    print(flying_line(controller), file=sys.stderr)
     extra = None
     if vs is not None:
         veh = vs.vehicle
         extra = lambda: f"{'ARMED' if veh.armed else 'disarmed'} {veh.mode_name()}"  # noqa: E731
     status = None if args.quiet else StatusLine(sitl.loop, every_s=0.5 if speed else 2.0, extra=extra)
-    release_core = give_loop_a_core([vs.proc.pid] if vs is not None else [])
+    release_core = give_loop_a_core([vs.proc.pid] if vs is not None else [], args.instance)
     try:
         sitl.loop.run(args.duration, on_slack=status)
     except KeyboardInterrupt:
