@@ -168,15 +168,14 @@ def _set_autogroup_nice(value: int) -> None:
     Path("/proc/self/autogroup").write_text(f"{value}\n")
 
 
-def give_loop_a_core(helper_pids: Iterable[int], instance: int = 0) -> Callable[[], None]:
+def give_loop_a_core(helper_pids: Iterable[int]) -> Callable[[], None]:
     """Pin this process (the flight loop) to one CPU and `helper_pids` to the others, and raise
     its priority (`raise_loop_priority`; said on stderr when the system refuses).
 
     The loop spins through its period, so on a 2-core machine the MAVLink process and its
     peers otherwise keep preempting it mid-tick: measured with `fcemu bench loop --mavlink`,
     compute p50/p99 43/148 µs shared vs 28/99 µs pinned. Returns a function that undoes it.
-    Does not pin with fewer than two CPUs. Vehicle `instance` N takes the N-th CPU from the top,
-    so vehicles flown side by side do not spin on one core.
+    Does not pin with fewer than two CPUs.
     """
     lower, problem = raise_loop_priority()
     if problem:
@@ -186,8 +185,7 @@ def give_loop_a_core(helper_pids: Iterable[int], instance: int = 0) -> Callable[
     cpus = sorted(original)
     if len(cpus) < 2:
         return lower
-    loop_cpu = {cpus[-1 - instance % len(cpus)]}
-    others = set(cpus) - loop_cpu
+    loop_cpu, others = {cpus[-1]}, set(cpus[:-1])
     for pid in helper_pids:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.sched_setaffinity(pid, others)

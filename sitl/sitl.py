@@ -18,9 +18,12 @@ import numpy as np
 
 from firmware.controllers import load_controller
 from firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
-from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core
+from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, raise_loop_priority
 
 FALLBACK = "pid"
+# A loop that shares its CPU sleeps between ticks and spins only this last stretch (time.sleep
+# overshoots): spinning through the period would starve the MAVLink processes beside it.
+SHARED_SPIN_US = 300
 
 
 @dataclass
@@ -133,7 +136,8 @@ def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
 
 def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, realtime: bool = True,
                commander: Commander | None = None, sinks: Sequence[TelemetrySink] = (),
-               twin_address: tuple[str, int] | None = None, speed: float = 1.0) -> Sitl:
+               twin_address: tuple[str, int] | None = None, speed: float = 1.0,
+               spin_us: int | None = None) -> Sitl:
     from sim_bridge.link import InProcessLink, UdpTwinClient
     from sim_bridge.twin import Twin
 
@@ -144,7 +148,8 @@ def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, real
     else:
         twin, link = None, UdpTwinClient(*twin_address)
     frame = link.reset(seed=0)
-    clock = (RealTimeClock() if speed == 1.0 else ScaledClock(speed)) if realtime else LockstepClock()
+    real = RealTimeClock() if spin_us is None else RealTimeClock(spin_us)
+    clock = (real if speed == 1.0 else ScaledClock(speed)) if realtime else LockstepClock()
     loop = FlightLoop(link, frame, controllers, commander or scripted_flight(rig, selected), clock,
                       rate_hz, sinks, fallback=FALLBACK)
     return Sitl(loop, twin, link, selected)
@@ -209,13 +214,14 @@ class VehicleSitl:
 
 
 def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float | None, config,
-                       explicit_controller: bool = True) -> VehicleSitl:
+                       explicit_controller: bool = True, spin_us: int | None = None) -> VehicleSitl:
     """Build the loop with a `Vehicle` commander and start its MAVLink process (`config`)."""
     from firmware.mavlink.bridge import LinkedVehicle, start_mavlink
     from firmware.params import ParamTable
     from firmware.vehicle import Vehicle
 
-    sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0)
+    sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0,
+                      spin_us=spin_us)
     params = ParamTable()
     pid = getattr(sitl.loop.controllers.get(FALLBACK), "pid", None)
     if pid is not None:  # the loaded preset's gains are the defaults a GCS sees
@@ -253,17 +259,35 @@ def mavlink_config_from_args(args):
                          signing_key=args.signing_key, params_file=params_file or None)
 
 
+def owns_a_core(instance: int) -> bool:
+    """Instance 0 spins on a CPU of its own, with the others left to its helpers, as long as the
+    machine has two; further instances get one only where CPUs remain for all of them."""
+    return instance == 0 or len(os.sched_getaffinity(0)) >= 2 * (instance + 1)
+
+
+def claim_cpu(helper_pids: Sequence[int], own_core: bool) -> Callable[[], None]:
+    if own_core:
+        return give_loop_a_core(helper_pids)
+    lower, problem = raise_loop_priority()
+    if problem:
+        print(f"fcemu: note: the flight loop runs at normal priority ({problem})", file=sys.stderr)
+    return lower
+
+
 def sitl_command(args) -> int:
     from firmware.controllers import default_controller
 
     controller = args.controller or default_controller()
     speed = parse_speed(args.speed)
+    own_core = owns_a_core(args.instance)
+    spin_us = None if own_core else SHARED_SPIN_US
     vs = None
     if args.no_mavlink:
-        sitl = build_sitl(controller, args.rig, args.rate, realtime=speed is not None, speed=speed or 1.0)
+        sitl = build_sitl(controller, args.rig, args.rate, realtime=speed is not None, speed=speed or 1.0,
+                          spin_us=spin_us)
     else:
         vs = start_vehicle_sitl(controller, args.rig, args.rate, speed, mavlink_config_from_args(args),
-                                explicit_controller=args.controller is not None)
+                                explicit_controller=args.controller is not None, spin_us=spin_us)
         sitl = vs.sitl
         if vs.param_problems:
             from firmware.params import load_warning
@@ -275,7 +299,7 @@ def sitl_command(args) -> int:
         veh = vs.vehicle
         extra = lambda: f"{'ARMED' if veh.armed else 'disarmed'} {veh.mode_name()}"  # noqa: E731
     status = None if args.quiet else StatusLine(sitl.loop, every_s=0.5 if speed else 2.0, extra=extra)
-    release_core = give_loop_a_core([vs.proc.pid] if vs is not None else [], args.instance)
+    release_core = claim_cpu([vs.proc.pid] if vs is not None else [], own_core)
     try:
         sitl.loop.run(args.duration, on_slack=status)
     except KeyboardInterrupt:
