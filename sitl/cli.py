@@ -37,6 +37,16 @@ def seconds(text: str) -> float:
     return value
 
 
+def _instance(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if not 0 <= value <= 254:  # system id 1+N must be a MAVLink system id, 1..255
+        raise argparse.ArgumentTypeError(f"{text!r}: the instance must be in 0..254")
+    return value
+
+
 def _peer(text: str) -> str:
     from firmware.mavlink.bridge import parse_peer
 
@@ -49,7 +59,7 @@ def _peer(text: str) -> str:
 
 def add_mavlink_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("MAVLink")
-    g.add_argument("-i", "--instance", type=int, default=0, choices=range(255), metavar="N",
+    g.add_argument("-i", "--instance", type=_instance, default=0, metavar="N",
                    help="vehicle instance, as PX4 SITL's -i: system id 1+N, offboard peer port 14540+N, "
                         "its own parameter file; the GCS port stays 14550 (default 0)")
     g.add_argument("--gcs", type=_peer, default=None,

@@ -40,6 +40,9 @@ def test_instance_offsets_follow_px4(tmp_path, monkeypatch) -> None:
     explicit = mavlink_config_from_args(parse("-i", "3", "--sysid", "9", "--offboard", ":15000",
                                               "--params", ""))
     assert (explicit.sysid, explicit.peers[1].port, explicit.params_file) == (9, 15000, None)
+    for bad in ("255", "-1", "one"):  # system id 1+N must stay a MAVLink system id
+        with pytest.raises(SystemExit):
+            parse("-i", bad)
 
 
 class Peer:
