@@ -11,7 +11,7 @@ from pathlib import Path
 from evaluation.metrics import AXES, EvalMetrics, compute_metrics
 from evaluation.report import ControllerResult, write_report
 from evaluation.runner import EvalConfig, run_controller
-from evaluation.traces import Traces, save_traces
+from sitl.traces import Traces, save_traces
 
 REPORT_CONTINUOUS_S = 10.0
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from evaluation.traces import Traces
+from sitl.traces import Traces
 
 AXES = ("roll", "pitch", "yaw")
 METRIC_KEYS = ("success_pct", "failure_pct", "rise_ms", "peak_pct", "error", "stability", "smoothness")

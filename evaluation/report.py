@@ -20,7 +20,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from evaluation.metrics import AXES, MIN_E0, SETTLE_S, EvalMetrics, Stat
-from evaluation.traces import Traces
+from sitl.traces import Traces
 
 PAPER_COLUMNS = ("PPO m=1", "PID")
 CONTINUOUS_SECONDS = 10.0

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from evaluation.traces import Traces
 from firmware.controller import RateSetpoint
 from firmware.controllers import load_controller
 from firmware.loop import Command, FlightLoop, TickSample
@@ -25,6 +24,7 @@ from sim_bridge.airframe import load_airframe
 from sim_bridge.link import InProcessLink
 from sim_bridge.tasks import continuous_schedule, episodic_commands
 from sim_bridge.twin import Twin
+from sitl.traces import Traces
 
 FALLBACK = "pid"
 TASKS = ("episodic", "continuous")

@@ -17,8 +17,8 @@ from typing import NoReturn
 from fcemu import __version__
 
 # Packages that contribute commands, in the order `fcemu --help` lists them.
-_COMMAND_MODULES = ("firmware.cli", "sim_bridge.cli", "training.cli", "export.cli", "evaluation.cli",
-                    "sitl.cli")
+_COMMAND_MODULES = ("sitl.cli", "benchmarks.cli", "sim_bridge.cli", "training.cli", "export.cli",
+                    "evaluation.cli")
 
 
 USAGE_ERROR = 2

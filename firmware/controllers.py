@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 
 from firmware.controller import RateController
 from firmware.errors import UserError
 
-DEFAULT_POLICY = Path(__file__).resolve().parent.parent / "policies" / "iris_rate_ppo.onnx"
+# Package data, so an installed wheel flies it as a checkout does.
+DEFAULT_POLICY = Path(str(files("firmware") / "policies" / "iris_rate_ppo.onnx"))
 
 
 class ControllerSpecError(UserError, ValueError):

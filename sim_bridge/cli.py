@@ -1,4 +1,4 @@
-"""`fcemu twin ...` and `fcemu bench sim`."""
+"""`fcemu twin ...`."""
 
 from __future__ import annotations
 
@@ -21,10 +21,3 @@ def register(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--out", default="out/twin_demo.png", help="where to write the plot")
     demo.set_defaults(handler="sim_bridge.showcase:main")
 
-
-def register_bench(bench_sub: argparse._SubParsersAction) -> None:
-    sim = bench_sub.add_parser("sim", help="twin, UDP link and environment throughput")
-    sim.add_argument("--seconds", type=float, default=2.0, help="time per measurement")
-    sim.add_argument("--envs", type=int, default=256, help="batch size for the vectorised env")
-    sim.add_argument("--json", action="store_true")
-    sim.set_defaults(handler="sim_bridge.bench:bench_sim")

@@ -1,2 +1,1 @@
-"""Composition: the vehicle's firmware and the simulated world wired together (e.g. real Betaflight
-SITL flying the twin)."""
+"""Software in the loop: the firmware's vehicle composed with the simulated world."""

@@ -52,16 +52,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="training.sweep:sweep_command")
 
 
-def register_bench(bench_sub: argparse._SubParsersAction) -> None:
-    p = bench_sub.add_parser("train", help="training steps/s and wall time until the policy beats the PID")
-    config.add_arguments(p, exclude=("eval_seed", "export", "progress"), defaults=BENCH_DEFAULTS)
-    p.add_argument("--max-minutes", type=float, default=15.0, help="cap on the race against the PID")
-    p.add_argument("--target", choices=("beat", "bar"), default="beat",
-                   help="stop when the Error sum beats the PID's (beat) or meets issue 5's bar (bar)")
-    p.add_argument("--json", action="store_true")
-    p.set_defaults(handler="training.bench:bench_train")
-
-
 def user_error(message: str) -> int:
     """`fcemu: error: ...` on one line, exit status 2."""
     import sys

@@ -16,9 +16,9 @@ import numpy as np
 
 from evaluation.metrics import AXES, EvalMetrics, compute_metrics
 from evaluation.runner import EvalConfig, run_controller
-from evaluation.traces import Traces
 from firmware.observation import FIELDS
 from sim_bridge.vec_env import BatchedRateEnv
+from sitl.traces import Traces
 
 
 def error_sum(metrics: EvalMetrics) -> float:

@@ -11,8 +11,8 @@ import pytest
 
 from evaluation.metrics import METRIC_KEYS, compute_metrics
 from evaluation.runner import EvalConfig, run_controller, setpoint_schedules
-from evaluation.traces import load_traces
 from sim_bridge.tasks import episodic_commands
+from sitl.traces import load_traces
 
 
 def fcemu(*args: str) -> subprocess.CompletedProcess:

@@ -18,7 +18,7 @@ from evaluation.metrics import (
     mean_ci95,
     segment_traces,
 )
-from evaluation.traces import Traces
+from sitl.traces import Traces
 
 DT = 0.001
 T = 1000

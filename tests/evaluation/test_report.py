@@ -9,7 +9,7 @@ import pytest
 
 from evaluation.metrics import compute_metrics
 from evaluation.report import ControllerResult, load_paper_tables, table_best, write_report
-from evaluation.traces import Traces
+from sitl.traces import Traces
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -94,7 +94,7 @@ def test_outputs_far_outside_the_action_space_are_refused(tmp_path: Path) -> Non
 
 def test_the_loop_rate_reaches_the_check_from_every_loader(tmp_path: Path) -> None:
     from evaluation.runner import run_controller  # noqa: F401  (imports load_controller with the rate)
-    from firmware.sitl import build_sitl
+    from sitl.sitl import build_sitl
 
     with pytest.raises(PolicyContractError, match="asked to run at 500 Hz"):
         load_controller(str(DEFAULT_POLICY), 500.0)

@@ -135,7 +135,7 @@ def test_ppo_learns_on_the_adapter():
 
 
 def test_bench_functions_measure_and_the_batch_is_faster():
-    from sim_bridge.env_bench import env_steps_per_s, vec_env_steps_per_s
+    from benchmarks.env import env_steps_per_s, vec_env_steps_per_s
 
     single = env_steps_per_s(seconds=0.3)
     batched = vec_env_steps_per_s(64, seconds=0.3)

@@ -64,7 +64,7 @@ def test_the_command_line_builds_the_config():
     default = from_args(build_parser().parse_args(["train"]))
     assert dataclasses.asdict(default) == dataclasses.asdict(TrainConfig())
     bench = build_parser().parse_args(["bench", "train", "--max-minutes", "1", "--hp", "n_epochs=1"])
-    assert bench.handler == "training.bench:bench_train" and bench.max_minutes == 1.0
+    assert bench.handler == "benchmarks.train:bench_train" and bench.max_minutes == 1.0
     cfg = from_args(bench)
     assert (cfg.steps, cfg.eval_every, cfg.eval_episodes, cfg.hyper["n_epochs"]) == (10**7, 250_000, 0, 1)
 

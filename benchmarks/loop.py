@@ -1,4 +1,4 @@
-"""`fcemu bench loop` and `fcemu bench inference`: the firmware's timing budget, measured."""
+"""`fcemu bench loop`: the firmware loop's timing budget in real time, flying the twin."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import socket
 import subprocess
 import sys
 
-from firmware.sitl import build_sitl
 from firmware.timing import give_loop_a_core
+from sitl.sitl import build_sitl, flying_line, load_controllers
 
 
 def _free_port() -> int:
@@ -32,7 +32,7 @@ def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "ri
         extra = {}
     else:
         from firmware.mavlink.bridge import MavlinkConfig, PeerConfig
-        from firmware.sitl import start_vehicle_sitl
+        from sitl.sitl import start_vehicle_sitl
 
         gcs, offboard = _free_port(), _free_port()
         config = MavlinkConfig(peers=[PeerConfig("gcs", "127.0.0.1", gcs),
@@ -73,6 +73,8 @@ def bench_loop(args) -> int:
 
     controller = args.controller or default_controller()
     rates = args.rate or [1000.0]
+    load_controllers(controller, rates[0])  # a bad --controller fails here, before the line below
+    print(flying_line(controller), file=sys.stderr)
     results = []
     for rate in rates:
         if not args.json:

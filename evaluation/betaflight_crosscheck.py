@@ -17,7 +17,6 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.metrics import AXES, EvalMetrics, compute_metrics
-from evaluation.traces import Traces, save_traces
 from firmware.controller import RateSetpoint
 from firmware.controllers import load_controller
 from firmware.loop import Command, FlightLoop, TickSample
@@ -29,6 +28,7 @@ from sim_bridge.tasks import episodic_commands
 from sim_bridge.twin import Twin
 from sitl.betaflight import BetaflightFlight, RcMap
 from sitl.betaflight_process import BetaflightError
+from sitl.traces import Traces, save_traces
 
 FCEMU_PRESET = "pid:betaflight"
 TOLERANCE = 0.15

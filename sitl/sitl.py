@@ -18,9 +18,12 @@ import numpy as np
 
 from firmware.controllers import load_controller
 from firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
-from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core
+from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, raise_loop_priority
 
 FALLBACK = "pid"
+# A loop that shares its CPU sleeps between ticks and spins only this last stretch (time.sleep
+# overshoots): spinning through the period would starve the MAVLink processes beside it.
+SHARED_SPIN_US = 300
 
 
 @dataclass
@@ -109,6 +112,19 @@ def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
     return ScriptedCommander(schedule, controller=controller)
 
 
+def flying_line(controller: str) -> str:
+    """One line for the console saying which controller flies and from where."""
+    from firmware.c_policy import is_c_policy_dir
+    from firmware.controllers import DEFAULT_POLICY
+
+    if controller.endswith(".onnx") or is_c_policy_dir(controller):
+        kind = "neural" if controller.endswith(".onnx") else "c_policy"
+        return f"fcemu: flying {kind}:{Path(controller).stem} ({controller})"
+    if controller == "pid" and not DEFAULT_POLICY.exists():
+        return f"fcemu: flying pid (no policy found at {DEFAULT_POLICY})"
+    return f"fcemu: flying {controller}"
+
+
 def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
     """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks."""
     from firmware.c_policy import is_c_policy_dir
@@ -120,7 +136,8 @@ def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
 
 def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, realtime: bool = True,
                commander: Commander | None = None, sinks: Sequence[TelemetrySink] = (),
-               twin_address: tuple[str, int] | None = None, speed: float = 1.0) -> Sitl:
+               twin_address: tuple[str, int] | None = None, speed: float = 1.0,
+               spin_us: int | None = None) -> Sitl:
     from sim_bridge.link import InProcessLink, UdpTwinClient
     from sim_bridge.twin import Twin
 
@@ -131,7 +148,8 @@ def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, real
     else:
         twin, link = None, UdpTwinClient(*twin_address)
     frame = link.reset(seed=0)
-    clock = (RealTimeClock() if speed == 1.0 else ScaledClock(speed)) if realtime else LockstepClock()
+    real = RealTimeClock() if spin_us is None else RealTimeClock(spin_us)
+    clock = (real if speed == 1.0 else ScaledClock(speed)) if realtime else LockstepClock()
     loop = FlightLoop(link, frame, controllers, commander or scripted_flight(rig, selected), clock,
                       rate_hz, sinks, fallback=FALLBACK)
     return Sitl(loop, twin, link, selected)
@@ -167,9 +185,13 @@ class StatusLine:
         sys.stderr.flush()
 
 
-def default_params_file() -> Path:
+GCS_PORT = 14550  # where every instance sends to a ground station, as PX4 SITL does
+OFFBOARD_PORT = 14540  # + the instance: each vehicle's own offboard API peer
+
+
+def default_params_file(instance: int = 0) -> Path:
     base = Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share")
-    return base / "fcemu" / "params.json"
+    return base / "fcemu" / ("params.json" if instance == 0 else f"params-{instance}.json")
 
 
 @dataclass
@@ -192,13 +214,14 @@ class VehicleSitl:
 
 
 def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float | None, config,
-                       explicit_controller: bool = True) -> VehicleSitl:
+                       explicit_controller: bool = True, spin_us: int | None = None) -> VehicleSitl:
     """Build the loop with a `Vehicle` commander and start its MAVLink process (`config`)."""
     from firmware.mavlink.bridge import LinkedVehicle, start_mavlink
     from firmware.params import ParamTable
     from firmware.vehicle import Vehicle
 
-    sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0)
+    sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0,
+                      spin_us=spin_us)
     params = ParamTable()
     pid = getattr(sitl.loop.controllers.get(FALLBACK), "pid", None)
     if pid is not None:  # the loaded preset's gains are the defaults a GCS sees
@@ -227,11 +250,28 @@ def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float |
 def mavlink_config_from_args(args):
     from firmware.mavlink.bridge import MavlinkConfig, parse_peer
 
-    peers = [parse_peer(args.gcs, "gcs"), parse_peer(args.offboard, "offboard")]
+    instance = getattr(args, "instance", 0)
+    peers = [parse_peer(args.gcs or f"127.0.0.1:{GCS_PORT}", "gcs"),
+             parse_peer(args.offboard or f"127.0.0.1:{OFFBOARD_PORT + instance}", "offboard")]
     peers += [parse_peer(p, f"peer{i}") for i, p in enumerate(args.peer or [])]
-    params_file = args.params if args.params is not None else str(default_params_file())
-    return MavlinkConfig(peers=peers, sysid=args.sysid, tlog=args.tlog, signing_key=args.signing_key,
-                         params_file=params_file or None)
+    params_file = args.params if args.params is not None else str(default_params_file(instance))
+    return MavlinkConfig(peers=peers, sysid=args.sysid or 1 + instance, tlog=args.tlog,
+                         signing_key=args.signing_key, params_file=params_file or None)
+
+
+def owns_a_core(instance: int) -> bool:
+    """Instance 0 spins on a CPU of its own, with the others left to its helpers, as long as the
+    machine has two; further instances get one only where CPUs remain for all of them."""
+    return instance == 0 or len(os.sched_getaffinity(0)) >= 2 * (instance + 1)
+
+
+def claim_cpu(helper_pids: Sequence[int], own_core: bool) -> Callable[[], None]:
+    if own_core:
+        return give_loop_a_core(helper_pids)
+    lower, problem = raise_loop_priority()
+    if problem:
+        print(f"fcemu: note: the flight loop runs at normal priority ({problem})", file=sys.stderr)
+    return lower
 
 
 def sitl_command(args) -> int:
@@ -239,23 +279,27 @@ def sitl_command(args) -> int:
 
     controller = args.controller or default_controller()
     speed = parse_speed(args.speed)
+    own_core = owns_a_core(args.instance)
+    spin_us = None if own_core else SHARED_SPIN_US
     vs = None
     if args.no_mavlink:
-        sitl = build_sitl(controller, args.rig, args.rate, realtime=speed is not None, speed=speed or 1.0)
+        sitl = build_sitl(controller, args.rig, args.rate, realtime=speed is not None, speed=speed or 1.0,
+                          spin_us=spin_us)
     else:
         vs = start_vehicle_sitl(controller, args.rig, args.rate, speed, mavlink_config_from_args(args),
-                                explicit_controller=args.controller is not None)
+                                explicit_controller=args.controller is not None, spin_us=spin_us)
         sitl = vs.sitl
         if vs.param_problems:
             from firmware.params import load_warning
 
             print(load_warning(vs.params_file, vs.param_problems), file=sys.stderr)
+    print(flying_line(controller), file=sys.stderr)
     extra = None
     if vs is not None:
         veh = vs.vehicle
         extra = lambda: f"{'ARMED' if veh.armed else 'disarmed'} {veh.mode_name()}"  # noqa: E731
     status = None if args.quiet else StatusLine(sitl.loop, every_s=0.5 if speed else 2.0, extra=extra)
-    release_core = give_loop_a_core([vs.proc.pid] if vs is not None else [])
+    release_core = claim_cpu([vs.proc.pid] if vs is not None else [], own_core)
     try:
         sitl.loop.run(args.duration, on_slack=status)
     except KeyboardInterrupt:

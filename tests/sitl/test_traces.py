@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from evaluation.metrics import compute_metrics
-from evaluation.traces import Traces, TracesError, load_traces, save_traces
+from sitl.traces import Traces, TracesError, load_traces, save_traces
 
 
 def _traces(n: int = 3, steps: int = 50, task: str = "episodic") -> Traces:

@@ -74,14 +74,14 @@ def udp_steps_per_s(args: argparse.Namespace) -> float:
 
 def env_steps_per_s(args: argparse.Namespace) -> float:
     """RateControlEnv.step, one Gymnasium environment (episodic task)"""
-    from sim_bridge.env_bench import env_steps_per_s as measure
+    from benchmarks.env import env_steps_per_s as measure
 
     return measure(seconds=args.seconds)
 
 
 def vec_env_steps_per_s(args: argparse.Namespace) -> float:
     """BatchedRateEnv, aggregate environment steps over --envs twins in one call"""
-    from sim_bridge.env_bench import vec_env_steps_per_s as measure
+    from benchmarks.env import vec_env_steps_per_s as measure
 
     return measure(n_envs=args.envs, seconds=args.seconds)
 
@@ -89,7 +89,7 @@ def vec_env_steps_per_s(args: argparse.Namespace) -> float:
 def sitl_lockstep_ticks_per_s(args: argparse.Namespace) -> float:
     """firmware loop ticks (PID + mixer + twin) in lockstep, as `fcemu sitl --speed max`"""
     from firmware.loop import ScriptedCommander
-    from firmware.sitl import build_sitl
+    from sitl.sitl import build_sitl
 
     sitl = build_sitl("pid", rig="rig", realtime=False,
                       commander=ScriptedCommander([(0.0, (1.0, -1.0, 0.5), 0.7)], controller="pid"))

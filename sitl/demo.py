@@ -1,5 +1,6 @@
-"""`fcemu demo`: the SITL (free rig) flown over MAVLink by examples/pymavlink_flip.py, faster
-than real time; prints a summary and writes a flight plot, the script's log and a .tlog."""
+"""`fcemu demo`: the SITL (free rig) flown over MAVLink by the pymavlink script `sitl.demo_flight`
+(run as its own process, as a GCS would be), faster than real time; prints a summary and writes a
+flight plot, the script's log and a .tlog."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "pymavlink_flip.py"
+FLIGHT_SCRIPT = "sitl.demo_flight"
 
 
 def _free_port() -> int:
@@ -52,19 +53,18 @@ def plot_flight(log_path: Path, out_png: Path, title: str) -> None:
 
 def run_demo(controller: str, speed: float, out: Path, timeout_s: float = 150.0) -> dict:
     from firmware.mavlink.bridge import MavlinkConfig, PeerConfig
-    from firmware.sitl import start_vehicle_sitl
     from firmware.timing import give_loop_a_core
+    from sitl.sitl import flying_line, start_vehicle_sitl
 
-    if not EXAMPLE.exists():
-        raise FileNotFoundError(f"{EXAMPLE} not found: fcemu demo runs from a source checkout")
     out.mkdir(parents=True, exist_ok=True)
     gcs, offboard = _free_port(), _free_port()
     peers = [PeerConfig("gcs", "127.0.0.1", gcs), PeerConfig("offboard", "127.0.0.1", offboard)]
     config = MavlinkConfig(peers=peers, tlog=str(out / "flight.tlog"), params_file=None)
     vs = start_vehicle_sitl(controller, "free", 1000.0, speed, config)
+    print(flying_line(controller), file=sys.stderr)
     log, summary_path = out / "flight.npz", out / "summary.json"
     summary_path.unlink(missing_ok=True)
-    script = subprocess.Popen([sys.executable, str(EXAMPLE), "--connect", f"udpin:127.0.0.1:{gcs}",
+    script = subprocess.Popen([sys.executable, "-m", FLIGHT_SCRIPT, "--connect", f"udpin:127.0.0.1:{gcs}",
                                "--log", str(log), "--summary", str(summary_path),
                                "--timeout", str(timeout_s)], stdout=subprocess.DEVNULL)
     calls = [0]
@@ -102,13 +102,13 @@ def run_demo(controller: str, speed: float, out: Path, timeout_s: float = 150.0)
 
 def demo_command(args) -> int:
     from firmware.controllers import default_controller
-    from firmware.sitl import parse_speed
+    from sitl.sitl import parse_speed
 
     controller = args.controller or default_controller()
     speed = parse_speed(args.speed) or 3.0
     if not args.json:
         print(f"fcemu demo: {Path(controller).name} flying the Iris twin at {speed:g}× real time, "
-              f"driven by {EXAMPLE.name} over MAVLink ...", file=sys.stderr)
+              f"driven by {FLIGHT_SCRIPT} over MAVLink ...", file=sys.stderr)
     result = run_demo(controller, speed, Path(args.out))
     if args.json:
         print(json.dumps(result))

@@ -1,0 +1,1 @@
+"""Benchmarks: every `fcemu bench` figure but `mcu`, and the PID tuning script."""

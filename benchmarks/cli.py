@@ -1,0 +1,46 @@
+"""`fcemu bench sim|loop|inference|train` (argparse only: each bench loads what it measures when it runs).
+
+Every bench lives in this package, one module per bench, whichever layer it measures;
+`fcemu bench mcu` is the C export's and registers from export/cli.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from sitl.cli import loop_rate, seconds
+from training import config
+from training.cli import BENCH_DEFAULTS
+
+
+def register_bench(bench_sub: argparse._SubParsersAction) -> None:
+    sim = bench_sub.add_parser("sim", help="twin, UDP link and environment throughput")
+    sim.add_argument("--seconds", type=float, default=2.0, help="time per measurement")
+    sim.add_argument("--envs", type=int, default=256, help="batch size for the vectorised env")
+    sim.add_argument("--json", action="store_true")
+    sim.set_defaults(handler="benchmarks.sim:bench_sim")
+
+    loop = bench_sub.add_parser("loop", help="real-time loop timing: period error, compute, misses")
+    loop.add_argument("--controller", default=None, help="pid, pid:<preset> or a policy .onnx")
+    loop.add_argument("--seconds", type=seconds, default=10.0)
+    loop.add_argument("--rate", type=loop_rate, action="append",
+                      help="loop rate in Hz (repeat to compare rates; default 1000)")
+    loop.add_argument("--rig", choices=("free", "rig"), default="rig")
+    loop.add_argument("--mavlink", action="store_true",
+                      help="also run with MAVLink telemetry streaming and a peer sending setpoints at 100 Hz")
+    loop.add_argument("--json", action="store_true")
+    loop.set_defaults(handler="benchmarks.loop:bench_loop")
+
+    inference = bench_sub.add_parser("inference", help="ONNX policy inference time per tick")
+    inference.add_argument("--model", default=None, help="a policy .onnx (default: the shipped policy)")
+    inference.add_argument("--samples", type=int, default=20_000)
+    inference.add_argument("--json", action="store_true")
+    inference.set_defaults(handler="benchmarks.inference:bench_inference")
+
+    p = bench_sub.add_parser("train", help="training steps/s and wall time until the policy beats the PID")
+    config.add_arguments(p, exclude=("eval_seed", "export", "progress"), defaults=BENCH_DEFAULTS)
+    p.add_argument("--max-minutes", type=float, default=15.0, help="cap on the race against the PID")
+    p.add_argument("--target", choices=("beat", "bar"), default="beat",
+                   help="stop when the Error sum beats the PID's (beat) or meets issue 5's bar (bar)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler="benchmarks.train:bench_train")
