@@ -33,6 +33,7 @@ from sim_bridge.tasks import (
     HOLD_S,
     OMEGA_MAX,
     REST_S,
+    TRAINING_TASKS,
     draw_throttle,
     episodic_setpoint,
     pulse_schedule,
@@ -40,7 +41,7 @@ from sim_bridge.tasks import (
 )
 from sim_bridge.twin import SensorNoise, Twin
 
-TASKS = ("episodic", "continuous")
+TASKS = TRAINING_TASKS
 RANDOMIZE_KEYS = ("mass", "inertia", "kf", "km")  # also the draw order
 DEFAULT_EPISODE_S = {"episodic": 1.0, "continuous": 10.0}
 

@@ -72,11 +72,12 @@ class Randomization:
     def __len__(self) -> int:
         return len(self.parameters)
 
-    def __getitem__(self, key: str) -> ParameterRange:
+    def parameter(self, key: str) -> ParameterRange:
+        """The range of file key `key` (e.g. "inertia_xx")."""
         for p in self.parameters:
             if p.key == key:
                 return p
-        raise KeyError(key)
+        raise KeyError(f"no range for {key!r}; the file has {[p.key for p in self.parameters]}")
 
     def _ordered(self) -> list[ParameterRange]:
         order = list(PARAMETERS)

@@ -51,8 +51,9 @@ def test_perturbed_airframes_are_seeded_differ_from_nominal_and_stay_in_range():
     iris = load_airframe("iris")
     for x in a:
         assert x.airframe.mass != iris.mass and x.airframe.motor.kf != iris.motor.kf
-        assert ranges["mass"].lo <= x.airframe.mass <= ranges["mass"].hi
-        assert ranges["tau_down"].lo <= x.airframe.motor.tau_down <= ranges["tau_down"].hi
+        mass, tau_down = ranges.parameter("mass"), ranges.parameter("tau_down")
+        assert mass.lo <= x.airframe.mass <= mass.hi
+        assert tau_down.lo <= x.airframe.motor.tau_down <= tau_down.hi
     assert len({x.airframe.motor.tau_up for x in a}) == 5
     with pytest.raises(ValueError, match="at least one airframe"):
         perturbed_airframes(ranges, 0, 1)

@@ -83,7 +83,7 @@ def test_draws_are_reproducible_by_seed_and_within_range():
                   "tau_down": f["tau_down"], "inertia_xx": f["inertia"][0], "inertia_yy": f["inertia"][1],
                   "inertia_zz": f["inertia"][2]}
         for key, factor in values.items():
-            p = ranges[key]
+            p = ranges.parameter(key)
             assert p.lo <= factor * p.nominal <= p.hi, key
 
 
