@@ -9,7 +9,7 @@ follow. No controller, learned or not, does better on the ball-joint twin, becau
 constraint below holds for every trajectory the twin can fly (tests/evaluation/test_bound.py
 checks this against trajectories flown by the twin itself):
 
-- Rotor speed ωᵢ (twin.py's first-order lag): from 0 at t = 0,
+- Rotor speed ωᵢ (`sim_bridge.plant.MotorModel`'s first-order lag, the twin's): from 0 at t = 0,
   (1 − a_down)·ωᵢ(k−1) ≤ ωᵢ(k) ≤ ωᵢ(k−1) + a_up·(ω_max − ωᵢ(k−1)), 0 ≤ ωᵢ ≤ ω_max.
 - Thrust Tᵢ = k_F·ωᵢ², relaxed to its convex hull on the speeds reachable by step k
   (tangent cuts below, the secant k_F·W_k·ωᵢ above, W_k the fastest spin-up's speed), plus
@@ -53,7 +53,7 @@ TANGENTS = np.linspace(0.1, 1.0, 10)  # fractions of ω_max where k_F·ω² is c
 class RigConstants:
     B: np.ndarray  # (3, 4) FRD rad/s² per newton of each motor's thrust
     inertia: np.ndarray  # (3,) the rig's principal moments (kg·m², diagonal mass matrix)
-    kf: float
+    kf: float  # the motor model's (sim_bridge.plant.MotorModel)
     w_max: float
     a_up: float
     a_down: float
@@ -75,9 +75,8 @@ def rig_constants(airframe: str = "iris", dt: float = 0.001) -> RigConstants:
     mujoco.mj_fullM(m, d, M)
     if np.abs(M - np.diag(np.diag(M))).max() > 1e-12:
         raise ValueError("the rig's mass matrix is not diagonal; the gyroscopic estimate assumes it is")
-    mo = af.motor
-    return RigConstants(B, np.diag(M).copy(), mo.kf, mo.max_rotor_speed, 1.0 - np.exp(-dt / mo.tau_up),
-                        1.0 - np.exp(-dt / mo.tau_down), dt)
+    mo = twin.motors
+    return RigConstants(B, np.diag(M).copy(), mo.kf, mo.max_rotor_speed, mo.alpha_up, mo.alpha_down, dt)
 
 
 class ErrorBound:

@@ -124,7 +124,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     `airframe` replaces the nominal Iris (e.g. a perturbed one); its hover throttle is flown
     unless `cfg.throttle` is set.
     """
-    controllers = {"main": load_controller(spec)}
+    controllers = {"main": load_controller(spec, cfg.rate_hz)}
     neural = not spec.startswith("pid")
     if neural:
         controllers[FALLBACK] = load_controller(FALLBACK)

@@ -10,7 +10,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import traceback
 from collections.abc import Sequence
+from typing import NoReturn
 
 from fcemu import __version__
 
@@ -18,9 +20,20 @@ from fcemu import __version__
 _COMMAND_MODULES = ("firmware.cli", "sim_bridge.cli", "training.cli", "export.cli", "evaluation.cli")
 
 
+USAGE_ERROR = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with its errors on one line, as every other user error (subcommands inherit it)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(USAGE_ERROR, f"fcemu: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fcemu", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="fcemu", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"fcemu {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     bench = sub.add_parser("bench", help="throughput and timing-budget figures")
     bench_sub = bench.add_subparsers(dest="bench", required=True, metavar="WHAT")
@@ -38,14 +51,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 500 else f"{text[:499]}…"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    from firmware.errors import UserError
+
     args = build_parser().parse_args(argv)
     module_name, func_name = args.handler.split(":")
-    handler = getattr(importlib.import_module(module_name), func_name)
     try:
+        handler = getattr(importlib.import_module(module_name), func_name)
         return int(handler(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except (UserError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+        if args.debug:
+            traceback.print_exc()
+        print(f"fcemu: error: {_one_line(exc)}", file=sys.stderr)
+        return USAGE_ERROR
 
 
 if __name__ == "__main__":

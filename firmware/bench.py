@@ -57,10 +57,9 @@ def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "ri
             "controller_faults": sum(sitl.loop.faults.values()), **extra}
 
 
-def _line(r: dict) -> str:
+def _line(r: dict, tag: str = "         ") -> str:
     pe, cu = r["period_error_us"], r["compute_us"]
     miss_pct = 100.0 * r["deadline_misses"] / max(r["ticks"], 1)
-    tag = " +mavlink" if "mavlink" in r else "         "
     return (f"{r['rate_hz']:6.0f} Hz{tag}  ticks {r['ticks']:7d}  misses {r['deadline_misses']:5d} "
             f"({miss_pct:.3f}%)  period error µs p50/p99/p99.9/max {pe['p50']:.0f}/{pe['p99']:.0f}/"
             f"{pe['p999']:.0f}/{pe['max']:.0f}  compute µs {cu['p50']:.0f}/{cu['p99']:.0f}/"
@@ -68,22 +67,35 @@ def _line(r: dict) -> str:
 
 
 def bench_loop(args) -> int:
+    """One JSON object per run: the loop's figures, and with --mavlink the same figures measured
+    with MAVLink under "mavlink" (with the link's counters); several --rate: {"runs": [...]}."""
     from firmware.controllers import default_controller
 
     controller = args.controller or default_controller()
     rates = args.rate or [1000.0]
     results = []
     for rate in rates:
-        for with_mavlink in (False, True) if getattr(args, "mavlink", False) else (False,):
+        if not args.json:
+            print(f"running {controller} at {rate:.0f} Hz for {args.seconds:g} s ...", file=sys.stderr)
+        result = measure_loop(controller, args.seconds, rate, args.rig, False)
+        if getattr(args, "mavlink", False):
             if not args.json:
-                print(f"running {controller} at {rate:.0f} Hz for {args.seconds:g} s"
-                      f"{' with MAVLink' if with_mavlink else ''} ...", file=sys.stderr)
-            results.append(measure_loop(controller, args.seconds, rate, args.rig, with_mavlink))
+                print(f"running {controller} at {rate:.0f} Hz for {args.seconds:g} s with MAVLink ...",
+                      file=sys.stderr)
+            with_mavlink = measure_loop(controller, args.seconds, rate, args.rig, True)
+            link = with_mavlink.pop("mavlink")
+            for key in ("rate_hz", "seconds", "controller"):
+                with_mavlink.pop(key)
+            result["mavlink"] = {**with_mavlink, **link}
+        results.append(result)
     if args.json:
-        print(json.dumps(results[0] if len(results) == 1 else results))
+        print(json.dumps(results[0] if len(results) == 1 else {"runs": results}))
         return 0
     for r in results:
         print(_line(r))
         if "mavlink" in r:
-            print(f"          MAVLink: {r['mavlink']}")
+            m = r["mavlink"]
+            print(_line({**m, "rate_hz": r["rate_hz"]}, " +mavlink"))
+            counters = {k: m[k] for k in ("armed", "mode", "ipc_dropped", "rx_frames", "tx_frames")}
+            print(f"          MAVLink: {counters}")
     return 0

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from firmware.contract import PolicyContract
 from firmware.controller import RateSetpoint
 from firmware.neural import PolicyContractError, PolicyOutputError
 from firmware.sensors import SensorFrame
@@ -37,10 +38,8 @@ class CPolicyController:
             raise PolicyContractError(f"{self.path}: no {LIBRARY} and {CONTRACT}; write them with "
                                       f"`fcemu export POLICY.onnx --target c --out {self.path}`")
         self.metadata: dict[str, str] = json.loads(contract_path.read_text())["metadata"]
-        trained_rate = float(self.metadata["loop_rate_hz"])
-        if loop_rate_hz is not None and abs(trained_rate - loop_rate_hz) > 1e-6:
-            raise PolicyContractError(f"{self.path}: trained for a {trained_rate:.0f} Hz loop, asked to run "
-                                      f"at {loop_rate_hz:.0f} Hz")
+        contract = PolicyContract.from_metadata(self.metadata, str(self.path), loop_rate_hz)
+        trained_rate = contract.loop_rate_hz
         try:
             self._lib = ctypes.CDLL(str(lib_path.resolve()))
         except OSError as exc:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 
 def _speed(text: str) -> str:
@@ -15,11 +16,44 @@ def _speed(text: str) -> str:
     return text
 
 
+def _loop_rate(text: str) -> float:
+    try:
+        rate = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(rate) or not 0 < rate <= 100_000 or 1e6 % rate:
+        raise argparse.ArgumentTypeError(f"{text!r}: the loop rate must divide one second into whole "
+                                         "microseconds (e.g. 500, 1000, 2000)")
+    return rate
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds >= 0")
+    return value
+
+
+def _peer(text: str) -> str:
+    from firmware.mavlink.bridge import parse_peer
+
+    try:
+        parse_peer(text, "peer")
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def add_mavlink_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("MAVLink")
-    g.add_argument("--gcs", default="127.0.0.1:14550", help="ground station peer host:port[:signed]")
-    g.add_argument("--offboard", default="127.0.0.1:14540", help="offboard API peer host:port[:signed]")
-    g.add_argument("--peer", action="append", help="another peer host:port[:signed] (repeatable)")
+    g.add_argument("--gcs", type=_peer, default="127.0.0.1:14550",
+                   help="ground station peer host:port[:signed]")
+    g.add_argument("--offboard", type=_peer, default="127.0.0.1:14540",
+                   help="offboard API peer host:port[:signed]")
+    g.add_argument("--peer", type=_peer, action="append", help="another peer host:port[:signed] (repeatable)")
     g.add_argument("--sysid", type=int, default=1, choices=range(1, 256), metavar="1..255")
     g.add_argument("--tlog", default=None, help="record every frame in and out to this .tlog")
     g.add_argument("--signing-key", default=None,
@@ -36,8 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     sitl.add_argument("--rig", choices=("free", "rig"), default="free")
     sitl.add_argument("--speed", type=_speed, default="realtime",
                       help="realtime, max (lockstep, as fast as it goes) or N for N× real time")
-    sitl.add_argument("--duration", type=float, default=None, help="seconds of flight (default: forever)")
-    sitl.add_argument("--rate", type=float, default=1000.0, help="loop rate in Hz")
+    sitl.add_argument("--duration", type=_seconds, default=None, help="seconds of flight (default: forever)")
+    sitl.add_argument("--rate", type=_loop_rate, default=1000.0, help="loop rate in Hz")
     sitl.add_argument("--quiet", action="store_true", help="no live status line")
     sitl.add_argument("--no-mavlink", action="store_true", help="fly the scripted doublets, no MAVLink")
     add_mavlink_options(sitl)
@@ -54,8 +88,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     loop = bench_sub.add_parser("loop", help="real-time loop timing: period error, compute, misses")
     loop.add_argument("--controller", default=None, help="pid, pid:<preset> or a policy .onnx")
-    loop.add_argument("--seconds", type=float, default=10.0)
-    loop.add_argument("--rate", type=float, action="append",
+    loop.add_argument("--seconds", type=_seconds, default=10.0)
+    loop.add_argument("--rate", type=_loop_rate, action="append",
                       help="loop rate in Hz (repeat to compare rates; default 1000)")
     loop.add_argument("--rig", choices=("free", "rig"), default="rig")
     loop.add_argument("--mavlink", action="store_true",

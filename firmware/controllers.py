@@ -1,12 +1,17 @@
-"""Controllers by name: `pid` (the Iris tune), `pid:<preset>`, or a path to an ONNX policy."""
+"""Controllers by name: `pid` (the Iris tune), `pid:<preset>`, an ONNX policy, or an exported C policy."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from firmware.controller import RateController
+from firmware.errors import UserError
 
 DEFAULT_POLICY = Path(__file__).resolve().parent.parent / "policies" / "iris_rate_ppo.onnx"
+
+
+class ControllerSpecError(UserError, ValueError):
+    """A --controller that names no controller."""
 
 
 def default_controller() -> str:
@@ -14,17 +19,22 @@ def default_controller() -> str:
     return str(DEFAULT_POLICY) if DEFAULT_POLICY.exists() else "pid"
 
 
-def load_controller(spec: str) -> RateController:
+def load_controller(spec: str, loop_rate_hz: float | None = None) -> RateController:
+    """`loop_rate_hz`: the rate the loop will run it at; a policy trained for another rate is refused."""
     if spec == "pid" or spec.startswith("pid:"):
         from firmware.pid_controller import PIDRateController
 
-        return PIDRateController.from_preset(spec.partition(":")[2] or "iris")
+        try:
+            return PIDRateController.from_preset(spec.partition(":")[2] or "iris")
+        except (ValueError, KeyError, TypeError) as exc:  # an unknown preset or a preset file that is not one
+            raise ControllerSpecError(f"controller {spec!r}: {exc}") from exc
     if spec.endswith(".onnx"):
         from firmware.neural import NeuralRateController
 
-        return NeuralRateController(spec)
+        return NeuralRateController(spec, loop_rate_hz=loop_rate_hz)
     from firmware.c_policy import CPolicyController, is_c_policy_dir
 
     if is_c_policy_dir(spec):  # a directory written by `fcemu export --target c`
-        return CPolicyController(spec)
-    raise ValueError(f"unknown controller {spec!r}: use pid, pid:<preset> or a .onnx file")
+        return CPolicyController(spec, loop_rate_hz=loop_rate_hz)
+    raise ControllerSpecError(f"unknown controller {spec!r}: use pid, pid:<preset>, a .onnx file "
+                              "or a directory from `fcemu export --target c`")

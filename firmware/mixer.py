@@ -19,13 +19,18 @@ so one setpoint means the same collective to both and hover is (hover_pwm − 10
 Armed outputs never go below the idle output (Betaflight's dshot_idle_value, or GymFC's
 minthrottle 1070 µs = 7%); Betaflight's saturation arithmetic runs in its own output
 space [idle, 2000] µs = [0, 1], into which the throttle is converted first.
+
+The neural controller's `throttle` mapping (firmware/action.py) fits its differential the
+same way in exact arithmetic, but not in floating point: Betaflight keeps 0 inside the
+mix bounds (any table, not only zero-sum ones), clamps the throttle with a conditional
+whose order differs from min(max()) when the scaled range rounds past 1, clips in µs after
+the idle offset, and fades authority without airmode. Sharing one routine would move
+the PID's or the policy's outputs by an ulp in those cases, so each keeps its own.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-
-import numpy as np
 
 MixTable = tuple[tuple[float, float, float], ...]
 
@@ -131,6 +136,3 @@ class QuadXMixer:
             v = low + span * (m[i] * scale + t)
             out[i] = low if v < low else top if v > top else v
         return out
-
-    def mix_array(self, demand: Sequence[float], throttle: float) -> np.ndarray:
-        return np.array(self.mix(demand, throttle))

@@ -3,7 +3,7 @@
 The model carries its contract in metadata (written by `fcemu export`): the observation
 spec, the action mapping and the loop rate it was trained at. The firmware builds the
 observation with `firmware.observation` from that spec and refuses a model whose
-contract it cannot honour, with a message that says what differs.
+contract (`firmware.contract`) it cannot honour, with a message that says what differs.
 
 Containment, as documented for users: actions are clipped to [-1, 1] as in training; a
 non-finite action raises `PolicyOutputError`, and the flight loop hands that tick to
@@ -20,17 +20,13 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from firmware.action import ACTION_MAPPINGS, action_to_pwm, throttle_pwm_one
+from firmware.action import action_to_pwm
+from firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
 from firmware.controller import RateSetpoint
-from firmware.observation import FIELDS, OBS_VERSION, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import ObservationHistory, observe_step
 from firmware.sensors import SensorFrame
 
-META_PREFIX = "fcemu."
-REQUIRED_META = ("observation", "action_mapping", "loop_rate_hz")
-
-
-class PolicyContractError(ValueError):
-    """The ONNX file is not a policy this firmware can fly."""
+__all__ = ["META_PREFIX", "NeuralRateController", "PolicyContractError", "PolicyOutputError", "read_metadata"]
 
 
 class PolicyOutputError(RuntimeError):
@@ -45,6 +41,11 @@ def read_metadata(path: str | Path) -> dict[str, str]:
 def _fcemu_metadata(session: ort.InferenceSession) -> dict[str, str]:
     raw = session.get_modelmeta().custom_metadata_map
     return {k[len(META_PREFIX):]: v for k, v in raw.items() if k.startswith(META_PREFIX)}
+
+
+def _first_line(exc: BaseException, limit: int = 200) -> str:
+    text = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+    return text if len(text) <= limit else f"{text[:limit - 1]}…"
 
 
 def _session(path: Path) -> ort.InferenceSession:
@@ -66,58 +67,44 @@ class NeuralRateController:
         try:
             self._session = _session(self.path)
         except Exception as exc:  # onnxruntime raises several unrelated types for a bad file
-            raise PolicyContractError(f"{self.path}: not a loadable ONNX model ({exc})") from exc
+            raise PolicyContractError(f"{self.path}: not a loadable ONNX model ({_first_line(exc)})") from exc
         self.metadata = _fcemu_metadata(self._session)
-        self.spec, self.action_mapping, self.trained_rate_hz = self._check_contract(loop_rate_hz)
+        self.contract = PolicyContract.from_metadata(self.metadata, str(self.path), loop_rate_hz)
+        self.contract.check_graph(self._session.get_inputs(), self._session.get_outputs(), str(self.path))
+        self.spec, self.action_mapping = self.contract.observation, self.contract.action_mapping
+        self.trained_rate_hz = self.contract.loop_rate_hz
+        self._input_name = self._session.get_inputs()[0].name
+        self._output_name = self._session.get_outputs()[0].name
         self.name = f"neural:{self.path.stem}"
-        self._history = ObservationHistory(self.spec)
+        # One vehicle is a batch of one: the step and the history are preallocated and the
+        # history's buffer is bound as the model's input, so a tick allocates next to nothing.
+        self._history = ObservationHistory(self.spec, (1,))
         self._fresh = True
-        # The shipped spec (m = 1, rate error + rotor speeds) skips the general path's array
-        # building: each tick's numpy calls on 3- and 4-vectors cost more than the model.
-        self._direct = self.spec.memory == 1 and self.spec.fields == FIELDS
-        self._input = np.zeros((1, self.spec.size), dtype=np.float32)
+        self._step = self._history.staging
+        self._step_values = self._step.reshape(-1)  # a view of the same memory
         self._output = np.zeros((1, 4), dtype=np.float32)
-        self._binding = self._session.io_binding()
-        self._binding.bind_cpu_input(self._input_name, self._input)
-        self._binding.bind_output(self._output_name, "cpu", element_type=np.float32, shape=(1, 4),
-                                  buffer_ptr=self._output.ctypes.data)
+        self._binding = self._bind(self._history.view)
+        self._infer_input = np.zeros((1, self.spec.size), dtype=np.float32)
+        self._infer_binding = self._bind(self._infer_input)
+        self._probe()
 
-    def _check_contract(self, loop_rate_hz: float | None) -> tuple[ObservationSpec, str, float]:
-        where = str(self.path)
-        missing = [k for k in REQUIRED_META if k not in self.metadata]
-        if missing:
-            raise PolicyContractError(
-                f"{where}: metadata lacks {', '.join(META_PREFIX + k for k in missing)}; "
-                "export policies with `fcemu export`")
+    def _bind(self, observation: np.ndarray) -> ort.IOBinding:
+        binding = self._session.io_binding()
+        binding.bind_cpu_input(self._input_name, observation)
+        binding.bind_output(self._output_name, "cpu", element_type=np.float32, shape=(1, 4),
+                            buffer_ptr=self._output.ctypes.data)
+        return binding
+
+    def _probe(self) -> None:
+        """Run the model once on observations from its flight range: it must run and answer in range."""
+        probe = self.contract.probe_observations()
+        actions = np.empty((len(probe), 4))
         try:
-            spec = ObservationSpec.from_json(self.metadata["observation"])
-        except (ValueError, TypeError, KeyError) as exc:
-            raise PolicyContractError(f"{where}: observation spec not understood ({exc})") from exc
-        if spec.version != OBS_VERSION:
-            raise PolicyContractError(f"{where}: observation version {spec.version}, this firmware "
-                                      f"builds version {OBS_VERSION}")
-        mapping = self.metadata["action_mapping"]
-        if mapping not in ACTION_MAPPINGS:
-            raise PolicyContractError(
-                f"{where}: action mapping {mapping!r} unknown (known: {ACTION_MAPPINGS})")
-        inputs, outputs = self._session.get_inputs(), self._session.get_outputs()
-        if len(inputs) != 1 or len(outputs) < 1:
-            raise PolicyContractError(f"{where}: expected one input and one output, found "
-                                      f"{len(inputs)} and {len(outputs)}")
-        in_shape, out_shape = inputs[0].shape, outputs[0].shape
-        if len(in_shape) != 2 or in_shape[1] != spec.size:
-            raise PolicyContractError(f"{where}: input shape {in_shape} does not match the observation "
-                                      f"spec (batch, {spec.size}) = memory {spec.memory} × {spec.step_size}")
-        if len(out_shape) != 2 or out_shape[1] != 4:
-            raise PolicyContractError(f"{where}: output shape {out_shape}, expected (batch, 4) motor actions")
-        if inputs[0].type != "tensor(float)" or outputs[0].type != "tensor(float)":
-            raise PolicyContractError(f"{where}: input/output must be float32 tensors")
-        trained_rate = float(self.metadata["loop_rate_hz"])
-        if loop_rate_hz is not None and abs(trained_rate - loop_rate_hz) > 1e-6:
-            raise PolicyContractError(f"{where}: trained for a {trained_rate:.0f} Hz loop, asked to run at "
-                                      f"{loop_rate_hz:.0f} Hz")
-        self._input_name, self._output_name = inputs[0].name, outputs[0].name
-        return spec, mapping, trained_rate
+            for i, obs in enumerate(probe):  # one at a time, through the binding the loop uses
+                actions[i] = self.infer(obs)
+        except Exception as exc:  # onnxruntime raises several unrelated types for a graph that cannot run
+            raise PolicyContractError(f"{self.path}: the model does not run ({_first_line(exc)})") from exc
+        self.contract.check_outputs(actions, str(self.path))
 
     def describe(self) -> dict[str, object]:
         meta = {k: v for k, v in self.metadata.items() if k != "observation"}
@@ -127,46 +114,22 @@ class NeuralRateController:
         self._fresh = True
 
     def infer(self, observation: np.ndarray) -> np.ndarray:
-        """Raw policy output for one observation (no clipping, no checks)."""
-        self._input[0] = observation
-        self._session.run_with_iobinding(self._binding)
+        """Raw policy output for one observation (no clipping, no checks); the history is kept."""
+        self._infer_input[0] = observation
+        self._session.run_with_iobinding(self._infer_binding)
         return self._output[0]
 
     def update(self, setpoint: RateSetpoint, frame: SensorFrame, dt: float) -> np.ndarray:
-        if self._direct:
-            return self._update_direct(setpoint, frame)
-        step = observe_step(self.spec, setpoint.rates, frame.gyro, frame.rotor_speed)
-        if not np.isfinite(step).all():  # the step holds every input the policy reads
+        observe_step(self.spec, setpoint.rates, frame.gyro, frame.rotor_speed, out=self._step_values)
+        if not all(map(math.isfinite, self._step_values.tolist())):  # the step holds every input read
             raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
         if self._fresh:
-            obs = self._history.reset(step)
+            self._history.start(self._step)
             self._fresh = False
         else:
-            obs = self._history.push(step)
-        action = self.infer(obs)
-        if not np.isfinite(action).all():
-            raise PolicyOutputError(f"policy output {action} is not finite")
-        return self._pwm(action, setpoint.throttle)
-
-    def _pwm(self, action: np.ndarray, throttle: float) -> np.ndarray:
-        if self.action_mapping == "throttle":
-            return throttle_pwm_one(action, throttle)
-        return action_to_pwm(self.action_mapping, action, throttle)
-
-    def _update_direct(self, setpoint: RateSetpoint, frame: SensorFrame) -> np.ndarray:
-        """`update` for m = 1 and the default fields, in plain floats written straight into
-        the bound input buffer: `observe_step`'s float64 operations in the same order, rounded
-        to float32 on the store, so the model sees bit for bit what training produced."""
-        spec = self.spec
-        sp, gyro, rotor = setpoint.rates.tolist(), frame.gyro.tolist(), frame.rotor_speed.tolist()
-        rs, ws = spec.rate_scale, spec.rotor_speed_scale
-        values = [(sp[0] - gyro[0]) * rs, (sp[1] - gyro[1]) * rs, (sp[2] - gyro[2]) * rs,
-                  rotor[0] * ws, rotor[1] * ws, rotor[2] * ws, rotor[3] * ws]
-        if not all(map(math.isfinite, values)):
-            raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
-        self._input[0] = values
+            self._history.record(self._step)
         self._session.run_with_iobinding(self._binding)
         action = self._output[0]
         if not all(map(math.isfinite, action.tolist())):
             raise PolicyOutputError(f"policy output {action} is not finite")
-        return self._pwm(action, setpoint.throttle)
+        return action_to_pwm(self.action_mapping, action, setpoint.throttle)

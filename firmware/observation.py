@@ -1,30 +1,58 @@
-"""The neural controller's observation: one definition for training and for flight.
+"""The neural controller's observation: one definition for training, flight and export.
 
 The GymFC observation (Koch et al. 2018): the rate error e = Ω* − Ω (3) and the rotor
 speeds (4) for the last `memory` steps, newest first. Optional field
 `rate_error_integral` (3): a leaky integral of the scaled rate error,
 I_k = λ·I_{k−1} + (1 − λ)·e_k with I = (1 − λ)·e_0 at the episode start; a policy with
 m = 1 has no other memory, so it cannot remove a steady offset the way a PID's I term
-does. `observe_step` puts e_k in those columns and `ObservationHistory` integrates them,
-so it is the one owner of the integrator state. `sim_bridge.env` trains on
-exactly this code and `firmware.neural` feeds it to the ONNX model; the spec travels in
-the model's metadata and the firmware refuses a model whose spec differs.
+does. The spec travels in the model's metadata and the firmware refuses a model whose
+spec differs.
 
-Every function takes arrays with any leading batch shape, so the batched environment
-and the single flight controller share the arithmetic.
+`FIELD_DEFS` declares each field (its source signal, the spec's scale for it, whether it
+is integrated) and `ObservationSpec.column_sources`/`column_scales` flatten it per column;
+`observe_step` and `ObservationHistory` compute from that, and a generator of C code can
+read the same table. One formula serves one vehicle (plain floats, written into a
+preallocated batch of one: numpy's per-call overhead on 3-vectors would cost more than
+the model) and a batch (arrays with any leading shape), with the same IEEE operations.
 """
 
 from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass
+from functools import cached_property
+from operator import itemgetter, mul
 
 import numpy as np
 
 OBS_VERSION = 1
 FIELDS = ("rate_error", "rotor_speed")  # the default; the shipped policy's spec
-FIELD_SIZES = {"rate_error": 3, "rotor_speed": 4, "rate_error_integral": 3}
 INTEGRAL = "rate_error_integral"
+# The signals a field can read, as columns of one source vector: the rate error
+# setpoint − gyro (rad/s, FRD), then the rotor speeds (rad/s, motor order).
+SOURCE_COLUMNS = {"rate_error": (0, 1, 2), "rotor_speed": (3, 4, 5, 6)}
+
+_FLOAT64 = np.dtype(np.float64)
+
+
+@dataclass(frozen=True)
+class FieldDef:
+    """One observation field: `source` times the spec's `scale` attribute, float32."""
+
+    source: str
+    scale: str
+    integrated: bool = False  # leaky-integrated over steps by `ObservationHistory`
+
+    @property
+    def size(self) -> int:
+        return len(SOURCE_COLUMNS[self.source])
+
+
+FIELD_DEFS: dict[str, FieldDef] = {
+    "rate_error": FieldDef("rate_error", "rate_scale"),
+    "rotor_speed": FieldDef("rotor_speed", "rotor_speed_scale"),
+    INTEGRAL: FieldDef("rate_error", "rate_scale", integrated=True),
+}
 
 
 @dataclass(frozen=True)
@@ -39,7 +67,7 @@ class ObservationSpec:
     def __post_init__(self) -> None:
         if self.memory < 1:
             raise ValueError(f"memory must be >= 1, got {self.memory}")
-        unknown = set(self.fields) - set(FIELD_SIZES)
+        unknown = set(self.fields) - set(FIELD_DEFS)
         if unknown:
             raise ValueError(f"unknown observation fields {sorted(unknown)}")
         if len(set(self.fields)) != len(self.fields):
@@ -49,22 +77,43 @@ class ObservationSpec:
 
     @property
     def step_size(self) -> int:
-        return sum(FIELD_SIZES[f] for f in self.fields)
+        return sum(FIELD_DEFS[f].size for f in self.fields)
 
     @property
     def size(self) -> int:
         return self.step_size * self.memory
 
+    @cached_property
+    def layout(self) -> tuple[tuple[slice, FieldDef, float], ...]:
+        """Per field in order: its columns within one step, its definition, its scale."""
+        out, start = [], 0
+        for name in self.fields:
+            d = FIELD_DEFS[name]
+            out.append((slice(start, start + d.size), d, float(getattr(self, d.scale))))
+            start += d.size
+        return tuple(out)
+
+    @cached_property
+    def column_sources(self) -> tuple[int, ...]:
+        """Per column of one step: the source-vector column it reads."""
+        return tuple(c for _, d, _ in self.layout for c in SOURCE_COLUMNS[d.source])
+
+    @cached_property
+    def column_scales(self) -> tuple[float, ...]:
+        """Per column of one step: the scale its source is multiplied by."""
+        return tuple(scale for _, d, scale in self.layout for _ in SOURCE_COLUMNS[d.source])
+
+    @cached_property
+    def _pick_sources(self) -> itemgetter:
+        return itemgetter(*self.column_sources)
+
     def integral_slice(self) -> slice | None:
         """The integral's columns within one step, or None without the field."""
-        if INTEGRAL not in self.fields:
-            return None
-        start = sum(FIELD_SIZES[f] for f in self.fields[:self.fields.index(INTEGRAL)])
-        return slice(start, start + FIELD_SIZES[INTEGRAL])
+        return next((cols for cols, d, _ in self.layout if d.integrated), None)
 
     def to_json(self) -> str:
         raw = asdict(self)
-        if INTEGRAL not in self.fields:  # specs without the integral serialise as before it existed
+        if INTEGRAL not in self.fields:  # specs without the integral serialise without its leak
             del raw["integral_leak"]
         return json.dumps(raw, sort_keys=True)
 
@@ -76,59 +125,93 @@ class ObservationSpec:
 
 
 def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
-                 rotor_speed: np.ndarray) -> np.ndarray:
-    """One step's features, (..., step_size) float32, in `spec.fields` order."""
-    error = (setpoint - gyro) * spec.rate_scale
-    parts = {
-        "rate_error": error,
-        "rotor_speed": rotor_speed * spec.rotor_speed_scale,
-        INTEGRAL: error,  # the integrator's input; `ObservationHistory` integrates it
-    }
-    return np.concatenate([parts[f] for f in spec.fields], axis=-1).astype(np.float32)
+                 rotor_speed: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """One step's features, (..., step_size) float32, into `out` if given (any shape that
+    holds them, e.g. a batch of one): each field's source times its scale, in the inputs'
+    precision. An integrated field holds the integrator's input, the scaled error;
+    `ObservationHistory` integrates it.
+
+    One float64 vehicle runs on plain floats, column by column from the flattened table
+    (numpy's per-call overhead on 3-vectors would cost more than the model each tick);
+    anything else runs on arrays, field by field. The products are the same either way.
+    """
+    # `is`: numpy's float64 descriptor is one object; an equal one that is not takes the array path.
+    if setpoint.dtype is gyro.dtype is rotor_speed.dtype is _FLOAT64 and setpoint.ndim == gyro.ndim == 1:
+        s, g = setpoint.tolist(), gyro.tolist()
+        sources = [s[0] - g[0], s[1] - g[1], s[2] - g[2], *rotor_speed.tolist()]
+        values = list(map(mul, spec._pick_sources(sources), spec.column_scales))  # loops in C
+        if out is None:
+            return np.array(values, dtype=np.float32)
+        out[...] = values  # rounds each float64 to float32, as astype does
+        return out
+    sources = {"rate_error": np.subtract(setpoint, gyro), "rotor_speed": rotor_speed}
+    values = np.concatenate([sources[d.source] * scale for _, d, scale in spec.layout], axis=-1)
+    if out is None:
+        return values.astype(np.float32)
+    out[...] = values
+    return out
 
 
 class ObservationHistory:
     """The last `memory` steps, newest first, for one vehicle or a batch of them.
 
-    With `rate_error_integral` in the spec it also keeps the integrator state, one per
-    batch row, and writes it into each step it stores.
+    With an integrated field in the spec it also keeps the integrator state, one per batch
+    row, and writes it into each step it stores. `view` is the observation batch itself
+    (…, size), updated in place: flight binds it as the model's input; `reset` and `push`
+    return copies of it.
     """
 
     def __init__(self, spec: ObservationSpec, batch_shape: tuple[int, ...] = ()) -> None:
         self.spec = spec
         self._buf = np.zeros((*batch_shape, spec.memory, spec.step_size), dtype=np.float32)
+        self.view = self._buf.reshape(*batch_shape, spec.size)
+        self._newest = self._buf[..., 0, :]
+        # Where a caller may build the next step for `record`/`start` in place: with memory 1
+        # the newest slot itself, so nothing is copied (a step not recorded is overwritten next).
+        self.staging = self._newest if spec.memory == 1 else np.zeros_like(self._newest)
         self._cols = spec.integral_slice()
-        self._integral = np.zeros((*batch_shape, FIELD_SIZES[INTEGRAL]), dtype=np.float32)
+        self._integral = (None if self._cols is None else
+                          np.zeros((*batch_shape, self._cols.stop - self._cols.start), dtype=np.float32))
 
-    def _integrate(self, step: np.ndarray, restart: bool) -> np.ndarray:
-        """`step` with its integral columns replaced by the updated state (a copy)."""
-        if self._cols is None:
-            return step
-        lam = np.float32(self.spec.integral_leak)
-        carried = np.float32(0.0) if restart else lam * self._integral
-        self._integral[...] = carried + (np.float32(1.0) - lam) * step[..., self._cols]
-        out = np.array(step, dtype=np.float32, copy=True)
-        out[..., self._cols] = self._integral
-        return out
+    def start(self, step: np.ndarray, mask: np.ndarray | None = None) -> None:
+        """Fill the whole history with one step (the episode start); `mask` picks batch rows."""
+        if mask is not None:
+            kept_steps = self._buf.copy()
+            kept_integral = None if self._integral is None else self._integral.copy()
+            self.start(step)
+            self._buf[~mask] = kept_steps[~mask]
+            if kept_integral is not None:
+                self._integral[~mask] = kept_integral[~mask]
+            return
+        if step is not self._newest:
+            self._newest[...] = step
+        if self._integral is not None:
+            self._integrate(restart=True)
+        self._buf[..., 1:, :] = self._newest[..., None, :]
+
+    def record(self, step: np.ndarray) -> None:
+        """Add one step as the newest, dropping the oldest."""
+        if self.spec.memory > 1:
+            self._buf[..., 1:, :] = self._buf[..., :-1, :]
+        if step is not self._newest:
+            self._newest[...] = step
+        if self._integral is not None:
+            self._integrate(restart=False)
 
     def reset(self, step: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-        """Fill the whole history with one step (the episode start); `mask` picks batch rows."""
-        if mask is None:
-            step = self._integrate(step, True)
-            self._buf[...] = step[..., None, :]
-        else:
-            kept = self._integral.copy()
-            step = self._integrate(step, True)
-            self._integral[~mask] = kept[~mask]
-            self._buf[mask] = step[mask][..., None, :]
+        self.start(step, mask)
         return self.observation()
 
     def push(self, step: np.ndarray) -> np.ndarray:
-        step = self._integrate(step, False)
-        if self.spec.memory > 1:
-            self._buf[..., 1:, :] = self._buf[..., :-1, :]
-        self._buf[..., 0, :] = step
+        self.record(step)
         return self.observation()
 
     def observation(self) -> np.ndarray:
-        return self._buf.reshape(*self._buf.shape[:-2], self.spec.size).copy()
+        return self.view.copy()
+
+    def _integrate(self, restart: bool) -> None:
+        """Advance the integrator with the newest step's input and store its state there."""
+        lam = np.float32(self.spec.integral_leak)
+        carried = np.float32(0.0) if restart else lam * self._integral
+        self._integral[...] = carried + (np.float32(1.0) - lam) * self._newest[..., self._cols]
+        self._newest[..., self._cols] = self._integral

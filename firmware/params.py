@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import os
+import reprlib
 import struct
 import tempfile
 from collections.abc import Iterable
@@ -20,6 +22,7 @@ from pathlib import Path
 REAL32 = 9  # MAV_PARAM_TYPE_REAL32
 INT32 = 6  # MAV_PARAM_TYPE_INT32
 NAME_MAX = 16  # MAVLink param_id is char[16]
+MAX_FILE_BYTES = 1 << 20  # a saved table is a few kB; anything this large is not one
 
 
 @dataclass(frozen=True)
@@ -39,13 +42,25 @@ class ParamSpec:
 
     def check(self, value: float) -> str:
         """'' if `value` is acceptable, else why not."""
-        if not isinstance(value, int | float) or not math.isfinite(value):
-            return f"{self.name}: {value!r} is not a finite number"
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            return f"{self.name}: {_shown(value)} is not a number"
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:  # an int too large for a float
+            finite = False
+        if not finite:
+            return f"{self.name}: {_shown(value)} is not a finite number"
         if self.kind == INT32 and value != int(value):
             return f"{self.name}: {value} is not an integer"
         if not self.lo <= value <= self.hi:
             return f"{self.name}: {value:g} outside [{self.lo:g}, {self.hi:g}]"
         return ""
+
+
+def _shown(value: object, limit: int = 40) -> str:
+    """A bounded repr: a hostile file's value must not become a megabyte warning."""
+    text = json.dumps(value) if isinstance(value, bool) else reprlib.repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 1]}…"
 
 
 def _axes(prefix: str, what: str, defaults: tuple[float, float, float], lo: float, hi: float,
@@ -176,9 +191,23 @@ class ParamTable:
         if not path.exists():
             return []
         try:
+            size = path.stat().st_size
+            if size > MAX_FILE_BYTES:
+                return [f"{path}: too large for a parameter table ({size:,} bytes); using defaults"]
             raw = json.loads(path.read_text())
-        except (OSError, ValueError) as exc:
-            return [f"{path}: unreadable ({exc}); using defaults"]
+        except (OSError, ValueError, RecursionError) as exc:  # RecursionError: deeply nested JSON
+            return [f"{path}: unreadable ({str(exc)[:80]}); using defaults"]
         if not isinstance(raw, dict):
             return [f"{path}: not a parameter table; using defaults"]
-        return [p for name, value in raw.items() if (p := self.set(str(name), value))]
+        return [p for name, value in raw.items() if (p := self.set(str(name)[:NAME_MAX + 1], value))]
+
+
+def load_warning(path: str | Path, problems: list[str]) -> str:
+    """The one line a user sees about a parameter file that was not applied in full."""
+    if not problems:
+        return ""
+    if len(problems) == 1 and problems[0].startswith(str(path)):
+        return f"params: {problems[0]}; the file is left as it is"
+    shown = "; ".join(problems[:3]) + ("; …" if len(problems) > 3 else "")
+    return (f"params: {path}: {len(problems)} entries skipped, defaults used for them ({shown}); "
+            "the file is left as it is")

@@ -109,11 +109,13 @@ def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
     return ScriptedCommander(schedule, controller=controller)
 
 
-def load_controllers(controller: str) -> tuple[dict, str]:
+def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
     """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks."""
-    if controller.endswith(".onnx"):
-        return {"neural": load_controller(controller), FALLBACK: load_controller(FALLBACK)}, "neural"
-    return {FALLBACK: load_controller(controller)}, FALLBACK
+    from firmware.c_policy import is_c_policy_dir
+
+    if controller.endswith(".onnx") or is_c_policy_dir(controller):
+        return {"neural": load_controller(controller, rate_hz), FALLBACK: load_controller(FALLBACK)}, "neural"
+    return {FALLBACK: load_controller(controller, rate_hz)}, FALLBACK
 
 
 def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, realtime: bool = True,
@@ -122,7 +124,7 @@ def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, real
     from sim_bridge.link import InProcessLink, UdpTwinClient
     from sim_bridge.twin import Twin
 
-    controllers, selected = load_controllers(controller)
+    controllers, selected = load_controllers(controller, rate_hz)
     if twin_address is None:
         twin = Twin(rig=rig, dt=1.0 / rate_hz)
         link = InProcessLink(twin)
@@ -180,6 +182,7 @@ class VehicleSitl:
     proc: object
     param_problems: list[str]
     ports: dict[str, int]  # the vehicle's local UDP port per peer
+    params_file: str | None = None
 
     def stop(self) -> dict:
         from firmware.mavlink.bridge import stop_mavlink
@@ -218,7 +221,7 @@ def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float |
                            loop=sitl.loop)
     sitl.loop.commander = linked
     sitl.loop.sinks.append(linked)
-    return VehicleSitl(sitl, vehicle, linked, proc, problems, ports)
+    return VehicleSitl(sitl, vehicle, linked, proc, problems, ports, config.params_file)
 
 
 def mavlink_config_from_args(args):
@@ -243,8 +246,10 @@ def sitl_command(args) -> int:
         vs = start_vehicle_sitl(controller, args.rig, args.rate, speed, mavlink_config_from_args(args),
                                 explicit_controller=args.controller is not None)
         sitl = vs.sitl
-        for p in vs.param_problems:
-            print(f"params: {p}", file=sys.stderr)
+        if vs.param_problems:
+            from firmware.params import load_warning
+
+            print(load_warning(vs.params_file, vs.param_problems), file=sys.stderr)
     extra = None
     if vs is not None:
         veh = vs.vehicle

@@ -83,6 +83,7 @@ class Vehicle:
         self._sticks = (0.0, 0.0, 0.0, 0.0)  # roll, pitch-up, yaw in [-1, 1]; throttle 0..1
         self._sticks_us: int | None = None
         self._land_start_us = 0
+        self._land_from_ground = False
         self._landed_since: int | None = None
         self._last_est_us: int | None = None
         self._setpoint = RateSetpoint(_ZERO3, 0.0)
@@ -131,7 +132,12 @@ class Vehicle:
     def request_arm(self, arm: bool, force: bool = False) -> tuple[int, str]:
         if not arm:
             if self.armed:
-                self._disarm("disarmed by request")
+                # PX4's rule: a disarm in the air would drop the vehicle; only forced.
+                if not force and not self._landed():
+                    self._count("disarm_denied")
+                    self._say(3, "Disarming denied: not landed")
+                    return TEMPORARILY_REJECTED, "not landed"
+                self._disarm("forced by request" if force else "disarmed by request")
             return ACCEPTED, ""
         if self.armed:
             return ACCEPTED, ""
@@ -242,6 +248,7 @@ class Vehicle:
             self._sticks_us = None
 
     def _enter_land(self, reason: str) -> None:
+        self._land_from_ground = self.landed_state == ON_GROUND
         self.mode = LAND
         self.failsafe = reason
         self._land_start_us = self.now_us
@@ -305,6 +312,15 @@ class Vehicle:
 
     def _sticks_live(self) -> bool:
         return self._sticks_us is not None and self.now_us - self._sticks_us <= self._rc_loss_us
+
+    def _landed(self) -> bool:
+        """The land detector's verdict; LAND entered on the ground; or (where no mode sets it) the
+        stick modes' test on the current setpoint: thrust well below hover, the airframe at rest."""
+        if self.landed_state == ON_GROUND:
+            return True
+        if self.mode == LAND and self._land_from_ground:
+            return self._at_rest()
+        return self._setpoint.throttle < 0.5 * self.params["MPC_THR_HOVER"] and self._at_rest()
 
     def _at_rest(self) -> bool:
         f = self._frame

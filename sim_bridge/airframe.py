@@ -21,7 +21,9 @@ LEG_RADIUS = 0.01
 
 
 @dataclass(frozen=True)
-class MotorModel:
+class MotorSpec:
+    """A motor's constants as the airframe file gives them; `sim_bridge.plant.MotorModel` is its dynamics."""
+
     max_rotor_speed: float  # rad/s at PWM max
     kf: float  # thrust = kf * omega^2, N/(rad/s)^2
     km: float  # yaw moment = km * thrust, m
@@ -29,12 +31,6 @@ class MotorModel:
     tau_down: float  # s
     pwm_min: float = 1000.0
     pwm_max: float = 2000.0
-
-    def rotor_speed_command(self, pwm: np.ndarray) -> np.ndarray:
-        span = self.pwm_max - self.pwm_min
-        return (np.clip(pwm, self.pwm_min, self.pwm_max) - self.pwm_min) * (
-            self.max_rotor_speed / span
-        )
 
     def pwm_for_rotor_speed(self, omega: float | np.ndarray) -> float | np.ndarray:
         span = self.pwm_max - self.pwm_min
@@ -51,7 +47,7 @@ class Airframe:
     rotor_radius: float
     rotor_positions: np.ndarray  # (4, 3) FRD, m
     spin: np.ndarray  # (4,) +1 counter-clockwise, -1 clockwise, seen from above
-    motor: MotorModel
+    motor: MotorSpec
     gear_half_height: float
 
     @property
@@ -73,8 +69,8 @@ class Airframe:
                km: float = 1.0, tau_up: float = 1.0, tau_down: float = 1.0) -> Airframe:
         """A copy with mass, inertia (one factor, or one per axis) and motor constants multiplied."""
         m = self.motor
-        motor = MotorModel(m.max_rotor_speed, m.kf * kf, m.km * km, m.tau_up * tau_up, m.tau_down * tau_down,
-                           m.pwm_min, m.pwm_max)
+        motor = MotorSpec(m.max_rotor_speed, m.kf * kf, m.km * km, m.tau_up * tau_up, m.tau_down * tau_down,
+                          m.pwm_min, m.pwm_max)
         per_axis = inertia if isinstance(inertia, tuple | list) else (inertia,) * 3
         inertia_scaled = tuple(float(i) * f for i, f in zip(self.base_inertia, per_axis, strict=True))
         return Airframe(self.name, self.base_mass * mass, inertia_scaled,  # type: ignore[arg-type]
@@ -103,7 +99,7 @@ def load_airframe(name_or_path: str | Path = "iris") -> Airframe:
         rotor_radius=float(raw["rotor_radius_m"]),
         rotor_positions=np.array([mo["position_m"] for mo in motors], dtype=float),
         spin=np.array([1 if mo["spin"] == "ccw" else -1 for mo in motors]),
-        motor=MotorModel(
+        motor=MotorSpec(
             max_rotor_speed=float(m["max_rotor_speed_rad_s"]),
             kf=float(m["thrust_coefficient_N_per_rad_s2"]),
             km=float(m["moment_constant_m"]),

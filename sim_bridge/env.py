@@ -12,7 +12,10 @@ mapping with a range), the airframe scale factors (`randomize`), and the twin's 
 draws with the same code, which is what makes the two bit-identical.
 
 Step k (1..T) returns the observation and reward for the setpoint of sample k; the
-reward uses the gyro's noise-free reading (with noise off, exactly what the policy sees).
+reward (`sim_bridge.reward`, weights as constructor arguments, terms in `info`) uses the
+gyro's noise-free reading (with noise off, exactly what the policy sees). Around the
+physics both environments run the same `RateTask`: action to PWM before, observation,
+reward and info after.
 """
 
 from __future__ import annotations
@@ -28,7 +31,9 @@ import numpy as np
 from firmware.action import ACTION_MAPPINGS, PWM_MIN, PWM_SPAN, action_to_pwm
 from firmware.observation import FIELDS, ObservationHistory, ObservationSpec, observe_step
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
+from sim_bridge.plant import SensorNoise
 from sim_bridge.randomization import Randomization, load_randomization
+from sim_bridge.reward import UNWEIGHTED, RateReward
 from sim_bridge.tasks import (
     HOLD_S,
     OMEGA_MAX,
@@ -37,9 +42,8 @@ from sim_bridge.tasks import (
     draw_throttle,
     episodic_setpoint,
     pulse_schedule,
-    rate_reward,
 )
-from sim_bridge.twin import SensorNoise, Twin
+from sim_bridge.twin import Twin
 
 TASKS = TRAINING_TASKS
 RANDOMIZE_KEYS = ("mass", "inertia", "kf", "km")  # also the draw order
@@ -65,6 +69,8 @@ class EnvConfig:
     hold_s: tuple[float, float] = HOLD_S
     rest_s: tuple[float, float] | None = REST_S
     obs_fields: tuple[str, ...] = FIELDS  # firmware.observation fields, e.g. + rate_error_integral
+    reward: str = "paper"  # sim_bridge.reward.REWARDS
+    axis_weights: tuple[float, float, float] = UNWEIGHTED  # roll, pitch, yaw error; unclipped only
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -91,6 +97,7 @@ class EnvConfig:
             object.__setattr__(self, "throttle", tuple(self.throttle))
         if self.n_steps < 1:
             raise ValueError(f"episode_s={self.episode_s} is shorter than one step of {self.dt} s")
+        object.__setattr__(self, "axis_weights", self.rate_reward.axis_weights)  # validates the reward
 
     @property
     def base_airframe(self) -> Airframe:
@@ -108,6 +115,10 @@ class EnvConfig:
     @property
     def noisy(self) -> bool:
         return self.noise is not None and self.noise.enabled
+
+    @property
+    def rate_reward(self) -> RateReward:
+        return RateReward(self.reward, self.axis_weights, self.action_rate_penalty, self.omega_max)
 
 
 @dataclass(frozen=True)
@@ -134,10 +145,49 @@ def draw_episode(rng: np.random.Generator, cfg: EnvConfig) -> Episode:
     return Episode(setpoints, throttle, factors, noise_seed)
 
 
-def motor_output_rate(u: np.ndarray, previous: np.ndarray) -> np.ndarray:
-    """Mean |Δu| over the four motors, u = (PWM − 1000)/1000; summed in a fixed order."""
-    d = np.abs(u - previous)
-    return (d[..., 0] + d[..., 1] + d[..., 2] + d[..., 3]) * 0.25
+class RateTask:
+    """The environment step around the physics, for one vehicle (batch shape ()) or a batch.
+
+    Before the physics, the action's PWM (`firmware.action`); after it, the observation
+    (`firmware.observation`, its history kept here), the reward and the info. Both
+    `RateControlEnv` and `BatchedRateEnv` step through this, which keeps them bit-identical.
+    """
+
+    def __init__(self, cfg: EnvConfig, batch_shape: tuple[int, ...] = ()) -> None:
+        self.config, self.spec, self.reward = cfg, cfg.observation_spec, cfg.rate_reward
+        self.history = ObservationHistory(self.spec, batch_shape)
+        self._previous_u = np.zeros((*batch_shape, 4))
+        self._first = np.ones(batch_shape, dtype=bool)  # episode starts: no previous output
+        self._any_first = True
+
+    def pwm(self, action: np.ndarray, throttle: np.ndarray | float) -> np.ndarray:
+        return action_to_pwm(self.config.action_mapping, np.asarray(action, dtype=np.float32), throttle)
+
+    def reset(self, setpoint: np.ndarray, gyro: np.ndarray, rotor_speed: np.ndarray,
+              rows: np.ndarray | None = None) -> np.ndarray:
+        """The first observation of a new episode; with a mask `rows`, of those copies (given theirs)."""
+        step = observe_step(self.spec, setpoint, gyro, rotor_speed)
+        self._any_first = True
+        if rows is None:
+            self._first[...] = True
+            return self.history.reset(step)
+        self._first[rows] = True
+        full = np.zeros((*self._first.shape, self.spec.step_size), dtype=np.float32)
+        full[rows] = step
+        return self.history.reset(full, rows)
+
+    def step(self, setpoint: np.ndarray, rate: np.ndarray, gyro: np.ndarray, rotor_speed: np.ndarray,
+             pwm: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+        """(observation, reward, info) after the physics step: `rate` is what the reward judges."""
+        pwm = np.asarray(pwm, dtype=float)  # float32 actions give float32 PWM; Δu is float64
+        u = (pwm - PWM_MIN) / PWM_SPAN
+        if self._any_first:  # a first step has no Δu: its previous output is its own
+            np.copyto(self._previous_u, u, where=self._first[..., None])
+            self._first[...], self._any_first = False, False
+        reward, terms = self.reward(setpoint, rate, u, self._previous_u)
+        self._previous_u = u
+        obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed))
+        return obs, reward, {"setpoint": setpoint, "rate": rate, "gyro": gyro, "pwm": pwm, **terms}
 
 
 class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -145,8 +195,10 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
 
     Observation: `firmware.observation` (rate error and rotor speeds, last `memory`
     steps). Action: a ∈ [-1, 1]^4 through `firmware.action` (`gymfc` or `throttle`).
-    Reward: −clip(Σ|Ω* − Ω| / (3·Ω_max), 0, 1) − action_rate_penalty · mean|Δu|.
-    Episodes are truncated after `episode_s`; they never terminate.
+    Reward (`sim_bridge.reward`): `reward` "paper" −clip(Σ|Ω* − Ω| / (3·Ω_max), 0, 1) or
+    "unclipped" −Σ w·|Ω* − Ω| / (3·Ω_max) (w: `axis_weights`), − action_rate_penalty ·
+    mean|Δu|; info reports each term (reward_tracking, reward_action_rate) and the paper's
+    reward. Episodes are truncated after `episode_s`; they never terminate.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
@@ -157,20 +209,21 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
                  randomize: Mapping[str, float] | Randomization | str | Path | None = None,
                  omega_max: float = OMEGA_MAX, action_rate_penalty: float = 0.0,
                  airframe: Airframe | str = "iris", dt: float = 0.001,
-                 render_mode: str | None = None, obs_fields: tuple[str, ...] = FIELDS) -> None:
+                 render_mode: str | None = None, obs_fields: tuple[str, ...] = FIELDS,
+                 reward: str = "paper", axis_weights: tuple[float, float, float] = UNWEIGHTED) -> None:
         self.config = EnvConfig(task, memory, action_mapping, throttle, episode_s, noise, randomize,
-                                omega_max, action_rate_penalty, airframe, dt, obs_fields=tuple(obs_fields))
+                                omega_max, action_rate_penalty, airframe, dt, obs_fields=tuple(obs_fields),
+                                reward=reward, axis_weights=tuple(axis_weights))  # type: ignore[arg-type]
         self.obs_spec = self.config.observation_spec
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)
         self.render_mode = render_mode
-        self._history = ObservationHistory(self.obs_spec)
+        self._task = RateTask(self.config)
         self._n_steps, self._noisy = self.config.n_steps, self.config.noisy
         self._factors: dict[str, float] = {}
         self._set_twin(self.config.base_airframe)
         self._episode: Episode | None = None
         self._t = 0
-        self._prev_u: np.ndarray | None = None
 
     @property
     def twin(self) -> Twin:
@@ -188,9 +241,9 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
             self._set_twin(self.config.base_airframe.scaled(**ep.factors))
             self._factors = ep.factors
         frame = self._twin.reset(seed=ep.noise_seed)
-        self._t, self._prev_u = 0, None
+        self._t = 0
         setpoint = ep.setpoints[0]
-        obs = self._history.reset(observe_step(self.obs_spec, setpoint, frame.gyro, frame.rotor_speed))
+        obs = self._task.reset(setpoint, frame.gyro, frame.rotor_speed)
         info = {"setpoint": setpoint.copy(), "rate": self._rate(frame.gyro), "gyro": frame.gyro,
                 "throttle": ep.throttle, "factors": dict(ep.factors)}
         return obs, info
@@ -198,23 +251,13 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._episode is None:
             raise RuntimeError("call reset() before step()")
-        action = np.asarray(action, dtype=np.float32)
-        pwm = action_to_pwm(self.config.action_mapping, action, self._episode.throttle)
+        pwm = self._task.pwm(action, self._episode.throttle)
         frame = self._twin.step(pwm)
-        pwm = np.asarray(pwm, dtype=float)  # float32 actions give float32 PWM; Δu is float64
         self._t += 1
-        setpoint = self._episode.setpoints[self._t]
-        rate = self._rate(frame.gyro)
-        paper_reward = float(rate_reward(setpoint, rate, self.config.omega_max))
-        u = (pwm - PWM_MIN) / PWM_SPAN
-        action_rate = 0.0 if self._prev_u is None else float(motor_output_rate(u, self._prev_u))
-        self._prev_u = u
-        reward = paper_reward - self.config.action_rate_penalty * action_rate
-        obs = self._history.push(observe_step(self.obs_spec, setpoint, frame.gyro, frame.rotor_speed))
-        info = {"setpoint": setpoint.copy(), "rate": rate, "gyro": frame.gyro,
-                "pwm": pwm, "paper_reward": paper_reward,
-                "action_rate": action_rate}
-        return obs, reward, False, self._t >= self._n_steps, info
+        setpoint = self._episode.setpoints[self._t].copy()
+        obs, reward, info = self._task.step(setpoint, self._rate(frame.gyro), frame.gyro, frame.rotor_speed,
+                                            pwm)
+        return obs, float(reward), False, self._t >= self._n_steps, info
 
     def _set_twin(self, airframe: Airframe) -> None:
         self._twin = Twin(airframe, "rig", self.config.noise, self.config.dt)

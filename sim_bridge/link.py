@@ -40,6 +40,7 @@ from sim_bridge.protocol import (
     encode_bye,
     encode_reset,
     frame_from_buffer,
+    pack_pwm_into,
 )
 from sim_bridge.twin import Twin, TwinState
 
@@ -171,11 +172,7 @@ class UdpTwinClient:
         if not self._in_session:
             raise LinkError(f"no lockstep session with {self._server}: call reset() first")
         seq = self._seq + 1
-        values = pwm.tolist() if isinstance(pwm, np.ndarray) else pwm
-        try:
-            PWM_MSG.pack_into(self._tx, 0, MAGIC, VERSION, MsgType.PWM, 0, seq, *values)
-        except (struct.error, TypeError) as exc:
-            raise ValueError(f"pwm must be 4 values in µs, got {pwm!r}") from exc
+        pack_pwm_into(self._tx, seq, pwm)
         return self._exchange(self._tx, seq)
 
     def reset(self, seed: int | None = None, state: TwinState | None = None) -> SensorFrame:

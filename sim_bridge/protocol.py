@@ -10,8 +10,9 @@ message type has a fixed length except ERROR (a short UTF-8 text at the end). Al
 floats are float64, so a frame that crossed the link is bit-identical to the one the
 twin returned in-process.
 
-The `*_MSG` structs are exported for the link's hot paths; everything else should use
-`encode_*` and `decode`.
+Every path packs and unpacks through the functions here: `pack_pwm_into` and
+`pack_frame_into` write a message into a reused buffer (the link's hot paths),
+`encode_*` return new bytes, `frame_from_buffer` and `decode` read.
 """
 
 from __future__ import annotations
@@ -71,6 +72,7 @@ _FIXED_SIZE = {
     MsgType.FRAME: FRAME_MSG.size,
 }
 _HAS_SEED, _HAS_STATE, _HAS_POSITION = 1, 2, 4
+_PWM_TYPE, _FRAME_TYPE = int(MsgType.PWM), int(MsgType.FRAME)  # plain ints pack faster than enums
 _INT64 = (-(2**63), 2**63 - 1)
 
 
@@ -114,8 +116,19 @@ class Error(NamedTuple):
 Message = Pwm | Reset | Bye | Frame | Error
 
 
+def pack_pwm_into(buffer: bytearray, seq: int, pwm: np.ndarray | tuple[float, ...] | list[float]) -> None:
+    """A PWM request in `buffer`; ValueError unless `pwm` is 4 numbers."""
+    values = pwm.tolist() if isinstance(pwm, np.ndarray) else pwm
+    try:
+        PWM_MSG.pack_into(buffer, 0, MAGIC, VERSION, _PWM_TYPE, 0, seq, *values)
+    except (struct.error, TypeError) as exc:
+        raise ValueError(f"pwm must be 4 values in µs, got {pwm!r}") from exc
+
+
 def encode_pwm(seq: int, pwm: np.ndarray | tuple[float, ...] | list[float]) -> bytes:
-    return PWM_MSG.pack(MAGIC, VERSION, MsgType.PWM, 0, seq, *(float(v) for v in pwm))
+    buffer = bytearray(PWM_MSG.size)
+    pack_pwm_into(buffer, seq, pwm)
+    return bytes(buffer)
 
 
 def encode_bye(seq: int) -> bytes:
@@ -142,9 +155,16 @@ def encode_reset(seq: int, seed: int | None = None, state: TwinState | None = No
     return RESET_MSG.pack(MAGIC, VERSION, MsgType.RESET, 0, seq, flags, seed or 0, *values)
 
 
+def pack_frame_into(buffer: bytearray, seq: int, frame: SensorFrame) -> None:
+    """The FRAME reply to request `seq` in `buffer` (at least FRAME_MSG.size bytes)."""
+    FRAME_MSG.pack_into(buffer, 0, MAGIC, VERSION, _FRAME_TYPE, 0, seq, frame.t_us, *frame.gyro.tolist(),
+                        *frame.accel.tolist(), *frame.rotor_speed.tolist())
+
+
 def encode_frame(seq: int, frame: SensorFrame) -> bytes:
-    return FRAME_MSG.pack(MAGIC, VERSION, MsgType.FRAME, 0, seq, frame.t_us, *frame.gyro.tolist(),
-                          *frame.accel.tolist(), *frame.rotor_speed.tolist())
+    buffer = bytearray(FRAME_MSG.size)
+    pack_frame_into(buffer, seq, frame)
+    return bytes(buffer)
 
 
 def encode_error(seq: int, code: ErrorCode | int, text: str) -> bytes:

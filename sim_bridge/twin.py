@@ -1,8 +1,9 @@
 """The digital twin: MuJoCo Iris, per-rotor motor model, sensors in FRD.
 
 `Twin.step(pwm)` advances exactly one physics step (1 ms by default) and returns the
-`SensorFrame` the flight controller would read next. Everything random (sensor noise,
-initial state) draws from the generator seeded by `reset(seed)`.
+`SensorFrame` the flight controller would read next. The motors and sensors are
+`sim_bridge.plant`'s models; MuJoCo integrates the rigid body. Everything random (sensor
+noise, initial state) draws from the generator seeded by `reset(seed)`.
 """
 
 from __future__ import annotations
@@ -15,22 +16,7 @@ import numpy as np
 
 from firmware.sensors import SensorFrame
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf, load_airframe
-
-
-@dataclass(frozen=True)
-class SensorNoise:
-    """Sensor imperfections; all zero by default, as in the paper's twin."""
-
-    gyro_std: float = 0.0  # rad/s, white noise per sample
-    gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad/s, FRD
-    accel_std: float = 0.0  # m/s^2
-    accel_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rotor_speed_std: float = 0.0  # rad/s
-
-    @property
-    def enabled(self) -> bool:
-        return bool(self.gyro_std or self.accel_std or self.rotor_speed_std
-                    or any(self.gyro_bias) or any(self.accel_bias))
+from sim_bridge.plant import MotorModel, SensorModel, SensorNoise
 
 
 @dataclass(frozen=True)
@@ -71,17 +57,13 @@ class Twin:
     ) -> None:
         self.airframe = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
         self.rig = rig
-        self.noise = noise or SensorNoise()
+        self.sensors = SensorModel(noise)
+        self.noise = self.sensors.noise
         self.dt = dt
         self.dt_us = round(dt * 1e6)
         self.model = mujoco.MjModel.from_xml_string(build_mjcf(self.airframe, rig, dt))
         self.data = mujoco.MjData(self.model)
-        m = self.airframe.motor
-        self._cmd_per_us = m.max_rotor_speed / (m.pwm_max - m.pwm_min)
-        self._alpha_up = 1.0 - np.exp(-dt / m.tau_up)
-        self._alpha_down = 1.0 - np.exp(-dt / m.tau_down)
-        self._kf = m.kf
-        self._pwm_lo, self._pwm_hi = m.pwm_min, m.pwm_max
+        self.motors = MotorModel.from_spec(self.airframe.motor, dt)
         gyro, accel = self.model.sensor("gyro").adr[0], self.model.sensor("accel").adr[0]
         if accel != gyro + 3:
             raise RuntimeError("the MJCF must declare the accelerometer right after the gyro")
@@ -89,7 +71,7 @@ class Twin:
         self._sensordata = self.data.sensordata
         self._ctrl = self.data.ctrl
         self._imu_sign = np.tile(FLU_FROM_FRD, 2)
-        self._noisy = self.noise.enabled
+        self._noisy = self.sensors.enabled
         self._omega = [0.0] * 4
         self._t_us = 0
         self._rng = np.random.default_rng()
@@ -125,7 +107,7 @@ class Twin:
             self.data.qvel[0:3] = np.asarray(state.velocity, dtype=float) * FLU_FROM_FRD
             self.data.qvel[3:6] = rates
         self._omega = [float(w) for w in state.rotor_speed]
-        self.data.ctrl[:] = [self._kf * w * w for w in self._omega]
+        self.data.ctrl[:] = self.motors.thrust_one(self._omega)
         mujoco.mj_forward(self.model, self.data)
         self._t_us = 0
         return self._frame()
@@ -139,15 +121,7 @@ class Twin:
             values = []
         if len(values) != 4 or not all(isinstance(v, (float, int)) and math.isfinite(v) for v in values):
             raise ValueError(f"pwm must be 4 finite values in µs, got {pwm!r}")
-        lo, hi, per_us, kf = self._pwm_lo, self._pwm_hi, self._cmd_per_us, self._kf
-        up, down, omega = self._alpha_up, self._alpha_down, self._omega
-        thrust = [0.0] * 4
-        for i, v in enumerate(values):
-            error = ((lo if v < lo else hi if v > hi else v) - lo) * per_us - omega[i]
-            w = omega[i] + (up if error > 0.0 else down) * error
-            omega[i] = w
-            thrust[i] = kf * w * w
-        self._ctrl[:] = thrust
+        self._omega, self._ctrl[:] = self.motors.step_one(self._omega, values)
         mujoco.mj_step(self.model, self.data)
         self._t_us += self.dt_us
         return self._frame()
@@ -157,11 +131,8 @@ class Twin:
         gyro, accel = imu[0:3], imu[3:6]
         omega = np.array(self._omega)
         if self._noisy:
-            n = self.noise
-            rng = self._rng
-            gyro += np.asarray(n.gyro_bias) + n.gyro_std * rng.standard_normal(3)
-            accel += np.asarray(n.accel_bias) + n.accel_std * rng.standard_normal(3)
-            omega += n.rotor_speed_std * rng.standard_normal(4)
+            gyro, accel, omega = self.sensors.read(gyro, accel, omega,
+                                                   self._rng.standard_normal(SensorModel.DRAWS))
         return SensorFrame(self._t_us, gyro, accel, omega)
 
     def truth(self) -> Truth:

@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import select
 import signal
 import socket
 import sys
 import threading
 import time
 
-from sim_bridge.link import _FRAME, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
+from sim_bridge.link import _DONTWAIT, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
 from sim_bridge.protocol import (
     FRAME_MSG,
     MAGIC,
@@ -33,18 +34,72 @@ from sim_bridge.protocol import (
     Reset,
     decode,
     encode_error,
+    pack_frame_into,
 )
 from sim_bridge.twin import Twin
 
 log = logging.getLogger(__name__)
 
 STATUS_INTERVAL_S = 2.0
+# What one sender may do outside the owner's in-sequence steps (RESETs, repeats, refused or bad
+# packets): far above any real client's resets and retries, far below a storm.
+SENDER_RATE_HZ = 200.0
+SENDER_BURST = 400.0
+MUTE_S = 1.0
+# Linux gives a connected UDP socket bound to the server's port (SO_REUSEPORT) the packets of
+# its peer: the session owner gets a receive queue of its own that no storm can fill.
+_OWNER_QUEUE = sys.platform.startswith("linux") and hasattr(socket, "SO_REUSEPORT")
+PUBLIC_DRAIN = 1024  # at most this many shared-queue packets are read first when a session starts
 _RIG_NAMES = {"rig": "ball-joint rig", "free": "free body"}
 
 BAD_PACKET_KINDS = ("malformed", "bad_version", "unknown_type", "unexpected_reply", "stale", "gap",
                     "foreign_peer", "no_session", "bad_argument", "internal_error")
 _KIND_OF_CODE = {ErrorCode.MALFORMED: "malformed", ErrorCode.BAD_VERSION: "bad_version",
                  ErrorCode.UNKNOWN_TYPE: "unknown_type", ErrorCode.BAD_ARGUMENT: "bad_argument"}
+
+
+def _reuse_port_socket() -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    if _OWNER_QUEUE:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+    return sock
+
+
+class SenderBudget:
+    """A token bucket per sender address for the packets that cost the server work.
+
+    A sender that runs dry is muted: its packets are dropped unread until it has been quiet
+    for `mute_s`, so a storm costs the server one receive per packet and nothing else.
+    """
+
+    def __init__(self, rate_hz: float = SENDER_RATE_HZ, burst: float = SENDER_BURST, mute_s: float = MUTE_S,
+                 max_senders: int = 4096) -> None:
+        self.rate_hz, self.burst, self.mute_s, self.max_senders = rate_hz, burst, mute_s, max_senders
+        self._tokens: dict[tuple[str, int], tuple[float, float]] = {}  # addr -> (tokens, at)
+        self._muted: dict[tuple[str, int], float] = {}  # addr -> muted until
+
+    def muted(self, addr: tuple[str, int], now: float) -> bool:
+        until = self._muted.get(addr)
+        if until is None:
+            return False
+        if now < until:
+            self._muted[addr] = now + self.mute_s  # a storm that goes on stays muted
+            return True
+        del self._muted[addr]
+        return False
+
+    def spend(self, addr: tuple[str, int], now: float) -> bool:
+        """Take one token; False (and the sender muted) when it has none left."""
+        tokens, at = self._tokens.get(addr, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - at) * self.rate_hz) - 1.0
+        if tokens < 0.0:
+            self._tokens.pop(addr, None)
+            self._muted[addr] = now + self.mute_s
+            return False
+        if len(self._tokens) >= self.max_senders and addr not in self._tokens:
+            self._tokens.clear()  # many senders (or forged ports): forget the ones with full buckets
+        self._tokens[addr] = (tokens, now)
+        return True
 
 
 class UdpTwinServer:
@@ -56,10 +111,15 @@ class UdpTwinServer:
         self.session_timeout = session_timeout
         self._spin = AdaptiveSpin(spin)
         self.counters: dict[str, int] = dict.fromkeys(
-            ("received", "steps", "resets", "duplicates", "byes", "takeovers", "errors_sent",
-             *BAD_PACKET_KINDS), 0)
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            ("received", "steps", "resets", "duplicates", "byes", "takeovers", "errors_sent", "shed",
+             "muted_senders", "revoked", *BAD_PACKET_KINDS), 0)
+        self.budget = SenderBudget()
+        self._sock = _reuse_port_socket()
         self._sock.bind((host, port))
+        self._owner_sock: socket.socket | None = None
+        self._public_first = 0
+        self._poll = select.poll()
+        self._poll.register(self._sock, select.POLLIN)
         self._rx = bytearray(MAX_DATAGRAM)
         self._reply = bytearray(FRAME_MSG.size)  # the last applied request's reply, resent for repeats
         self._owner: tuple[str, int] | None = None
@@ -92,6 +152,7 @@ class UdpTwinServer:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+        self._set_owner(None)
         self._sock.close()
 
     def __enter__(self) -> UdpTwinServer:
@@ -103,7 +164,7 @@ class UdpTwinServer:
     def serve_forever(self) -> None:
         buf, view, reply, counters = self._rx, memoryview(self._rx), self._reply, self.counters
         receive, sendto = self._receive, self._sock.sendto
-        unpack_pwm, pack_frame, step = PWM_MSG.unpack_from, FRAME_MSG.pack_into, self.twin.step
+        unpack_pwm, pack_frame, step = PWM_MSG.unpack_from, pack_frame_into, self.twin.step
         monotonic = time.monotonic
         while not self._stopping:
             try:
@@ -127,20 +188,84 @@ class UdpTwinServer:
                     except ValueError as exc:
                         self._bad("bad_argument", addr, str(exc), seq, ErrorCode.BAD_ARGUMENT)
                         continue
-                    pack_frame(reply, 0, MAGIC, VERSION, _FRAME, 0, seq, frame.t_us,
-                               *frame.gyro.tolist(), *frame.accel.tolist(), *frame.rotor_speed.tolist())
+                    pack_frame(reply, seq, frame)
                     self._last_seq, self._last_request, self._owner_seen = seq, bytes(view[:n]), now
                     counters["steps"] += 1
                     sendto(reply, addr)
                     continue
+            if self.budget.muted(addr, now):
+                counters["shed"] += 1
+                continue
+            if not self.budget.spend(addr, now):
+                counters["shed"] += 1
+                self._mute(addr)
+                continue
             try:
                 self._handle(view[:n], addr, now)
             except Exception as exc:  # a server bug must not take the simulator down mid-session
                 log.exception("twin server: request from %s failed", addr)
                 self._bad("internal_error", addr, f"internal error: {exc}", 0, ErrorCode.INTERNAL)
 
+    def _mute(self, addr: tuple[str, int]) -> None:
+        self.counters["muted_senders"] += 1
+        revoked = addr == self._owner
+        if revoked:  # a session is not held by flooding it
+            self._set_owner(None)
+            self.counters["revoked"] += 1
+        now = time.monotonic()
+        if revoked or now >= self._next_log.get("muted", 0.0):  # many senders: one line a second
+            self._next_log["muted"] = now + 1.0
+            log.warning("twin server: %s:%d sent more than %.0f requests/s outside lockstep; ignored until "
+                        "quiet for %.0f s%s (%d senders muted so far)", *addr, self.budget.rate_hz,
+                        self.budget.mute_s, ", its session ended" if revoked else "",
+                        self.counters["muted_senders"])
+
     def _receive(self) -> tuple[int, tuple[str, int]]:
-        return self._spin.receive(self._sock.recvfrom_into, self._rx)
+        owner = self._owner_sock
+        if owner is None:
+            return self._spin.receive(self._sock.recvfrom_into, self._rx)
+        rx, public, addr = self._rx, self._sock, self._owner
+        while self._public_first > 0:  # what the owner sent before it had its own queue comes first
+            self._public_first -= 1
+            try:
+                return public.recvfrom_into(rx, 0, _DONTWAIT)
+            except BlockingIOError:
+                self._public_first = 0
+        while True:  # the owner's queue first, then one packet from everyone else, then again
+            for _ in range(max(1, self._spin.budget)):
+                try:
+                    n = owner.recv_into(rx, 0, _DONTWAIT)
+                    self._spin.hit()
+                    return n, addr  # type: ignore[return-value]
+                except (BlockingIOError, ConnectionRefusedError):  # refused: ICMP from the owner's port
+                    pass
+                try:
+                    return public.recvfrom_into(rx, 0, _DONTWAIT)
+                except BlockingIOError:
+                    pass
+            self._spin.miss()
+            self._poll.poll()
+
+    def _set_owner(self, addr: tuple[str, int] | None) -> None:
+        """Give the session to `addr` (None: to nobody), with a receive queue of its own."""
+        if self._owner_sock is not None:
+            self._poll.unregister(self._owner_sock)
+            self._owner_sock.close()
+            self._owner_sock = None
+        self._owner = addr
+        if addr is None or not _OWNER_QUEUE:
+            return
+        sock = _reuse_port_socket()
+        try:
+            sock.bind(self._sock.getsockname())
+            sock.connect(addr)
+        except OSError as exc:  # the shared queue still works, only without the isolation
+            sock.close()
+            log.warning("twin server: no separate queue for %s:%d (%s)", *addr, exc)
+            return
+        self._owner_sock = sock
+        self._poll.register(sock, select.POLLIN)
+        self._public_first = PUBLIC_DRAIN
 
     def _handle(self, data: memoryview, addr: tuple[str, int], now: float) -> None:
         try:
@@ -169,7 +294,7 @@ class UdpTwinServer:
                       ErrorCode.SEQ_GAP)
         elif isinstance(msg, Bye):
             self.counters["byes"] += 1
-            self._owner = None
+            self._set_owner(None)
         else:
             self._apply(msg, bytes(data), addr, now)
 
@@ -197,9 +322,10 @@ class UdpTwinServer:
         except ValueError as exc:
             self._bad("bad_argument", addr, str(exc), msg.seq, ErrorCode.BAD_ARGUMENT)
             return
-        FRAME_MSG.pack_into(self._reply, 0, MAGIC, VERSION, MsgType.FRAME, 0, msg.seq, frame.t_us,
-                            *frame.gyro.tolist(), *frame.accel.tolist(), *frame.rotor_speed.tolist())
-        self._owner, self._owner_seen, self._last_seq, self._last_request = addr, now, msg.seq, request
+        pack_frame_into(self._reply, msg.seq, frame)
+        if addr != self._owner:
+            self._set_owner(addr)
+        self._owner_seen, self._last_seq, self._last_request = now, msg.seq, request
         self._sock.sendto(self._reply, addr)
 
     def _bad(self, kind: str, addr: tuple[str, int], detail: str, seq: int, code: ErrorCode,
@@ -222,7 +348,7 @@ class UdpTwinServer:
         rate = (steps - steps_then) / (now - then) if now > then else 0.0
         c = self.counters
         return (f"steps {steps:,}  steps/s {rate:,.0f}  resets {c['resets']:,}  "
-                f"repeats {c['duplicates']:,}  bad packets {self.bad_packets:,}")
+                f"repeats {c['duplicates']:,}  bad packets {self.bad_packets:,}  shed {c['shed']:,}")
 
 
 def serve_command(args) -> int:

@@ -4,9 +4,9 @@
 each copy is one row of an (N, nstate) array (MuJoCo's full physics state), and one
 `mujoco.rollout` call steps all of them from those rows in C, on one shared MjModel
 (or one per copy when mass, inertia or km are randomised: all have the same sizes).
-Motor model, sensor noise, observations (`firmware.observation`, batch-aware) and
-reward are numpy over the batch, written to reproduce the twin's float arithmetic
-operation for operation, so a batch and single environments agree to the last bit.
+The motors and sensors are the twin's own models (`sim_bridge.plant`) over the batch,
+and the step around the physics is the single environment's (`sim_bridge.env.RateTask`,
+batch-aware), so a batch and single environments agree to the last bit.
 
 Seeding contract: `reset(seed=s)` seeds copy i with `s + i` (a list seeds each copy);
 copy i then makes exactly the draws that `RateControlEnv(...).reset(seed=s + i)` and its
@@ -30,24 +30,21 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from mujoco import rollout
 
-from firmware.action import PWM_MIN, PWM_SPAN, action_to_pwm
-from firmware.observation import ObservationHistory, observe_step
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf
-from sim_bridge.env import EnvConfig, draw_episode, motor_output_rate
-from sim_bridge.tasks import rate_reward
+from sim_bridge.env import EnvConfig, RateTask, draw_episode
+from sim_bridge.plant import NoiseStreams, SensorModel
 from sim_bridge.twin import Twin
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
 NOISE_BLOCK = 256  # steps of sensor noise drawn at a time per copy
-NOISE_WIDTH = 10  # the twin draws gyro (3), accel (3), rotor speed (4) per frame
 
 
 class BatchedRateEnv(VectorEnv):
     """`n_envs` copies of `RateControlEnv(**env_kwargs)` stepped together.
 
     `nthread` > 0 steps the physics on a MuJoCo thread pool (the results do not depend
-    on it). Info holds batch arrays: setpoint, rate, gyro, pwm, paper_reward,
-    action_rate, and on episode ends final_obs with its mask _final_obs.
+    on it). Info holds batch arrays: setpoint, rate, gyro, pwm, the reward terms
+    (`sim_bridge.reward.REWARD_TERMS`), and on episode ends final_obs with its mask _final_obs.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
@@ -71,38 +68,25 @@ class BatchedRateEnv(VectorEnv):
         self._sens0 = twin.data.sensordata.copy()
         g = self._model.sensor("gyro").adr[0]
         self._gyro = slice(g, g + 3)
-        m = cfg.base_airframe.motor
-        self._lo, self._hi = m.pwm_min, m.pwm_max
-        self._per_us = m.max_rotor_speed / (m.pwm_max - m.pwm_min)
-        self._alpha_up = 1.0 - np.exp(-cfg.dt / m.tau_up)
-        self._alpha_down = 1.0 - np.exp(-cfg.dt / m.tau_down)
+        self._motors, self._sensors = twin.motors, SensorModel(cfg.noise)
         self._per_model = bool(set(cfg.randomize or {}) & {"mass", "inertia", "km"})
 
         self._n_steps, self._noisy = cfg.n_steps, cfg.noisy
         self._rows = np.arange(n)
         self._models = [self._model] * n
-        self._kf = np.full((n, 1), m.kf)
+        self._kf = np.full((n, 1), self._motors.kf)  # per copy: randomised airframes scale it
         self._state = np.tile(self._state0, (n, 1))
         self._next = np.empty((n, 1, self._state0.size))
         self._sens = np.tile(self._sens0, (n, 1, 1))
         self._ctrl = np.zeros((n, 1, 4))
         self._omega = np.zeros((n, 4))
-        self._err = np.empty((n, 4))
-        self._alpha = np.empty((n, 4))
         self._sched = np.zeros((n, self._n_steps + 1, 3))
         self._t = np.zeros(n, dtype=np.int64)
         self._throttle = np.zeros(n)
-        self._prev_u = np.zeros((n, 4))
-        self._first = np.ones(n, dtype=bool)
-        self._history = ObservationHistory(self.obs_spec, (n,))
+        self._task = RateTask(cfg, (n,))
         self._rngs = [np.random.default_rng() for _ in range(n)]
         self._factors: list[dict[str, float]] = [{} for _ in range(n)]
-        if self._noisy:
-            assert cfg.noise is not None
-            self._gyro_bias = np.asarray(cfg.noise.gyro_bias)
-            self._noise_rngs = [np.random.default_rng() for _ in range(n)]
-            self._noise = np.zeros((n, NOISE_BLOCK, NOISE_WIDTH))
-            self._noise_pos = np.zeros(n, dtype=np.int64)
+        self._noise = NoiseStreams(n, SensorModel.DRAWS, NOISE_BLOCK) if self._noisy else None
         self._pool = rollout.Rollout(nthread=nthread)
         self._datas = [mujoco.MjData(self._model) for _ in range(max(1, nthread))]
         self._scratch = self._datas[0]
@@ -122,21 +106,8 @@ class BatchedRateEnv(VectorEnv):
         return obs, info
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
-        actions = np.asarray(actions, dtype=np.float32)
-        pwm = action_to_pwm(self.config.action_mapping, actions, self._throttle)
-        # The twin's motor model, operation for operation, over the batch.
-        err, alpha, omega = self._err, self._alpha, self._omega
-        np.clip(pwm, self._lo, self._hi, out=err)
-        err -= self._lo
-        err *= self._per_us
-        err -= omega
-        alpha.fill(self._alpha_down)
-        np.copyto(alpha, self._alpha_up, where=err > 0.0)
-        alpha *= err
-        omega += alpha
-        thrust = self._ctrl[:, 0]
-        np.multiply(self._kf, omega, out=thrust)
-        thrust *= omega
+        pwm = self._task.pwm(actions, self._throttle)
+        self._omega, self._ctrl[:, 0] = self._motors.step(self._omega, pwm, self._kf)
         self._pool.rollout(self._models, self._datas, self._state, self._ctrl, skip_checks=True, nstep=1,
                            state=self._next, sensordata=self._sens, initial_warmstart=None,
                            chunk_size=max(1, self.num_envs // (2 * len(self._datas))))
@@ -145,18 +116,8 @@ class BatchedRateEnv(VectorEnv):
         rate = self._sens[:, 0, self._gyro] * FLU_FROM_FRD
         gyro, rotor = self._measure(rate, self._rows)
         setpoint = self._sched[self._rows, self._t]
-        paper_reward = rate_reward(setpoint, rate, self.config.omega_max)
-        pwm = pwm.astype(float)
-        u = (pwm - PWM_MIN) / PWM_SPAN
-        action_rate = motor_output_rate(u, self._prev_u)
-        action_rate[self._first] = 0.0
-        self._prev_u[:] = u
-        self._first[:] = False
-        reward = paper_reward - self.config.action_rate_penalty * action_rate
-        obs = self._history.push(observe_step(self.obs_spec, setpoint, gyro, rotor))
+        obs, reward, info = self._task.step(setpoint, rate, gyro, rotor, pwm)
         truncated = self._t >= self._n_steps
-        info: dict[str, Any] = {"setpoint": setpoint, "rate": rate, "gyro": gyro, "pwm": pwm,
-                                "paper_reward": paper_reward, "action_rate": action_rate}
         if truncated.any():
             info["final_obs"], info["_final_obs"] = obs.copy(), truncated.copy()
             obs[truncated] = self._reset_rows(truncated)[truncated]
@@ -177,7 +138,6 @@ class BatchedRateEnv(VectorEnv):
         self._sens[idx, 0] = self._sens0
         self._omega[idx] = 0.0
         self._t[idx] = 0
-        self._first[idx] = True
         for i in idx:
             ep = draw_episode(self._rngs[i], self.config)
             self._sched[i] = ep.setpoints
@@ -185,14 +145,10 @@ class BatchedRateEnv(VectorEnv):
             self._factors[i] = ep.factors
             if ep.factors:
                 self._set_airframe(i, self.config.base_airframe.scaled(**ep.factors))
-            if self._noisy:
-                self._noise_rngs[i] = np.random.default_rng(ep.noise_seed)
-                self._noise_rngs[i].standard_normal(out=self._noise[i])
-                self._noise_pos[i] = 0
+            if self._noise is not None:
+                self._noise.reseed(i, ep.noise_seed)
         gyro, rotor = self._measure(self._sens[idx, 0, self._gyro] * FLU_FROM_FRD, idx)
-        first = np.zeros((self.num_envs, self.obs_spec.step_size), dtype=np.float32)
-        first[idx] = observe_step(self.obs_spec, self._sched[idx, 0], gyro, rotor)
-        return self._history.reset(first, rows)
+        return self._task.reset(self._sched[idx, 0], gyro, rotor, rows)
 
     def _set_airframe(self, i: int, airframe: Airframe) -> None:
         self._kf[i] = airframe.motor.kf
@@ -207,21 +163,11 @@ class BatchedRateEnv(VectorEnv):
         self._sens[i, 0] = d.sensordata  # the twin's first frame after reset
 
     def _measure(self, rate: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """What the sensors of copies `idx` report: the twin's noise, from each copy's stream."""
+        """What the gyro and rotor speed sensors of copies `idx` report, from each copy's noise stream."""
         omega = self._omega[idx]
-        if not self._noisy:
+        if self._noise is None:
             return rate, omega
-        n = self.config.noise
-        assert n is not None
-        pos = self._noise_pos[idx]
-        z = self._noise[idx, pos]
-        pos += 1
-        self._noise_pos[idx] = pos
-        for i in idx[pos == NOISE_BLOCK]:
-            self._noise_rngs[i].standard_normal(out=self._noise[i])
-            self._noise_pos[i] = 0
-        gyro = rate + (self._gyro_bias + n.gyro_std * z[:, 0:3])
-        rotor = omega + n.rotor_speed_std * z[:, 6:10]
+        gyro, _, rotor = self._sensors.read(rate, None, omega, self._noise.next(idx))
         return gyro, rotor
 
 

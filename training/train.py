@@ -25,10 +25,11 @@ from typing import Any
 import numpy as np
 import torch
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
-from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor, VecNormalize
+from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
 from evaluation.metrics import compute_metrics
 from fcemu import __version__
+from sim_bridge.reward import REWARDS
 from training import quick_eval
 
 # ── 1. Defaults per algorithm ─────────────────────────────────────────────────────────
@@ -122,49 +123,21 @@ class TrainConfig:
 
     def env_kwargs(self) -> dict[str, Any]:
         return {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields,
-                "action_mapping": self.action_mapping,
-                "throttle": self.throttle, "action_rate_penalty": self.action_rate_penalty}
+                "action_mapping": self.action_mapping, "throttle": self.throttle,
+                "reward": self.reward, "axis_weights": tuple(self.axis_weights),
+                "action_rate_penalty": self.action_rate_penalty}
 
 
 # ── 3. Environment ────────────────────────────────────────────────────────────────────
-REWARDS = ("paper", "unclipped")
-
-
-class RewardOption(VecEnvWrapper):
-    """The paper's reward without its clip: −Σ w_axis·|Ω* − Ω|/(3·Ω_max) − w·mean|Δu|.
-
-    The paper clips the error term at −1; once a spinning vehicle passes the clip every
-    action scores the same and there is nothing to learn from. Unclipped, the way back
-    always pays.
-    """
-
-    def __init__(self, venv: VecEnv, omega_max: float, action_rate_penalty: float,
-                 axis_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> None:
-        super().__init__(venv)
-        self.scale, self.penalty = 1.0 / (3.0 * omega_max), action_rate_penalty
-        self.w = axis_weights
-
-    def reset(self) -> np.ndarray:
-        return self.venv.reset()
-
-    def step_wait(self):
-        obs, _, dones, infos = self.venv.step_wait()
-        info = self.venv.unwrapped.last_info
-        e = np.abs(info["setpoint"] - info["rate"])
-        w = self.w
-        error = (w[0] * e[:, 0] + w[1] * e[:, 1] + w[2] * e[:, 2]) * self.scale
-        reward = -error - self.penalty * info["action_rate"]
-        return obs, reward.astype(np.float32), dones, infos
-
-
 def make_vec_env(cfg: TrainConfig) -> VecEnv:
-    """N twins stepped in one batched call (`sim_bridge.vec_env`), with episode statistics."""
+    """N twins stepped in one batched call (`sim_bridge.vec_env`), with episode statistics.
+
+    The reward is the env's own (`sim_bridge.reward`), built from `cfg.env_kwargs()`:
+    training only chooses the weights, so `gym.make(..., **env_kwargs)` gives the same reward.
+    """
     from sim_bridge.vec_env import make_sb3_vec_env
 
-    venv = make_sb3_vec_env(cfg.n_envs, seed=cfg.seed, **cfg.env_kwargs())
-    if cfg.reward == "unclipped":
-        venv = RewardOption(venv, venv.batch.config.omega_max, cfg.action_rate_penalty, cfg.axis_weights)
-    return VecMonitor(venv)
+    return VecMonitor(make_sb3_vec_env(cfg.n_envs, seed=cfg.seed, **cfg.env_kwargs()))
 
 
 # ── 4. Algorithm ──────────────────────────────────────────────────────────────────────
@@ -188,14 +161,19 @@ def make_model(cfg: TrainConfig, venv: VecEnv, tb_dir: Path):
 
 
 # ── 5. Callbacks ──────────────────────────────────────────────────────────────────────
+_REWARD_TAGS = {"paper_reward": "reward/paper", "action_rate": "reward/action_rate",
+                "reward_tracking": "reward/tracking", "reward_action_rate": "reward/action_rate_term"}
+
+
 class RewardTermsCallback(BaseCallback):
-    """Logs the paper's reward and the output-oscillation term separately (TensorBoard)."""
+    """Logs the env's reward terms separately (TensorBoard): the paper's reward, mean|Δu|, the
+    tracking term trained on and the weighted output-oscillation term."""
 
     def _on_step(self) -> bool:
         batch = self.training_env.unwrapped.last_info
-        if "paper_reward" in batch:
-            self.logger.record_mean("reward/paper", float(np.mean(batch["paper_reward"])))
-            self.logger.record_mean("reward/action_rate", float(np.mean(batch["action_rate"])))
+        for key, tag in _REWARD_TAGS.items():
+            if key in batch:
+                self.logger.record_mean(tag, float(np.mean(batch[key])))
         return True
 
 

@@ -28,7 +28,7 @@ from export.c.contract import (
     contract_sources,
 )
 from firmware.neural import NeuralRateController, PolicyContractError
-from firmware.observation import FIELD_SIZES
+from firmware.observation import FIELD_DEFS
 
 SOURCES = ("fcemu_net.c", "fcemu_policy.c", "fcemu_golden.c")
 HOST_LIBRARY = "libfcemu_policy.so"
@@ -45,7 +45,7 @@ def sample_observations(spec, n: int, seed: int = 0) -> np.ndarray:
     0..1.2 of the maximum (the policy's input clip sits inside these)."""
     rng = np.random.default_rng(seed)
     ranges = {"rate_error": (-3.0, 3.0), "rotor_speed": (0.0, 1.2), "rate_error_integral": (-3.0, 3.0)}
-    cols = [rng.uniform(*ranges[f], size=(n, spec.memory, FIELD_SIZES[f])) for f in spec.fields]
+    cols = [rng.uniform(*ranges[f], size=(n, spec.memory, FIELD_DEFS[f].size)) for f in spec.fields]
     return np.concatenate(cols, axis=-1).reshape(n, spec.size).astype(np.float32)
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from firmware.action import ACTION_MAPPINGS, DIFFERENTIAL_GAIN, PWM_MIN, PWM_SPAN
-from firmware.observation import FIELD_SIZES, INTEGRAL, ObservationSpec
+from firmware.observation import FIELD_DEFS, ObservationSpec
 
 NET_FUNCTION = "fcemu_net"
 ACTION_SIZE = 4
@@ -34,14 +34,21 @@ def c_float(x: float) -> str:
     return f"{float(np.float32(x)).hex()}f"
 
 
-_FIELD_CODE = {
-    "rate_error": "        step[{k} + i] = (setpoint[i] - gyro[i]) * FCEMU_RATE_SCALE;",
-    "rotor_speed": "        step[{k} + i] = rotor_speed[i] * FCEMU_ROTOR_SPEED_SCALE;",
-    INTEGRAL: ("        float carried = s->fresh ? 0.0f : FCEMU_INTEGRAL_LEAK * s->integral[i];\n"
-               "        s->integral[i] = carried + (1.0f - FCEMU_INTEGRAL_LEAK)"
-               " * ((setpoint[i] - gyro[i]) * FCEMU_RATE_SCALE);\n"
-               "        step[{k} + i] = s->integral[i];"),
-}
+# C for each source signal and scale named in firmware.observation.FIELD_DEFS: the field
+# table is the one definition; a new field there needs only these two maps to cover it.
+_SOURCE_C = {"rate_error": "(setpoint[i] - gyro[i])", "rotor_speed": "rotor_speed[i]"}
+_SCALE_C = {"rate_scale": "FCEMU_RATE_SCALE", "rotor_speed_scale": "FCEMU_ROTOR_SPEED_SCALE"}
+
+
+def _field_code(name: str, k: int) -> str:
+    field = FIELD_DEFS[name]
+    value = f"{_SOURCE_C[field.source]} * {_SCALE_C[field.scale]}"
+    if not field.integrated:
+        return f"        step[{k} + i] = {value};"
+    return ("        float carried = s->fresh ? 0.0f : FCEMU_INTEGRAL_LEAK * s->integral[i];\n"
+            f"        s->integral[i] = carried + (1.0f - FCEMU_INTEGRAL_LEAK) * ({value});\n"
+            f"        step[{k} + i] = s->integral[i];")
+
 
 _ACTION_CODE = {
     "gymfc": """\
@@ -77,9 +84,9 @@ def contract_sources(contract: Contract) -> dict[str, str]:
         raise ValueError(f"action mapping {contract.action_mapping!r} unknown (known: {ACTION_MAPPINGS})")
     fields, k = [], 0
     for name in spec.fields:
-        n = FIELD_SIZES[name]
-        fields.append(f"    for (int i = 0; i < {n}; ++i) {{  /* {name} */\n"
-                      + _FIELD_CODE[name].format(k=k) + "\n    }")
+        n = FIELD_DEFS[name].size
+        loop = f"    for (int i = 0; i < {n}; ++i) {{  /* {name} */\n"
+        fields.append(loop + _field_code(name, k) + "\n    }")
         k += n
     constants = {
         "FCEMU_OBS_VERSION": str(spec.version),

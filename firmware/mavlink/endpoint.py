@@ -7,14 +7,17 @@ from __future__ import annotations
 
 import hashlib
 import socket
-import time
+import struct
 from pathlib import Path
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from firmware.mavlink.budget import InputBudget
+from firmware.mavlink.signing import SigningState, signing_now
 from firmware.mavlink.tlog import TlogWriter
 
-SIGNING_EPOCH = 1420070400  # 2015-01-01, MAVLink 2 signing timestamps count 10 µs from here
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)  # Linux: the socket's drop count with each datagram
+ANCILLARY_SPACE = socket.CMSG_SPACE(4)
 
 
 def load_signing_key(path: str | Path) -> bytes:
@@ -52,7 +55,7 @@ class _Writer:
 
 class Endpoint:
     def __init__(self, name: str, host: str, port: int, sysid: int, link_id: int,
-                 signing_key: bytes | None = None, tlog: TlogWriter | None = None) -> None:
+                 signing: SigningState | None = None, tlog: TlogWriter | None = None) -> None:
         self.name = name
         self.address = (host, port)
         self.tlog = tlog
@@ -60,32 +63,54 @@ class Endpoint:
         self.sock.bind(("0.0.0.0" if host not in ("127.0.0.1", "localhost") else "127.0.0.1", 0))
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)  # room for a burst
         self.sock.setblocking(False)
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+        except OSError:
+            pass
+        self.kernel_dropped = 0  # datagrams the kernel dropped with our receive buffer full
         self.mav = mavlink.MAVLink(_Writer(self), srcSystem=sysid, srcComponent=1)
         self.mav.robust_parsing = True
         self.tx = self.tx_errors = self.rx = self.bad = 0
         self.peer_seen: tuple[int, int] | None = None  # (sysid, compid) of the last HEARTBEAT
-        self.signed = signing_key is not None
-        if signing_key is not None:
+        self.budget = InputBudget()
+        self.signing = signing
+        self.signed = signing is not None
+        if signing is not None:
             s = self.mav.signing
-            s.secret_key = signing_key
+            s.secret_key = signing.key
             s.link_id = link_id
-            s.timestamp = int((max(time.time(), SIGNING_EPOCH) - SIGNING_EPOCH) * 100_000)
+            s.timestamp = signing_now()
             s.sign_outgoing = True
             s.allow_unsigned_callback = lambda _mav, _msgid: False
+            self.mav.check_signature = signing.check  # verifies before it remembers (see signing.py)
 
     def fileno(self) -> int:
         return self.sock.fileno()
 
-    def receive(self) -> list:
-        """Every frame waiting on the socket, parsed; bad ones come back as MAVLink_bad_data."""
+    def readable(self, now: float) -> bool:
+        """Whether to read this link now: not while it is over its input ceiling (`InputBudget`)."""
+        return self.budget.open(now)
+
+    def receive(self, now: float = 0.0) -> list:
+        """Frames waiting on the socket, parsed, within the link's input budget; bad ones come back
+        as MAVLink_bad_data. A sender over its share has its datagrams dropped unparsed; a link over
+        its ceiling is left to the kernel, which drops what its buffer cannot hold (counted too)."""
         out = []
+        budget = self.budget
         for _ in range(256):
+            if not budget.open(now):
+                break
             try:
-                data = self.sock.recv(65536)
+                data, ancillary, _, sender = self.sock.recvmsg(65536, ANCILLARY_SPACE)
             except (BlockingIOError, ConnectionRefusedError):
                 break
             except OSError:
                 break
+            for level, kind, value in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:
+                    self.kernel_dropped = struct.unpack_from("I", value)[0]
+            if not budget.admit(sender, len(data)):
+                continue
             self._restart_parser()
             try:
                 msgs = self.mav.parse_buffer(data) or []

@@ -188,9 +188,8 @@ class Handlers:
 
     # ---- parameters ----
     def on_param_request_list(self, ep: Endpoint, msg) -> None:
-        if self._for_us(msg):
-            for i, name in enumerate(self.st.params.names):
-                self.st.send_param(ep, name, i)
+        if self._for_us(msg):  # streamed within the link's budget (Station.param_streams)
+            self.st.param_streams.request(ep, (msg.get_srcSystem(), msg.get_srcComponent()))
 
     def on_param_request_read(self, ep: Endpoint, msg) -> None:
         if not self._for_us(msg):
@@ -222,7 +221,7 @@ class Handlers:
         if problem:
             self._reject()
             self.st.send_param(ep, name, table.index(name))
-            return self.st.say(4, f"Param rejected: {problem}"[:50], ep=ep, limited=True)
+            return self.st.say(4, f"Param rejected: {problem}", ep=ep, limited=True)
         self.st.param_changed(name)
 
     def on_param_ext_request_read(self, ep: Endpoint, msg) -> None:

@@ -19,8 +19,10 @@ import time
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware.mavlink import ipc, telemetry
+from firmware.mavlink.budget import ParamStreams
 from firmware.mavlink.endpoint import Endpoint, load_signing_key
 from firmware.mavlink.handlers import Handlers
+from firmware.mavlink.signing import SigningState
 from firmware.mavlink.tlog import TlogWriter
 from firmware.params import ParamTable
 from firmware.vehicle import STABILIZED, custom_mode
@@ -34,8 +36,9 @@ STATS_EVERY_S = 1.0
 REJECT_TEXT_EVERY_S = 5.0
 REJECT_TEXTS_PER_S = 5
 PARAM_SAVE_DELAY_S = 0.2
-NICE = 5
-REPORTED = ("rx_frames", "rx_bad", "rx_rejected", "rx_foreign", "sig_rejected")
+NICE = -10  # below the flight loop's -20 (timing.LOOP_NICE), above any other local process
+NICE_UNPRIVILEGED = 5
+REPORTED = ("rx_frames", "rx_bad", "rx_rejected", "rx_foreign", "sig_rejected", "rx_shed")
 COUNTERS = ("rx_bad", "rx_rejected", "rx_foreign", "rx_unsupported", "rx_unhandled", "sig_rejected")
 
 
@@ -59,15 +62,17 @@ class Station:
         self.ipc = ipc_sock
         self.tlog = TlogWriter(config["tlog"]) if config.get("tlog") else None
         key = load_signing_key(config["signing_key"]) if config.get("signing_key") else None
+        self.signing = SigningState(key) if key is not None else None  # one per vehicle, every link
         any_marked = any(p["signed"] for p in config["peers"])
         self.endpoints: list[Endpoint] = []
         self._schedulers: dict[int, telemetry.Scheduler] = {}
         for i, peer in enumerate(config["peers"]):
-            peer_key = key if key is not None and (peer["signed"] or not any_marked) else None
-            ep = Endpoint(peer["name"], peer["host"], int(peer["port"]), self.sysid, i, peer_key, self.tlog)
+            signing = self.signing if peer["signed"] or not any_marked else None
+            ep = Endpoint(peer["name"], peer["host"], int(peer["port"]), self.sysid, i, signing, self.tlog)
             self.endpoints.append(ep)
             self._schedulers[id(ep)] = telemetry.Scheduler(self.has_position)
         self.handlers = Handlers(self)
+        self.param_streams = ParamStreams(lambda: len(self.params), self._send_param_index)
         self.snap = idle_snapshot()
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters.update(rx_frames=0, tx_frames=0, ipc_bad=0, snapshots=0, acks_timed_out=0)
@@ -82,6 +87,7 @@ class Station:
         self._last_reject_text = 0.0
         self._text_window = 0.0
         self._texts_in_window = 0
+        self._text_id = 0
 
     # ---- used by the handlers ----
     def count(self, what: str, n: int = 1) -> None:
@@ -108,8 +114,10 @@ class Station:
             if self._texts_in_window >= REJECT_TEXTS_PER_S:
                 return
             self._texts_in_window += 1
+        self._text_id = self._text_id % 0xFFFF + 1
         for e in [ep] if ep is not None else self.endpoints:
-            e.send(e.mav.statustext_encode(severity, text[:50].encode(), 0, 0))
+            for message in telemetry.statustext(e.mav, severity, text, self._text_id):
+                e.send(message)
 
     def ack(self, ep: Endpoint, msg, command: int, result: int, text: str = "") -> None:
         ep.send(ep.mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
@@ -145,6 +153,11 @@ class Station:
         for e in [ep] if ep is not None else self.endpoints:
             e.send(e.mav.param_value_encode(name.encode(), table.encode_wire(name), table.specs[name].kind,
                                             len(table), index))
+
+    def _send_param_index(self, ep: Endpoint, index: int) -> None:
+        names = self.params.names
+        if index < len(names):
+            self.send_param(ep, names[index], index)
 
     def param_changed(self, name: str) -> None:
         self._flush_setpoints(time.monotonic(), force=True)
@@ -216,7 +229,7 @@ class Station:
             try:
                 self.params.save(self.params_file)
             except OSError as exc:
-                self.say(3, f"Param save failed: {exc}"[:50])
+                self.say(3, f"Param save failed: {exc}")
 
     def _flush_setpoints(self, now: float, force: bool = False) -> None:
         if (self._latest_sp or self._latest_sticks) and (force or now - self._sp_sent >= SETPOINT_MIN_GAP_S):
@@ -231,8 +244,10 @@ class Station:
         c["rx_frames"] = sum(ep.rx for ep in self.endpoints)
         c["rx_bad"] = sum(ep.bad for ep in self.endpoints)
         c["tx_frames"] = sum(ep.tx for ep in self.endpoints)
-        c["sig_rejected"] = sum(ep.mav.signing.reject_count + ep.mav.signing.badsig_count
+        c["sig_rejected"] = sum(ep.mav.signing.reject_count
                                 for ep in self.endpoints if ep.signed)
+        c["rx_shed"] = sum(ep.budget.shed + ep.kernel_dropped for ep in self.endpoints)
+        c["param_lists_refused"] = self.param_streams.refused
         return c
 
     def _report(self, now: float) -> None:
@@ -255,23 +270,25 @@ class Station:
         next_hb = time.monotonic()
         next_stats = next_hb + STATS_EVERY_S
         next_stream = next_hb
-        fds = [self.ipc, *self.endpoints]
         self.ipc.setblocking(False)
         try:
             while True:
                 now = time.monotonic()
                 wait = min(next_hb, next_stats, next_stream) - now
-                if self._latest_sp or self._latest_sticks:
+                if self._latest_sp or self._latest_sticks or self.param_streams.pending():
                     wait = min(wait, SETPOINT_MIN_GAP_S)
+                fds = [self.ipc, *(ep for ep in self.endpoints if ep.readable(now))]
                 ready, _, _ = select.select(fds, [], [], max(0.0, wait))
                 for r in ready:
                     if r is self.ipc:
                         if not self._read_ipc():
                             return
                     else:
-                        for msg in r.receive():
+                        for msg in r.receive(now):
                             self.handlers.handle(r, msg)
                 now = time.monotonic()
+                if self.param_streams.pending():
+                    self.param_streams.pump(now)
                 if now >= next_stream:
                     self._stream()
                     next_stream = max(next_stream + STREAM_POLL_S, now)
@@ -300,12 +317,16 @@ def main(argv: list[str]) -> int:
     spec = json.loads(argv[1])
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the flight process's; we end with it
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
-    # When the CPU is short (a flood of input, a busy host), the flight loop goes first: the
-    # MAVLink side can fall behind and drop, the 1 kHz tick must not.
+    # When the CPU is short (a flood of input, a busy host), the flight loop goes first, then this
+    # process: a local flooder must not starve the links a flight depends on. Where raising
+    # priority is not allowed the loop cannot be raised either, so this process goes below it.
     try:
-        os.nice(NICE)
+        os.setpriority(os.PRIO_PROCESS, 0, NICE)
     except OSError:
-        pass
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, NICE_UNPRIVILEGED)
+        except OSError:
+            pass
     sock = socket.socket(fileno=spec["fd"])
     station = Station(spec["config"], spec["params"], sock, ipc.SnapshotSlot(spec["slot"]))
     station._to_flight(("ready", {ep.name: ep.sock.getsockname()[1] for ep in station.endpoints}))

@@ -101,6 +101,22 @@ def build(msgid: int, mav, snap: Snapshot, load: int = 0):
     return None
 
 
+STATUSTEXT_LEN = 50
+STATUSTEXT_MAX_CHUNKS = 4
+
+
+def statustext(mav, severity: int, text: str, text_id: int) -> list:
+    """STATUSTEXT for `text`: one message if it fits in 50 bytes, else MAVLink 2 chunks (same
+    `id`, `chunk_seq` from 0; a chunk shorter than 50 bytes, if need be an empty one, ends it)."""
+    data = text.encode()[:STATUSTEXT_LEN * STATUSTEXT_MAX_CHUNKS].decode(errors="ignore").encode()
+    if len(data) <= STATUSTEXT_LEN:
+        return [mav.statustext_encode(severity, data, 0, 0)]
+    chunks = [data[i:i + STATUSTEXT_LEN] for i in range(0, len(data), STATUSTEXT_LEN)]
+    if len(chunks[-1]) == STATUSTEXT_LEN:
+        chunks.append(b"")
+    return [mav.statustext_encode(severity, chunk, text_id, seq) for seq, chunk in enumerate(chunks)]
+
+
 STREAMABLE = frozenset(DEFAULT_INTERVALS)
 REQUESTABLE = STREAMABLE | {M.MAVLINK_MSG_ID_AUTOPILOT_VERSION, M.MAVLINK_MSG_ID_HEARTBEAT}
 

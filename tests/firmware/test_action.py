@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from firmware.action import action_to_pwm, gymfc_pwm, throttle_pwm, throttle_pwm_one
+from firmware.action import action_to_pwm, gymfc_pwm, throttle_pwm
 
 
 def test_gymfc_mapping_is_the_papers():
@@ -31,13 +31,30 @@ def test_a_mix_wider_than_the_range_is_scaled_to_fit():
     np.testing.assert_allclose(pwm, [2000, 1000, 2000, 1000])
 
 
+def reference_throttle_pwm(action: np.ndarray, throttle: np.ndarray, gain: float = 0.5) -> np.ndarray:
+    """The mapping the shipped policy was trained with, written as whole-array numpy."""
+    a = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+    mix = gain * (a - a.sum(axis=-1, keepdims=True) * 0.25)
+    lo, hi = mix.min(axis=-1, keepdims=True), mix.max(axis=-1, keepdims=True)
+    scale = 1.0 / np.maximum(hi - lo, 1.0)
+    t = np.clip(np.asarray(throttle, dtype=np.float64), 0.0, 1.0)[..., None]
+    t = np.minimum(np.maximum(t, -lo * scale), 1.0 - hi * scale)
+    return 1000.0 + 1000.0 * np.clip(t + mix * scale, 0.0, 1.0)
+
+
 def test_single_vehicle_path_is_bit_identical_to_the_batched_one():
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1.6, 1.6, (20_000, 4)).astype(np.float32)
+    actions[:50] = np.round(actions[:50])  # ties between motors, exact ±1 and zeros
     throttles = rng.uniform(-0.1, 1.1, 20_000)
+    throttles[:10] = [0.0, 1.0, -0.0, 0.5, 0.0, 1.0, 0.25, 0.75, 0.0, 1.0]
     batched = throttle_pwm(actions, throttles)
-    single = np.array([throttle_pwm_one(a, t) for a, t in zip(actions, throttles, strict=True)])
+    single = np.array([throttle_pwm(a, float(t)) for a, t in zip(actions, throttles, strict=True)])
     assert np.array_equal(batched, single)
+    assert np.array_equal(batched, reference_throttle_pwm(actions, throttles))
+    assert np.array_equal(throttle_pwm(actions.reshape(100, 200, 4), throttles.reshape(100, 200)),
+                          batched.reshape(100, 200, 4))
+    assert np.array_equal(throttle_pwm(actions, 0.6), reference_throttle_pwm(actions, np.full(20_000, 0.6)))
 
 
 def test_unknown_mapping_is_refused():

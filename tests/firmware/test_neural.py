@@ -7,11 +7,11 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from firmware.action import gymfc_pwm, throttle_pwm
+from firmware.action import action_to_pwm, gymfc_pwm, throttle_pwm
 from firmware.controller import RateSetpoint
 from firmware.loop import FlightLoop, ScriptedCommander
 from firmware.neural import META_PREFIX, NeuralRateController, PolicyContractError, PolicyOutputError
-from firmware.observation import ObservationSpec, observe_step
+from firmware.observation import FIELDS, INTEGRAL, ObservationHistory, ObservationSpec, observe_step
 from firmware.sensors import SensorFrame
 from firmware.timing import LockstepClock
 from sim_bridge.twin import Twin
@@ -166,15 +166,22 @@ def test_non_finite_sensor_input_is_not_fed_to_the_model(tmp_path, weight):
 
 
 @pytest.mark.parametrize("mapping", ["throttle", "gymfc"])
-def test_direct_path_is_bit_identical_to_the_general_one(tmp_path, weight, mapping):
-    """The m = 1 fast path must feed the model exactly what `observe_step` builds in training."""
-    path = linear_policy(tmp_path / "p.onnx", weight, np.array([0.3, -0.1, 0.05, 0.2]), meta(mapping=mapping))
-    direct, general = NeuralRateController(path), NeuralRateController(path)
-    assert direct._direct
-    general._direct = False
+@pytest.mark.parametrize("spec", [ObservationSpec(), ObservationSpec(memory=3),
+                                  ObservationSpec(fields=(*FIELDS, INTEGRAL), integral_leak=0.9)])
+def test_flight_feeds_the_model_bit_for_bit_what_training_builds(tmp_path, mapping, spec):
+    """One vehicle goes through the batched environment's observation and action code."""
+    weight = np.random.default_rng(1).uniform(-0.5, 0.5, (spec.size, 4))
+    path = linear_policy(tmp_path / "p.onnx", weight, np.array([0.3, -0.1, 0.05, 0.2]),
+                         meta(mapping=mapping, spec=spec))
+    ctl = NeuralRateController(path)
+    training = ObservationHistory(spec, (2,))  # as BatchedRateEnv keeps it, for two copies
     rng = np.random.default_rng(4)
-    for _ in range(500):
-        sp = RateSetpoint(rng.uniform(-6, 6, 3), float(rng.uniform(0, 1)))
+    for i in range(300):
+        sp = RateSetpoint(rng.uniform(-6, 6, 3), float(rng.uniform(-0.1, 1.1)))
         f = frame(rng.uniform(-8, 8, 3), rng.uniform(0, 1100, 4))
-        np.testing.assert_array_equal(direct.update(sp, f, 0.001), general.update(sp, f, 0.001))
-        np.testing.assert_array_equal(direct._input, general._input)
+        pwm = ctl.update(sp, f, 0.001)
+        step = observe_step(spec, *(np.stack([x] * 2) for x in (sp.rates, f.gyro, f.rotor_speed)))
+        obs = training.reset(step) if i == 0 else training.push(step)
+        assert np.array_equal(ctl._history.view[0], obs[0])
+        action = np.stack([ctl.infer(obs[0]).copy()] * 2)
+        np.testing.assert_array_equal(pwm, action_to_pwm(mapping, action, np.full(2, sp.throttle))[0])

@@ -146,3 +146,29 @@ def test_land_mode_by_request_descends_without_hold() -> None:
     assert veh.request_mode(v.LAND) == (v.ACCEPTED, "")
     run(veh, 0, 0.01)
     assert veh.landed_state == v.LANDING and veh.failsafe == ""
+
+
+def test_disarm_in_flight_needs_force_but_not_on_the_ground() -> None:
+    veh = make()
+    veh.offboard_setpoint((0, 0, 0), 0.8)
+    veh.request_mode(v.OFFBOARD)
+    assert veh.request_arm(True)[0] == v.ACCEPTED
+    climbing = REST._replace(accel=np.array([0.0, 0.0, -11.0]))
+    t, _ = run(veh, 0, 0.1, frame=climbing, every=lambda k, t: veh.offboard_setpoint((0, 0, 0), 0.8))
+    assert veh.request_arm(False) == (v.TEMPORARILY_REJECTED, "not landed") and veh.armed
+    assert veh.counters["disarm_denied"] == 1 and any("not landed" in m for _, m in veh.outbox)
+    assert veh.request_arm(False, force=True)[0] == v.ACCEPTED and not veh.armed
+    # on the ground with the thrust cut, a plain disarm is accepted
+    veh.request_arm(True)
+    veh.offboard_setpoint((0, 0, 0), 0.0)
+    run(veh, t, 0.05)
+    assert veh.request_arm(False)[0] == v.ACCEPTED and not veh.armed
+
+
+def test_a_failsafe_land_entered_on_the_ground_may_be_disarmed() -> None:
+    veh = make(COM_RC_LOSS_T=0.2)
+    veh.sticks(0, 0, 0, 0)
+    assert veh.request_arm(True)[0] == v.ACCEPTED
+    run(veh, 0, 0.5)  # the sticks stop: LAND, while still on the ground
+    assert veh.mode == v.LAND and veh.armed
+    assert veh.request_arm(False)[0] == v.ACCEPTED and not veh.armed

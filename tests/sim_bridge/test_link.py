@@ -332,6 +332,7 @@ def test_another_client_mid_session_is_refused(server: UdpTwinServer) -> None:
         rogue.sendto(encode_pwm(owner._seq + 1, [2000.0] * 4), server.address)  # the owner's next seq
         assert decode(rogue.recv(2048)).code == ErrorCode.BUSY
         rogue.sendto(encode_bye(owner._seq + 1), server.address)  # cannot end someone else's session
+        wait_for(lambda: server.counters["foreign_peer"] == 3)  # (the owner's own queue is served first)
         assert owner.pwm_write(np.full(4, 1500.0)).t_us == 2000
     assert server.counters["foreign_peer"] == 3 and server.counters["steps"] == 2
 

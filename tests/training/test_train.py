@@ -74,6 +74,8 @@ def test_reward_terms_are_logged_separately(run):
     acc.Reload()
     tags = acc.Tags()["scalars"]
     assert "reward/paper" in tags and "reward/action_rate" in tags
+    assert "reward/tracking" in tags and "reward/action_rate_term" in tags
+    assert all(e.value <= 0.0 for e in acc.Scalars("reward/action_rate_term"))
     assert all(e.value <= 0.0 for e in acc.Scalars("reward/paper"))
     assert all(e.value >= 0.0 for e in acc.Scalars("reward/action_rate"))
     lr = [e.value for e in acc.Scalars("train/learning_rate")]
@@ -148,20 +150,39 @@ def test_config_and_cli():
 
 
 def test_unclipped_reward_weights_the_axes_and_never_saturates():
-    from sim_bridge.vec_env import make_sb3_vec_env
-    from training.train import RewardOption
+    from training.train import make_vec_env
 
-    base = make_sb3_vec_env(2, seed=0, action_mapping="throttle", throttle=0.7, action_rate_penalty=0.5)
-    venv = RewardOption(base, 5.24, 0.5, (1.0, 2.0, 3.0))
+    venv = make_vec_env(TrainConfig(envs=2, seed=0, throttle=0.7, action_rate_penalty=0.5,
+                                    axis_weights=(1.0, 2.0, 3.0)))
     venv.reset()
     spin = np.array([[1.0, -1.0, 1.0, -1.0]] * 2, dtype=np.float32)  # full differential: spins up
     for _ in range(400):
         _, reward, _, _ = venv.step(spin)
-    info = base.last_info
+    info = venv.unwrapped.last_info
     e = np.abs(info["setpoint"] - info["rate"])
     expected = -(e[:, 0] + 2 * e[:, 1] + 3 * e[:, 2]) / (3 * 5.24) - 0.5 * info["action_rate"]
     np.testing.assert_allclose(reward, expected, rtol=1e-6)
     assert (info["paper_reward"] == -1.0).all() and (reward < -1.0).all()  # the paper's clip would hide this
     with pytest.raises(ValueError, match="unclipped"):
         TrainConfig(reward="paper", axis_weights=(1.0, 1.0, 2.0))
+    venv.close()
+
+
+def test_gym_make_with_the_training_env_kwargs_gives_the_training_reward():
+    import gymnasium as gym
+
+    from training.train import make_vec_env
+
+    cfg = TrainConfig(envs=2, seed=6, action_rate_penalty=2.0, axis_weights=(1.0, 1.0, 2.0))
+    venv = make_vec_env(cfg)
+    venv.reset()
+    env = gym.make("fcemu/RateEpisodic-v0", **cfg.env_kwargs())
+    env.reset(seed=cfg.seed)  # copy 0 of the batch follows the single env seeded with the batch's seed
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        actions = rng.uniform(-1, 1, (2, 4)).astype(np.float32)
+        _, rewards, _, _ = venv.step(actions)
+        _, reward, *_ = env.step(actions[0])
+        assert np.float32(reward) == rewards[0]
+    assert rewards[0] != np.float32(venv.unwrapped.last_info["paper_reward"][0])  # not the paper's reward
     venv.close()
