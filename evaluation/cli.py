@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from sim_bridge.tasks import EVAL_TASKS
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="the paper's metrics for --controller pid|FILE.onnx (repeatable)")
@@ -11,13 +13,21 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pid, pid:<preset> or a policy .onnx; repeat to compare (default: pid)")
     p.add_argument("--episodes", type=int, default=1000)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--task", choices=("episodic", "continuous"), default="episodic")
+    p.add_argument("--task", choices=EVAL_TASKS, default="episodic",
+                   help="episodic: steps from rest (the paper); inflight: the same steps from steady "
+                        "hover, after a warm-up; continuous: pulse schedules")
     p.add_argument("--episode-s", type=float, default=None,
-                   help="episode length (default 1 s episodic, 10 s continuous)")
+                   help="episode length (default 1 s episodic and inflight, 10 s continuous)")
     p.add_argument("--throttle", type=float, default=None, help="collective 0..1 (default: hover)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--report", metavar="DIR", help="write a Markdown report with figures into DIR")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save the traces (one file per controller)")
+    p.add_argument("--perturb", type=int, default=0, metavar="N",
+                   help="also fly the same commands on N airframes drawn from the randomisation ranges")
+    p.add_argument("--perturb-seed", type=int, default=0, metavar="S",
+                   help="seed of the perturbed airframes (a stream training never draws from)")
+    p.add_argument("--ranges", default="iris", metavar="NAME|FILE",
+                   help="randomisation ranges for --perturb: a shipped name or a file (default: iris)")
     p.set_defaults(handler="evaluation.evaluate:eval_command")
     register_bound(sub)
 

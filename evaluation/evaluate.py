@@ -8,17 +8,26 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from tqdm import tqdm
+
 from evaluation.metrics import AXES, EvalMetrics, compute_metrics
+from evaluation.perturb import PerturbedAirframe, PerturbedResult, fly_perturbed, perturbed_airframes
 from evaluation.report import ControllerResult, write_report
 from evaluation.runner import EvalConfig, run_controller
+from sim_bridge.randomization import RandomizationError, load_randomization
 from sitl.traces import Traces, save_traces
 
 REPORT_CONTINUOUS_S = 10.0
 
 
-def result_json(spec: str, cfg: EvalConfig, metrics: EvalMetrics) -> dict:
-    return {"controller": spec, "episodes": cfg.episodes, "seed": cfg.seed, "task": cfg.task,
-            "metrics": metrics.to_json(), "details": metrics.details_json()}
+def result_json(spec: str, cfg: EvalConfig, metrics: EvalMetrics,
+                perturbed: PerturbedResult | None = None) -> dict:
+    out = {"controller": spec, "episodes": cfg.episodes, "seed": cfg.seed, "task": cfg.task,
+           "metrics": metrics.to_json(), "details": metrics.details_json()}
+    if perturbed is not None:
+        out["perturbed"] = perturbed.metrics.to_json()
+        out["perturbation"] = perturbed.details_json()
+    return out
 
 
 def traces_path(base: str, spec: str, several: bool) -> Path:
@@ -42,16 +51,37 @@ def _fmt(x: float | None) -> str:
     return "n/a" if x is None or x != x else f"{x:.1f}"
 
 
+def _airframes(args) -> list[PerturbedAirframe]:
+    if not args.perturb:
+        return []
+    return perturbed_airframes(load_randomization(args.ranges), args.perturb, args.perturb_seed)
+
+
 def eval_command(args) -> int:
     specs = args.controller or ["pid"]
-    cfg = EvalConfig(task=args.task, episodes=args.episodes, seed=args.seed, episode_s=args.episode_s,
-                     throttle=args.throttle)
+    try:
+        cfg = EvalConfig(task=args.task, episodes=args.episodes, seed=args.seed, episode_s=args.episode_s,
+                         throttle=args.throttle)
+        if args.perturb < 0:
+            raise ValueError(f"--perturb must be >= 0, got {args.perturb}")
+        airframes = _airframes(args)
+    except (RandomizationError, ValueError) as exc:
+        print(f"fcemu: error: {exc}", file=sys.stderr)
+        return 2
+    progress = sys.stderr.isatty()
+    bar = tqdm(total=len(specs) * len(airframes), desc="perturbed airframes", unit="airframe",
+               disable=not (progress and airframes), leave=False)
     results: list[ControllerResult] = []
     payload = []
     for spec in specs:
-        traces = run_controller(spec, cfg, progress=sys.stderr.isatty())
+        traces = run_controller(spec, cfg, progress=progress)
         metrics = compute_metrics(traces)
-        payload.append(result_json(spec, cfg, metrics))
+        perturbed = None
+        if airframes:
+            bar.set_postfix_str(spec)
+            perturbed = fly_perturbed(spec, cfg, airframes, args.perturb_seed,
+                                      on_airframe=lambda _: bar.update())
+        payload.append(result_json(spec, cfg, metrics, perturbed))
         if args.save_traces:
             out = save_traces(traces_path(args.save_traces, spec, len(specs) > 1), traces)
             print(f"traces: {out}", file=sys.stderr)
@@ -59,10 +89,13 @@ def eval_command(args) -> int:
         if args.report and continuous is None:
             trace_cfg = replace(cfg, task="continuous", episodes=1, episode_s=REPORT_CONTINUOUS_S)
             continuous = run_controller(spec, trace_cfg, progress=False)
-        results.append(ControllerResult(spec, metrics, traces if cfg.task == "episodic" else None,
-                                        _first(continuous)))
+        step = traces.step_window() if cfg.task != "continuous" else None
+        results.append(ControllerResult(spec, metrics, step, _first(continuous), perturbed))
         if not args.json:
             print(summary_line(spec, metrics))
+            if perturbed is not None:
+                print(summary_line(f"perturbed x{len(airframes)}", perturbed.metrics))
+    bar.close()
     if args.report:
         command = "fcemu " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         md = write_report(args.report, results, command=command, seed=cfg.seed, task=cfg.task,

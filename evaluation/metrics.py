@@ -22,6 +22,9 @@ Rise, Peak) and counted; Error, Stability and Smoothness use every episode.
 Aggregates are mean ± 1.96·σ/√n, σ the sample standard deviation of the n contributing
 episodes. In JSON a mean with n = 0, or a CI with n < 2, is null.
 
+Inflight task: the metrics start at the step (t = 0); the warm-up at hover before it
+(t < 0) is not scored, and e0 = Ω*(0) − Ω(0) uses the rate at the step.
+
 Continuous task: `segment_traces` cuts each episode wherever the setpoint changes and
 every hold becomes an episode of its own (time from the hold's start, e0 at that start).
 The final hold of an episode is dropped when shorter than the task's minimum hold
@@ -31,6 +34,7 @@ window, so they count as "unassessed" for Success/Failure and are left out of St
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -313,13 +317,28 @@ def segment_traces(
                     pwm=np.asarray(pwm)[rows, idx], lengths=length, episode=ep, start=start)
 
 
-def compute_metrics(traces: Traces, *, settle_s: float = SETTLE_S, min_e0: float = MIN_E0,
-                    min_hold_s: float = MIN_HOLD_S) -> EvalMetrics:
-    """The paper's metrics for a traces object; the continuous task is evaluated per hold."""
+def traces_episode_metrics(traces: Traces, *, settle_s: float = SETTLE_S, min_e0: float = MIN_E0,
+                           min_hold_s: float = MIN_HOLD_S) -> tuple[EpisodeMetrics, str]:
+    """Per-unit metrics and the unit: holds for the continuous task; inflight from its step on."""
     if traces.task == "continuous":
         seg = segment_traces(traces.t, traces.setpoint, traces.rate, traces.pwm, min_hold_s=min_hold_s)
         ep = episode_metrics(seg.t, seg.setpoint, seg.rate, seg.pwm, seg.lengths,
                              settle_s=settle_s, min_e0=min_e0)
-        return aggregate(ep, unit="hold")
-    ep = episode_metrics(traces.t, traces.setpoint, traces.rate, traces.pwm, settle_s=settle_s, min_e0=min_e0)
-    return aggregate(ep)
+        return ep, "hold"
+    tr = traces.step_window()
+    return episode_metrics(tr.t, tr.setpoint, tr.rate, tr.pwm, settle_s=settle_s, min_e0=min_e0), "episode"
+
+
+def pool_episode_metrics(parts: Sequence[EpisodeMetrics]) -> EpisodeMetrics:
+    """Several evaluations' units as one set (e.g. the same commands on several airframes)."""
+    if not parts:
+        raise ValueError("pool_episode_metrics: nothing to pool")
+    return EpisodeMetrics(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
+                             for f in fields(EpisodeMetrics)})
+
+
+def compute_metrics(traces: Traces, *, settle_s: float = SETTLE_S, min_e0: float = MIN_E0,
+                    min_hold_s: float = MIN_HOLD_S) -> EvalMetrics:
+    """The paper's metrics for a traces object; the continuous task is evaluated per hold."""
+    ep, unit = traces_episode_metrics(traces, settle_s=settle_s, min_e0=min_e0, min_hold_s=min_hold_s)
+    return aggregate(ep, unit=unit)

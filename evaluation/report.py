@@ -14,13 +14,16 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from evaluation.metrics import AXES, MIN_E0, SETTLE_S, EvalMetrics, Stat
 from sitl.traces import Traces
+
+if TYPE_CHECKING:
+    from evaluation.perturb import PerturbedResult
 
 PAPER_COLUMNS = ("PPO m=1", "PID")
 CONTINUOUS_SECONDS = 10.0
@@ -48,6 +51,7 @@ class ControllerResult:
     metrics: EvalMetrics
     step: Traces | None = None  # episodic-task traces; one episode is drawn
     continuous: Traces | None = None  # continuous-task traces; episode 0, first 10 s, is drawn
+    perturbed: PerturbedResult | None = None  # the same commands on perturbed airframes
 
 
 def load_paper_tables() -> dict[str, Any]:
@@ -109,6 +113,59 @@ def _motor_table(results: Sequence[ControllerResult]) -> str:
         cells = [_fmt(s.mean, s.ci95, 2) for s in r.metrics.smoothness_per_motor]
         lines.append(f"| {_cell_name(r.name)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _axes_cell(m: EvalMetrics, metric: str, decimals: int = 1) -> str:
+    values = (m.stat(metric, a).mean for a in AXES)
+    return "/".join("—" if not np.isfinite(v) else f"{v:.{decimals}f}" for v in values)
+
+
+def _error_sum(m: EvalMetrics) -> float:
+    return sum(m.stat("error", a).mean for a in AXES)
+
+
+def robustness_table(results: Sequence[ControllerResult]) -> str:
+    """Nominal against perturbed per controller: Error (Σ over axes), Success, Peak, Rise, smoothness."""
+    lines = ["| Controller | airframes | Error Σ | Error Σ, worst airframe | Success % r/p/y | Peak % r/p/y "
+             "| Rise ms r/p/y | Smoothness µs/step |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        if r.perturbed is None:
+            continue
+        p = r.perturbed
+        worst = f"{float(np.max(p.error_sum)):.1f}"
+        rows = (("nominal", r.metrics, "—"), (f"{len(p.airframes)} perturbed", p.metrics, worst))
+        for label, m, worst_cell in rows:
+            smooth = m.stat("smoothness", "roll")
+            lines.append(f"| {_cell_name(r.name)} | {label} | {_error_sum(m):.1f} | {worst_cell} | "
+                         f"{_axes_cell(m, 'success_pct')} | {_axes_cell(m, 'peak_pct')} | "
+                         f"{_axes_cell(m, 'rise_ms')} | {_fmt(smooth.mean, smooth.ci95, 2)} |")
+    return "\n".join(lines)
+
+
+def plot_robustness(results: Sequence[ControllerResult], path: str | os.PathLike[str]) -> Path:
+    """Per-airframe Error Σ per controller (box and points), the nominal airframe's as a red diamond."""
+    drawn = [r for r in results if r.perturbed is not None]
+    if not drawn:
+        raise ValueError("plot_robustness: no controller was flown on perturbed airframes")
+    fig = Figure(figsize=(max(5.0, 2.2 * len(drawn) + 2), 5), layout="constrained")
+    ax = fig.subplots()
+    data = [r.perturbed.error_sum for r in drawn if r.perturbed is not None]
+    ax.boxplot(data, widths=0.5, showfliers=False)
+    jitter = np.random.default_rng(0)
+    for i, values in enumerate(data, start=1):
+        ax.plot(i + jitter.uniform(-0.12, 0.12, len(values)), values, "o", ms=4, alpha=0.7, color="tab:blue",
+                label="perturbed airframe" if i == 1 else None)
+    ax.plot(range(1, len(drawn) + 1), [_error_sum(r.metrics) for r in drawn], "D", ms=8, color="tab:red",
+            label="nominal airframe")
+    ax.set_xticks(range(1, len(drawn) + 1), [Path(r.name).name for r in drawn])
+    ax.set_ylabel("Error Σ over axes (rad/s), mean per command")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend(loc="best", fontsize=8)
+    n = len(drawn[0].perturbed.airframes) if drawn[0].perturbed is not None else 0
+    fig.suptitle(f"Error on {n} perturbed airframes, same commands")
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    return path
 
 
 def plot_step_responses(results: Sequence[ControllerResult], path: str | os.PathLike[str],
@@ -252,6 +309,18 @@ def write_report(
         "## Figures",
         "",
     ]
+    if any(r.perturbed is not None for r in results):
+        first = next(r.perturbed for r in results if r.perturbed is not None)
+        assert first is not None
+        plot_robustness(results, out / "robustness.png")
+        parts[parts.index("## Figures"):parts.index("## Figures")] = [
+            "## Robustness: the same commands on perturbed airframes", "",
+            f"{len(first.airframes)} airframes drawn from the randomisation ranges "
+            f"(`sim_bridge/airframes/*.randomization.json`) with perturb seed {first.seed}, a stream "
+            "training never draws from; perturbed rows pool every airframe's episodes. Error Σ is "
+            "the mean Error per command summed over the axes.", "",
+            robustness_table(results), "",
+            "![Error per perturbed airframe](robustness.png)", ""]
     if any(r.step is not None for r in results):
         plot_step_responses(results, out / "step_response.png", episode=step_episode)
         parts += [f"Step response of evaluation command {step_episode}, every controller:", "",

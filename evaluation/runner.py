@@ -4,7 +4,11 @@ Every controller is flown exactly as firmware would fly it: `firmware.loop.Fligh
 ticking in lockstep against the twin, with the PID as fallback. The commands come from
 the seed (`sim_bridge.tasks`), so controllers evaluated with the same seed see the same
 ones. Trace sample k is tick k: the setpoint, the gyro rate the controller read, and the
-PWM it wrote; sample 0 is the vehicle at rest.
+PWM it wrote; sample 0 is the vehicle at rest. In the inflight task the episode starts at
+steady hover (rotors at the speed the throttle commands, rates zero, level) and flies
+`INFLIGHT_WARMUP_S` of zero rate before the command, so the controller's own state
+(integrator, filters, observation history) is warm; those samples have t < 0 and the
+metrics start at the step, t = 0.
 """
 
 from __future__ import annotations
@@ -15,19 +19,20 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
+from firmware.action import PWM_MIN, PWM_SPAN
 from firmware.controller import RateSetpoint
 from firmware.controllers import load_controller
 from firmware.loop import Command, FlightLoop, TickSample
 from firmware.sensors import SensorFrame
 from firmware.timing import LockstepClock
-from sim_bridge.airframe import load_airframe
+from sim_bridge.airframe import Airframe, load_airframe
 from sim_bridge.link import InProcessLink
-from sim_bridge.tasks import continuous_schedule, episodic_commands
-from sim_bridge.twin import Twin
+from sim_bridge.tasks import EVAL_TASKS, INFLIGHT_WARMUP_S, continuous_schedule, episodic_commands
+from sim_bridge.twin import Twin, TwinState
 from sitl.traces import Traces
 
 FALLBACK = "pid"
-TASKS = ("episodic", "continuous")
+TASKS = EVAL_TASKS
 
 
 @dataclass(frozen=True)
@@ -47,22 +52,36 @@ class EvalConfig:
 
     @property
     def duration_s(self) -> float:
-        return self.episode_s or (1.0 if self.task == "episodic" else 10.0)
+        """Seconds evaluated per episode (after the warm-up in the inflight task)."""
+        return self.episode_s or (10.0 if self.task == "continuous" else 1.0)
 
     @property
     def n_ticks(self) -> int:
         return round(self.duration_s * self.rate_hz)
 
     @property
+    def warmup_ticks(self) -> int:
+        return round(INFLIGHT_WARMUP_S * self.rate_hz) if self.task == "inflight" else 0
+
+    @property
     def hover_throttle(self) -> float:
-        return self.throttle if self.throttle is not None else (load_airframe().hover_pwm() - 1000) / 1000
+        return self.throttle_for(load_airframe())
+
+    def throttle_for(self, airframe: Airframe) -> float:
+        """The collective flown: `throttle`, or the airframe's hover throttle."""
+        return self.throttle if self.throttle is not None else (airframe.hover_pwm() - PWM_MIN) / PWM_SPAN
 
 
 def setpoint_schedules(cfg: EvalConfig) -> np.ndarray:
-    """(episodes, ticks, 3) setpoints drawn from the seed alone."""
+    """(episodes, warm-up + ticks, 3) setpoints drawn from the seed alone."""
     if cfg.task == "episodic":
         commands = episodic_commands(cfg.seed, cfg.episodes)
         return np.broadcast_to(commands[:, None, :], (cfg.episodes, cfg.n_ticks, 3))
+    if cfg.task == "inflight":
+        commands = episodic_commands(cfg.seed, cfg.episodes)
+        out = np.zeros((cfg.episodes, cfg.warmup_ticks + cfg.n_ticks, 3))
+        out[:, cfg.warmup_ticks:] = commands[:, None, :]
+        return out
     seeds = np.random.SeedSequence(cfg.seed).spawn(cfg.episodes)
     return np.stack([continuous_schedule(np.random.default_rng(s), cfg.duration_s, 1.0 / cfg.rate_hz)
                      for s in seeds])
@@ -89,30 +108,47 @@ class _Recorder:
         self.k += 1
 
 
+def hover_state(airframe: Airframe, throttle: float) -> TwinState:
+    """Level, rates zero, every rotor at the speed `throttle` commands with zero demands."""
+    m = airframe.motor
+    pwm = min(max(PWM_MIN + PWM_SPAN * throttle, m.pwm_min), m.pwm_max)
+    speed = (pwm - m.pwm_min) * m.max_rotor_speed / (m.pwm_max - m.pwm_min)
+    return TwinState(rotor_speed=(speed,) * 4)
+
+
 def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
-                   on_episode: Callable[[int], None] | None = None) -> Traces:
-    """Fly `spec` (pid, pid:<preset>, FILE.onnx) over the evaluation set; return its traces."""
+                   on_episode: Callable[[int], None] | None = None,
+                   airframe: Airframe | None = None) -> Traces:
+    """Fly `spec` (pid, pid:<preset>, FILE.onnx) over the evaluation set; return its traces.
+
+    `airframe` replaces the nominal Iris (e.g. a perturbed one); its hover throttle is flown
+    unless `cfg.throttle` is set.
+    """
     controllers = {"main": load_controller(spec, cfg.rate_hz)}
     neural = not spec.startswith("pid")
     if neural:
         controllers[FALLBACK] = load_controller(FALLBACK)
     setpoints = setpoint_schedules(cfg)
-    n, ticks = cfg.episodes, cfg.n_ticks
+    n, ticks = cfg.episodes, cfg.warmup_ticks + cfg.n_ticks
     rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))
-    twin = Twin(rig="rig", dt=1.0 / cfg.rate_hz)
-    throttle = cfg.hover_throttle
+    twin = Twin(airframe or "iris", rig="rig", dt=1.0 / cfg.rate_hz)
+    throttle = cfg.throttle_for(twin.airframe)
+    start = hover_state(twin.airframe, throttle) if cfg.task == "inflight" else None
     faults = 0
     bar = tqdm(range(n), desc=f"eval {spec}", unit="ep", disable=not progress, leave=False)
     for i in bar:
         commander = _Schedule(setpoints[i], throttle, round(1e6 / cfg.rate_hz))
         recorder = _Recorder(rate[i], pwm[i])
-        loop = FlightLoop(InProcessLink(twin), twin.reset(), controllers, commander, LockstepClock(),
-                          cfg.rate_hz, [recorder], fallback=FALLBACK if neural else None)
+        loop = FlightLoop(InProcessLink(twin), twin.reset(state=start), controllers, commander,
+                          LockstepClock(), cfg.rate_hz, [recorder], fallback=FALLBACK if neural else None)
         for k in range(ticks):
             loop.tick(k * loop.period_us)
         faults += sum(loop.faults.values())
         if on_episode is not None:
             on_episode(i)
-    t = np.arange(ticks) / cfg.rate_hz
+    t = (np.arange(ticks) - cfg.warmup_ticks) / cfg.rate_hz
+    extra = {"throttle": throttle, "controller_faults": faults, "rate_hz": cfg.rate_hz}
+    if start is not None:
+        extra["initial_rotor_speed"] = list(start.rotor_speed)
     return Traces(t, np.array(setpoints), rate, pwm, controller=spec, seed=cfg.seed, task=cfg.task,
-                  extra={"throttle": throttle, "controller_faults": faults, "rate_hz": cfg.rate_hz})
+                  extra=extra)

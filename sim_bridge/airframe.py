@@ -65,14 +65,15 @@ class Airframe:
     def hover_pwm(self, gravity: float = 9.81) -> float:
         return float(self.motor.pwm_for_rotor_speed(self.hover_rotor_speed(gravity)))
 
-    def scaled(self, mass: float = 1.0, inertia: float = 1.0, kf: float = 1.0,
-               km: float = 1.0) -> Airframe:
-        """A copy with mass, inertia and motor constants multiplied (airframe randomisation)."""
+    def scaled(self, mass: float = 1.0, inertia: float | tuple[float, float, float] = 1.0, kf: float = 1.0,
+               km: float = 1.0, tau_up: float = 1.0, tau_down: float = 1.0) -> Airframe:
+        """A copy with mass, inertia (one factor, or one per axis) and motor constants multiplied."""
         m = self.motor
-        motor = MotorSpec(m.max_rotor_speed, m.kf * kf, m.km * km, m.tau_up, m.tau_down,
-                           m.pwm_min, m.pwm_max)
-        return Airframe(self.name, self.base_mass * mass,
-                        tuple(float(i) * inertia for i in self.base_inertia),  # type: ignore[arg-type]
+        motor = MotorSpec(m.max_rotor_speed, m.kf * kf, m.km * km, m.tau_up * tau_up, m.tau_down * tau_down,
+                          m.pwm_min, m.pwm_max)
+        per_axis = inertia if isinstance(inertia, tuple | list) else (inertia,) * 3
+        inertia_scaled = tuple(float(i) * f for i, f in zip(self.base_inertia, per_axis, strict=True))
+        return Airframe(self.name, self.base_mass * mass, inertia_scaled,  # type: ignore[arg-type]
                         self.base_box, self.rotor_mass * mass, self.rotor_radius,
                         self.rotor_positions, self.spin, motor, self.gear_half_height)
 
@@ -82,7 +83,7 @@ def load_airframe(name_or_path: str | Path = "iris") -> Airframe:
     if not path.suffix:
         path = AIRFRAME_DIR / f"{name_or_path}.json"
     if not path.exists():
-        known = ", ".join(sorted(p.stem for p in AIRFRAME_DIR.glob("*.json")))
+        known = ", ".join(sorted(p.stem for p in AIRFRAME_DIR.glob("*.json") if "." not in p.stem))
         raise FileNotFoundError(f"no airframe file {path} (shipped airframes: {known})")
     raw = json.loads(path.read_text())
     motors = raw["motors"]

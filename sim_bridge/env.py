@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -31,18 +32,20 @@ from firmware.action import ACTION_MAPPINGS, PWM_MIN, PWM_SPAN, action_to_pwm
 from firmware.observation import FIELDS, ObservationHistory, ObservationSpec, observe_step
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
 from sim_bridge.plant import SensorNoise
+from sim_bridge.randomization import Randomization, load_randomization
 from sim_bridge.reward import UNWEIGHTED, RateReward
 from sim_bridge.tasks import (
     HOLD_S,
     OMEGA_MAX,
     REST_S,
+    TRAINING_TASKS,
     draw_throttle,
     episodic_setpoint,
     pulse_schedule,
 )
 from sim_bridge.twin import Twin
 
-TASKS = ("episodic", "continuous")
+TASKS = TRAINING_TASKS
 RANDOMIZE_KEYS = ("mass", "inertia", "kf", "km")  # also the draw order
 DEFAULT_EPISODE_S = {"episodic": 1.0, "continuous": 10.0}
 
@@ -57,7 +60,8 @@ class EnvConfig:
     throttle: float | tuple[float, float] | None = None  # None: the airframe's hover throttle
     episode_s: float | None = None  # None: 1 s episodic, 10 s continuous
     noise: SensorNoise | None = None
-    randomize: Mapping[str, float] | None = None  # key -> ± fraction, redrawn per episode
+    # key -> ± fraction, or ranges (a `sim_bridge.randomization` file, e.g. "iris"); redrawn per episode
+    randomize: Mapping[str, float] | Randomization | str | Path | None = None
     omega_max: float = OMEGA_MAX
     action_rate_penalty: float = 0.0
     airframe: Airframe | str = "iris"
@@ -73,13 +77,19 @@ class EnvConfig:
             raise ValueError(f"unknown task {self.task!r}; choose one of {TASKS}")
         if self.action_mapping not in ACTION_MAPPINGS:
             raise ValueError(f"unknown action mapping {self.action_mapping!r}; known: {ACTION_MAPPINGS}")
-        unknown = set(self.randomize or {}) - set(RANDOMIZE_KEYS)
-        if unknown:
-            raise ValueError(f"cannot randomise {sorted(unknown)}; known: {RANDOMIZE_KEYS}")
-        if any(not 0.0 <= f < 1.0 for f in (self.randomize or {}).values()):
-            raise ValueError(f"randomisation fractions must be in [0, 1), got {dict(self.randomize or {})}")
+        if isinstance(self.randomize, str | Path):
+            object.__setattr__(self, "randomize", load_randomization(self.randomize))
+        if not isinstance(self.randomize, Randomization):
+            unknown = set(self.randomize or {}) - set(RANDOMIZE_KEYS)
+            if unknown:
+                raise ValueError(f"cannot randomise {sorted(unknown)}; known: {RANDOMIZE_KEYS}")
+            if any(not 0.0 <= f < 1.0 for f in (self.randomize or {}).values()):
+                raise ValueError(
+                    f"randomisation fractions must be in [0, 1), got {dict(self.randomize or {})}")
         if not isinstance(self.airframe, Airframe):
             object.__setattr__(self, "airframe", load_airframe(self.airframe))
+        if isinstance(self.randomize, Randomization):
+            self.randomize.check_airframe(self.airframe)
         if self.throttle is None:
             hover = (self.base_airframe.hover_pwm() - PWM_MIN) / PWM_SPAN
             object.__setattr__(self, "throttle", hover)
@@ -126,8 +136,11 @@ def draw_episode(rng: np.random.Generator, cfg: EnvConfig) -> Episode:
     else:
         setpoints = pulse_schedule(rng, n, cfg.dt, cfg.omega_max, cfg.hold_s, cfg.rest_s)
     throttle = draw_throttle(rng, cfg.throttle) if cfg.action_mapping == "throttle" else 0.0
-    frac = cfg.randomize or {}
-    factors = {k: float(rng.uniform(1.0 - frac[k], 1.0 + frac[k])) for k in RANDOMIZE_KEYS if k in frac}
+    if isinstance(cfg.randomize, Randomization):
+        factors = cfg.randomize.draw(rng)
+    else:
+        frac = cfg.randomize or {}
+        factors = {k: float(rng.uniform(1.0 - frac[k], 1.0 + frac[k])) for k in RANDOMIZE_KEYS if k in frac}
     noise_seed = int(rng.integers(2**63)) if cfg.noisy else None
     return Episode(setpoints, throttle, factors, noise_seed)
 
@@ -192,7 +205,8 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def __init__(self, task: str = "episodic", memory: int = 1, action_mapping: str = "gymfc",
                  throttle: float | tuple[float, float] | None = None, episode_s: float | None = None,
-                 noise: SensorNoise | None = None, randomize: Mapping[str, float] | None = None,
+                 noise: SensorNoise | None = None,
+                 randomize: Mapping[str, float] | Randomization | str | Path | None = None,
                  omega_max: float = OMEGA_MAX, action_rate_penalty: float = 0.0,
                  airframe: Airframe | str = "iris", dt: float = 0.001,
                  render_mode: str | None = None, obs_fields: tuple[str, ...] = FIELDS,

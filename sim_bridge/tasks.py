@@ -4,6 +4,10 @@ Everything random takes a seed or a `numpy.random.Generator`, so the environment
 draw from `np_random`) and the evaluator (which draws from a seed) share one definition.
 
 - Episodic task (Koch et al. 2018): Ω* ~ U[-Ω_max, Ω_max]³, held for the whole episode.
+- Inflight task (evaluation only): the episodic commands, each a step from steady hover:
+  the rotors already at the speed the hover throttle commands, rates zero, level, and the
+  controller warmed up by `INFLIGHT_WARMUP_S` of zero-rate flight before the step. The
+  episodic task starts from rest, where much of every controller's Error is spin-up.
 - Continuous task: pulses of random width and amplitude. We follow the paper's appendix
   (and GymFC's continuous environment): the setpoint rests at zero for U[0.1, 1] s, then
   a command Ω* ~ U[-Ω_max, Ω_max]³ is held for U[0.1, 1] s, then it returns to zero, and
@@ -14,6 +18,10 @@ draw from `np_random`) and the evaluator (which draws from a seed) share one def
 from __future__ import annotations
 
 import numpy as np
+
+TRAINING_TASKS = ("episodic", "continuous")  # what the environments fly
+EVAL_TASKS = (*TRAINING_TASKS, "inflight")  # what `fcemu eval --task` flies
+INFLIGHT_WARMUP_S = 0.2  # s of zero-rate flight at hover before an inflight step
 
 OMEGA_MAX = 5.24  # rad/s, the paper's command bound
 HOLD_S = (0.1, 1.0)  # s, how long a continuous-task command is held

@@ -4,7 +4,8 @@ Arrays (DESIGN.md, `--save-traces`): `t` (T,) seconds, `setpoint` (N,T,3) and `r
 (N,T,3) FRD rad/s, `pwm` (N,T,4) µs in Betaflight Quad X motor order. Index k of
 every array is the same instant: the command in force and the rate measured at t[k].
 Metadata (controller, seed, task, anything else JSON-serialisable) is stored as one
-JSON string, so loading never needs pickle.
+JSON string, so loading never needs pickle. Inflight-task traces start with the warm-up
+at hover (t < 0); the step is at t = 0 (`Traces.step_window`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,10 @@ from typing import Any
 
 import numpy as np
 
-TASKS = ("episodic", "continuous")
+from sim_bridge.tasks import EVAL_TASKS
+
+TASKS = EVAL_TASKS
+_T_EPS = 1e-9  # s
 _ARRAYS = ("t", "setpoint", "rate", "pwm")
 
 
@@ -75,6 +79,14 @@ class Traces:
         """Episode i alone, as an N = 1 traces object."""
         sl = slice(i, i + 1) if i >= 0 else slice(i, i + 1 or None)
         return Traces(self.t, self.setpoint[sl], self.rate[sl], self.pwm[sl],
+                      self.controller, self.seed, self.task, dict(self.extra))
+
+    def step_window(self) -> Traces:
+        """The samples from t = 0 on: the inflight task without its warm-up (others unchanged)."""
+        k0 = int(np.searchsorted(self.t, -_T_EPS))
+        if k0 == 0:
+            return self
+        return Traces(self.t[k0:], self.setpoint[:, k0:], self.rate[:, k0:], self.pwm[:, k0:],
                       self.controller, self.seed, self.task, dict(self.extra))
 
     def metadata(self) -> dict[str, Any]:

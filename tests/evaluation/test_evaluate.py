@@ -9,9 +9,11 @@ import sys
 import numpy as np
 import pytest
 
-from evaluation.metrics import METRIC_KEYS, compute_metrics
-from evaluation.runner import EvalConfig, run_controller, setpoint_schedules
+from evaluation.metrics import AXES, METRIC_KEYS, compute_metrics
+from evaluation.runner import EvalConfig, hover_state, run_controller, setpoint_schedules
+from sim_bridge.airframe import load_airframe
 from sim_bridge.tasks import episodic_commands
+from sim_bridge.twin import Twin
 from sitl.traces import load_traces
 
 
@@ -72,3 +74,36 @@ def test_eval_report_compares_controllers_side_by_side(tmp_path):
 def test_a_bad_task_is_refused():
     with pytest.raises(ValueError):
         EvalConfig(task="hover")
+
+
+def test_inflight_starts_at_steady_hover_and_steps_at_t0():
+    cfg = EvalConfig(task="inflight", episodes=3, seed=7)
+    traces = run_controller("pid", cfg, progress=False)
+    k0 = cfg.warmup_ticks
+    assert k0 == 200 and traces.t[0] == pytest.approx(-0.2) and traces.t[k0] == 0.0
+    assert traces.setpoint.shape == (3, 1200, 3)
+    assert not traces.setpoint[:, :k0].any()
+    assert np.array_equal(traces.setpoint[:, k0], episodic_commands(7, 3))
+    iris = load_airframe("iris")
+    hover = [iris.hover_rotor_speed()] * 4
+    np.testing.assert_allclose(traces.extra["initial_rotor_speed"], hover, rtol=1e-12)
+    assert np.all(traces.rate[:, 0] == 0.0)  # rates zero at the first tick
+    np.testing.assert_allclose(traces.pwm[:, 0], iris.hover_pwm(), rtol=1e-12)  # hover from the first tick
+    # The warm-up holds the hover: no rate, no change of output, right up to the step.
+    assert np.abs(traces.rate[:, :k0 + 1]).max() < 1e-9
+    assert np.ptp(traces.pwm[:, :k0], axis=1).max() < 1e-6
+    twin = Twin()
+    twin.reset(state=hover_state(twin.airframe, cfg.hover_throttle))
+    np.testing.assert_allclose(twin.rotor_speed, iris.hover_rotor_speed(), rtol=1e-12)
+
+
+def test_inflight_scores_from_the_step_and_has_less_error_than_from_rest():
+    commands = dict(episodes=4, seed=7)
+    inflight = run_controller("pid", EvalConfig(task="inflight", **commands), progress=False)
+    episodic = run_controller("pid", EvalConfig(task="episodic", **commands), progress=False)
+    m_in, m_ep = compute_metrics(inflight), compute_metrics(episodic)
+    step = inflight.rate[:, 200:]
+    expected = np.abs(inflight.setpoint[:, 200:] - step).sum(axis=1).mean(axis=0)
+    np.testing.assert_allclose([m_in.stat("error", a).mean for a in AXES], expected, rtol=1e-12)
+    for axis in AXES:
+        assert m_in.stat("error", axis).mean < m_ep.stat("error", axis).mean

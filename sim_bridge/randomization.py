@@ -1,0 +1,183 @@
+"""Domain-randomisation ranges: one data file beside the airframe, loaded and validated here.
+
+`airframes/<name>.randomization.json` gives, per parameter, its unit, nominal value (the
+airframe file's), range [lo, hi] and a source or justification. Every parameter is drawn
+independently from U[lo, hi]; `Randomization.draw` returns the draw as scale factors
+(value / nominal) keyed by `Airframe.scaled`'s keywords, so an environment or the
+evaluator builds the airframe with `base.scaled(**factors)`.
+
+A parameter becomes randomisable when the twin honours it: add its row to `PARAMETERS`
+(where its nominal lives in the airframe and which `scaled` keyword it sets) and its range
+to the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sim_bridge.airframe import AIRFRAME_DIR, Airframe, load_airframe
+
+SUFFIX = ".randomization.json"
+NOMINAL_RTOL = 1e-9
+
+# file key -> (the airframe's nominal value, Airframe.scaled keyword, axis for per-axis keywords)
+PARAMETERS: dict[str, tuple[Callable[[Airframe], float], str, int | None]] = {
+    "mass": (lambda a: a.mass, "mass", None),
+    "inertia_xx": (lambda a: a.base_inertia[0], "inertia", 0),
+    "inertia_yy": (lambda a: a.base_inertia[1], "inertia", 1),
+    "inertia_zz": (lambda a: a.base_inertia[2], "inertia", 2),
+    "kf": (lambda a: a.motor.kf, "kf", None),
+    "km": (lambda a: a.motor.km, "km", None),
+    "tau_up": (lambda a: a.motor.tau_up, "tau_up", None),
+    "tau_down": (lambda a: a.motor.tau_down, "tau_down", None),
+}
+
+
+class RandomizationError(ValueError):
+    """A randomisation file that is missing, malformed or inconsistent with its airframe."""
+
+
+@dataclass(frozen=True)
+class ParameterRange:
+    key: str
+    unit: str
+    nominal: float
+    lo: float
+    hi: float
+    source: str
+
+
+@dataclass(frozen=True)
+class Randomization:
+    """Validated ranges for one airframe; parameters in the file's order, drawn in `PARAMETERS` order.
+
+    Iterating gives the `Airframe.scaled` keywords a draw sets, as iterating the
+    environments' ± fraction mapping gives its keys.
+    """
+
+    airframe: str
+    parameters: tuple[ParameterRange, ...]
+    path: Path | None = None
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(dict.fromkeys(PARAMETERS[p.key][1] for p in self._ordered()))
+
+    def __len__(self) -> int:
+        return len(self.parameters)
+
+    def parameter(self, key: str) -> ParameterRange:
+        """The range of file key `key` (e.g. "inertia_xx")."""
+        for p in self.parameters:
+            if p.key == key:
+                return p
+        raise KeyError(f"no range for {key!r}; the file has {[p.key for p in self.parameters]}")
+
+    def _ordered(self) -> list[ParameterRange]:
+        order = list(PARAMETERS)
+        return sorted(self.parameters, key=lambda p: order.index(p.key))
+
+    def draw(self, rng: np.random.Generator) -> dict[str, Any]:
+        """One airframe: {scaled keyword: factor}; per-axis keywords get a 3-tuple (1.0 where not drawn)."""
+        factors: dict[str, Any] = {}
+        for p in self._ordered():
+            factor = float(rng.uniform(p.lo, p.hi)) / p.nominal
+            _, keyword, axis = PARAMETERS[p.key]
+            if axis is None:
+                factors[keyword] = factor
+            else:
+                axes = list(factors.get(keyword, (1.0, 1.0, 1.0)))
+                axes[axis] = factor
+                factors[keyword] = tuple(axes)
+        return factors
+
+    def base_airframe(self) -> Airframe:
+        """The airframe the ranges are for: the file beside them, else the shipped one by name."""
+        sibling = None if self.path is None else self.path.parent / f"{self.airframe}.json"
+        try:
+            return load_airframe(sibling if sibling is not None and sibling.exists() else self.airframe)
+        except (OSError, ValueError, KeyError) as exc:
+            raise RandomizationError(f"{self.path or 'ranges'}: cannot load airframe {self.airframe!r}: "
+                                     f"{exc}") from None
+
+    def check_airframe(self, airframe: Airframe) -> None:
+        """Raise unless every nominal value is the airframe's own."""
+        where = self.path or self.airframe
+        if airframe.name != self.airframe:
+            raise RandomizationError(f"{where}: ranges are for airframe {self.airframe!r}, "
+                                     f"not {airframe.name!r}")
+        for p in self.parameters:
+            actual = PARAMETERS[p.key][0](airframe)
+            if not math.isclose(p.nominal, actual, rel_tol=NOMINAL_RTOL):
+                raise RandomizationError(f"{where}: {p.key} nominal {p.nominal:g} is not the airframe's "
+                                         f"{actual:g}")
+
+
+def randomization_path(name_or_path: str | Path) -> Path:
+    """`iris` -> the shipped `airframes/iris.randomization.json`; anything with a suffix is a path."""
+    path = Path(name_or_path)
+    return path if path.suffix else AIRFRAME_DIR / f"{name_or_path}{SUFFIX}"
+
+
+def load_randomization(name_or_path: str | Path = "iris") -> Randomization:
+    """Read, validate and check against its airframe; every problem is a `RandomizationError`."""
+    path = randomization_path(name_or_path)
+    if not path.exists():
+        known = ", ".join(sorted(p.name[: -len(SUFFIX)] for p in AIRFRAME_DIR.glob(f"*{SUFFIX}")))
+        raise RandomizationError(f"no randomisation file {path} (shipped: {known})")
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RandomizationError(f"{path}: cannot read as JSON: {exc}") from None
+    ranges = parse_randomization(raw, where=str(path))
+    ranges = Randomization(ranges.airframe, ranges.parameters, path)
+    ranges.check_airframe(ranges.base_airframe())
+    return ranges
+
+
+def parse_randomization(raw: Any, where: str = "ranges") -> Randomization:
+    """Validate the file's JSON object: known keys, finite positive numbers, lo <= nominal <= hi, a source."""
+    if not isinstance(raw, dict):
+        raise RandomizationError(f"{where}: expected a JSON object, got {type(raw).__name__}")
+    airframe = raw.get("airframe")
+    if not isinstance(airframe, str) or not airframe:
+        raise RandomizationError(f"{where}: \"airframe\" must name the airframe file the ranges are for")
+    params = raw.get("parameters")
+    if not isinstance(params, dict) or not params:
+        raise RandomizationError(f"{where}: \"parameters\" must be a non-empty object")
+    unknown = sorted(set(params) - set(PARAMETERS))
+    if unknown:
+        raise RandomizationError(f"{where}: unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
+    return Randomization(airframe, tuple(_parameter(key, entry, where) for key, entry in params.items()))
+
+
+def _parameter(key: str, entry: Any, where: str) -> ParameterRange:
+    at = f"{where}: {key}"
+    if not isinstance(entry, dict):
+        raise RandomizationError(f"{at}: expected an object with nominal, range, unit and source")
+    missing = sorted({"nominal", "range", "unit", "source"} - set(entry))
+    if missing:
+        raise RandomizationError(f"{at}: missing {missing}")
+    rng = entry["range"]
+    if not isinstance(rng, list) or len(rng) != 2:
+        raise RandomizationError(f"{at}: range must be [lo, hi], got {rng!r}")
+    values = (entry["nominal"], *rng)
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+               for v in values):
+        raise RandomizationError(f"{at}: nominal and range must be finite positive numbers, got "
+                                 f"nominal {entry['nominal']!r}, range {rng!r}")
+    nominal, lo, hi = (float(v) for v in values)
+    if not lo <= nominal <= hi:
+        raise RandomizationError(f"{at}: need lo <= nominal <= hi, got {lo:g} <= {nominal:g} <= {hi:g}")
+    source = entry["source"]
+    if not isinstance(source, str) or not source.strip():
+        raise RandomizationError(f"{at}: source must say where the range comes from")
+    if not isinstance(entry["unit"], str):
+        raise RandomizationError(f"{at}: unit must be a string")
+    return ParameterRange(key, entry["unit"], nominal, lo, hi, source)

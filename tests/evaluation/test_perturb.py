@@ -1,0 +1,130 @@
+"""`fcemu eval --perturb`: airframes from the ranges, their own seed stream, pooled metrics, report."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from evaluation.metrics import (
+    AXES,
+    METRIC_KEYS,
+    compute_metrics,
+    pool_episode_metrics,
+    traces_episode_metrics,
+)
+from evaluation.perturb import fly_perturbed, perturbed_airframes
+from evaluation.report import ControllerResult, write_report
+from evaluation.runner import EvalConfig, run_controller
+from fcemu.cli import main
+from sim_bridge.airframe import load_airframe
+from sim_bridge.env import EnvConfig, draw_episode
+from sim_bridge.randomization import load_randomization
+
+FAST = ("--controller", "pid", "--episodes", "2", "--episode-s", "0.6", "--perturb", "2", "--json")
+
+
+@dataclass
+class Run:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+@pytest.fixture
+def fcemu(capsys):
+    """`fcemu eval ARGS` run in this process by the console script's `main`: exit status and output."""
+    def run(*args: str) -> Run:
+        code = main(["eval", *args])
+        out = capsys.readouterr()
+        return Run(code, out.out, out.err)
+    return run
+
+
+def test_perturbed_airframes_are_seeded_differ_from_nominal_and_stay_in_range():
+    ranges = load_randomization("iris")
+    a, b, c = (perturbed_airframes(ranges, 5, s) for s in (1234, 1234, 99))
+    assert [x.factors for x in a] == [x.factors for x in b]
+    assert [x.factors for x in a] != [x.factors for x in c]
+    iris = load_airframe("iris")
+    for x in a:
+        assert x.airframe.mass != iris.mass and x.airframe.motor.kf != iris.motor.kf
+        mass, tau_down = ranges.parameter("mass"), ranges.parameter("tau_down")
+        assert mass.lo <= x.airframe.mass <= mass.hi
+        assert tau_down.lo <= x.airframe.motor.tau_down <= tau_down.hi
+    assert len({x.airframe.motor.tau_up for x in a}) == 5
+    with pytest.raises(ValueError, match="at least one airframe"):
+        perturbed_airframes(ranges, 0, 1)
+
+
+def test_perturbed_airframes_are_not_drawn_by_training_seeds():
+    ranges = load_randomization("iris")
+    cfg = EnvConfig(randomize=ranges)
+    # Training env copies are seeded with plain integers; their first and later episodes.
+    trained = set()
+    for s in range(300):
+        rng = np.random.default_rng(s)
+        for _ in range(3):
+            trained.add(draw_episode(rng, cfg).factors["mass"])
+    for seed in range(300):
+        assert not {x.factors["mass"] for x in perturbed_airframes(ranges, 3, seed)} & trained
+
+
+@pytest.fixture(scope="module")
+def small_run():
+    cfg = EvalConfig(episodes=2, seed=5, episode_s=0.6)
+    airframes = perturbed_airframes(load_randomization("iris"), 2, 7)
+    return cfg, airframes, fly_perturbed("pid", cfg, airframes, 7)
+
+
+def test_perturbed_metrics_pool_every_airframes_episodes(small_run):
+    cfg, airframes, result = small_run
+    parts = [traces_episode_metrics(run_controller("pid", cfg, progress=False, airframe=a.airframe))[0]
+             for a in airframes]
+    pooled = pool_episode_metrics(parts)
+    assert pooled.n_episodes == 4 and result.metrics.n_episodes == 4
+    np.testing.assert_allclose(result.metrics.stat("error", "yaw").mean, pooled.error[:, 2].mean())
+    assert result.error_sum.shape == (2,) and result.error_sum[0] != result.error_sum[1]
+    nominal = compute_metrics(run_controller("pid", cfg, progress=False))
+    assert result.metrics.to_json() != nominal.to_json()
+
+
+def test_the_report_has_a_robustness_table_and_plot(small_run, tmp_path):
+    cfg, _, result = small_run
+    nominal = compute_metrics(run_controller("pid", cfg, progress=False))
+    results = [ControllerResult("pid", nominal, perturbed=result), ControllerResult("pid:paper", nominal)]
+    md = write_report(tmp_path, results, command="fcemu eval", seed=5, task="inflight").read_text()
+    section = md[md.index("## Robustness"):md.index("## Figures")]
+    assert "| pid | nominal |" in section and "| pid | 2 perturbed |" in section
+    assert "pid:paper" not in section  # flown on the nominal airframe only
+    assert f"| {result.error_sum.max():.1f} |" in section  # the worst airframe
+    assert (tmp_path / "robustness.png").stat().st_size > 10_000
+
+
+def test_eval_perturb_json_shape_and_determinism(fcemu, tmp_path):
+    runs = [fcemu(*FAST, "--perturb-seed", "1234", "--task", "inflight", "--report", str(tmp_path)),
+            *(fcemu(*FAST, "--perturb-seed", s, "--task", "inflight") for s in ("1234", "77"))]
+    for r in runs:
+        assert r.returncode == 0, r.stderr
+    first, again, other = (json.loads(r.stdout) for r in runs)
+    assert set(first["perturbed"]) == set(first["metrics"]) == set(METRIC_KEYS)
+    for metric in first["perturbed"].values():
+        assert set(metric) == set(AXES) and all(len(v) == 2 for v in metric.values())
+    assert first["perturbation"]["airframes"] == 2 and first["perturbation"]["perturb_seed"] == 1234
+    assert first["perturbation"]["n"] == 4  # 2 commands x 2 airframes
+    assert first == again
+    assert other["perturbed"] != first["perturbed"] and other["metrics"] == first["metrics"]
+    assert first["perturbed"] != first["metrics"] and first["task"] == "inflight"
+    assert "| pid | 2 perturbed |" in (tmp_path / "report.md").read_text()
+
+
+def test_a_bad_ranges_file_is_a_user_error(fcemu, tmp_path):
+    bad = tmp_path / "iris.randomization.json"
+    bad.write_text('{"airframe": "iris", "parameters": {"mass": {"nominal": 1.6, "range": [1.7, 2]}}}')
+    out = fcemu(*FAST, "--ranges", str(bad))
+    assert out.returncode == 2 and out.stdout == ""
+    assert out.stderr.startswith("fcemu: error: ") and len(out.stderr.strip().splitlines()) == 1
+    out = fcemu(*FAST[:-3], "--perturb", "-1")
+    assert out.returncode == 2 and "--perturb must be >= 0" in out.stderr
