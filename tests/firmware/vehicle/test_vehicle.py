@@ -76,7 +76,7 @@ def test_offboard_only_while_setpoints_stream() -> None:
     assert cmd.controller == "pid"
     assert not veh.offboard_setpoint((math.nan, 0, 0), 0.5) and not veh.offboard_setpoint((0, 0, 0), 1.5)
     assert veh.counters["setpoint_rejected"] == 2
-    assert veh.request_mode((4, 3))[0] == v.DENIED  # AUTO.LOITER needs a position estimate
+    assert veh.request_mode((4, 4))[0] == v.DENIED  # AUTO.MISSION: no missions
 
 
 def test_offboard_loss_triggers_land_within_timeout_then_disarms() -> None:
@@ -114,7 +114,7 @@ def test_acro_sticks_through_actual_rates_and_rc_loss() -> None:
     veh.request_arm(True)
     veh.sticks(1.0, -0.5, 0.0, 0.6)
     t, cmd = run(veh, 0, 0.05)
-    rates = veh._rates.rates(1.0, -0.5, 0.0)
+    rates = veh.settings.rates.rates(1.0, -0.5, 0.0)
     assert np.allclose(cmd.setpoint.rates, rates)
     assert cmd.setpoint.rates[0] == pytest.approx(math.radians(670))
     assert cmd.setpoint.throttle == 0.6
