@@ -1,6 +1,6 @@
 """MAVSDK-Python (4.x, native core) flies examples/mavsdk_offboard_rates.py against the real SITL:
-connect, arm, offboard with attitude-rate setpoints, LAND. The vehicle's rates must follow, as
-MAVSDK measures them and as the vehicle's own record (its .tlog) shows."""
+connect, arm, offboard with attitude-rate setpoints, offboard.stop() (HOLD), LAND. The vehicle's
+rates must follow, as MAVSDK measures them and as the vehicle's own record (its .tlog) shows."""
 
 from __future__ import annotations
 
@@ -55,6 +55,7 @@ def test_mavsdk_offboard_attitude_rates_are_followed(sitl, tmp_path) -> None:
     summary = json.loads(summary_path.read_text())
     # what MAVSDK saw
     assert summary["completed"] and summary["mode_during"] == "OFFBOARD", summary
+    assert summary["mode_after_stop"] == "HOLD", summary
     assert summary["worst_error_deg_s"] < 6.0, summary
     assert all(r["samples"] >= 5 for r in summary["steps"]), summary
     # the vehicle went through OFFBOARD armed, and is disarmed after LAND
@@ -65,7 +66,7 @@ def test_mavsdk_offboard_attitude_rates_are_followed(sitl, tmp_path) -> None:
     while (hb := log.recv_match(type="HEARTBEAT")) is not None:
         if hb.get_srcSystem() == 1 and hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED:
             modes.add(mavutil.interpret_px4_mode(hb.base_mode, hb.custom_mode))
-    assert "OFFBOARD" in modes and "LAND" in modes, modes
+    assert {"OFFBOARD", "LOITER", "LAND"} <= modes, modes  # pymavlink names PX4's AUTO.LOITER "LOITER"
     # what the vehicle recorded: each ±60 deg/s step, on each axis, was flown
     tracking = rate_tracking_from_tlog(s.tlog)
     steps = [sp for sp in tracking if max(abs(v) for v in sp) > 0.5]
