@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from evaluation.traces import TASKS
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="the paper's metrics for --controller pid|FILE.onnx (repeatable)")
@@ -11,7 +13,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pid, pid:<preset> or a policy .onnx; repeat to compare (default: pid)")
     p.add_argument("--episodes", type=int, default=1000)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--task", choices=("episodic", "continuous"), default="episodic")
+    p.add_argument("--task", choices=TASKS, default=TASKS[0])
     p.add_argument("--episode-s", type=float, default=None,
                    help="episode length (default 1 s episodic, 10 s continuous)")
     p.add_argument("--throttle", type=float, default=None, help="collective 0..1 (default: hover)")

@@ -15,8 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from evaluation.traces import Traces
+from evaluation.traces import TASKS, Traces
 from firmware.controller import RateSetpoint
+from firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from firmware.controllers import load_controller
 from firmware.loop import Command, FlightLoop, TickSample
 from firmware.sensors import SensorFrame
@@ -25,9 +26,6 @@ from sim_bridge.airframe import load_airframe
 from sim_bridge.link import InProcessLink
 from sim_bridge.tasks import continuous_schedule, episodic_commands
 from sim_bridge.twin import Twin
-
-FALLBACK = "pid"
-TASKS = ("episodic", "continuous")
 
 
 @dataclass(frozen=True)

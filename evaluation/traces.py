@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-TASKS = ("episodic", "continuous")
+TASKS = ("episodic", "continuous")  # the evaluator's names for sim_bridge.tasks' two tasks
 _ARRAYS = ("t", "setpoint", "rate", "pwm")
 
 

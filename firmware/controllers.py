@@ -8,6 +8,7 @@ from firmware.controller import RateController
 from firmware.errors import UserError
 
 DEFAULT_POLICY = Path(__file__).resolve().parent.parent / "policies" / "iris_rate_ppo.onnx"
+FALLBACK_CONTROLLER = "pid"  # what flies when a policy faults, and in LAND and HOLD
 
 
 class ControllerSpecError(UserError, ValueError):
@@ -16,7 +17,7 @@ class ControllerSpecError(UserError, ValueError):
 
 def default_controller() -> str:
     """The shipped policy when it is present, else the PID."""
-    return str(DEFAULT_POLICY) if DEFAULT_POLICY.exists() else "pid"
+    return str(DEFAULT_POLICY) if DEFAULT_POLICY.exists() else FALLBACK_CONTROLLER
 
 
 def load_controller(spec: str, loop_rate_hz: float | None = None) -> RateController:

@@ -13,14 +13,25 @@ out when its answer comes back.
 from __future__ import annotations
 
 import math
-import struct
 from collections.abc import Callable
-from typing import NamedTuple, Protocol
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware.mavlink import ipc, telemetry
-from firmware.params import CONTROLLERS, ParamTable
+from firmware.mavlink.outputs import (
+    COUNTERS,
+    NOTHING,
+    Checks,
+    Forward,
+    Link,
+    Output,
+    Say,
+    SendTelemetry,
+    command_ack,
+    finite,
+)
+from firmware.mavlink.services import NoFilesNoMissions, ParameterProtocol
+from firmware.params import ParamTable
 from firmware.vehicle import FORCE_ARM_MAGIC, LAND
 
 M = mavlink
@@ -30,79 +41,31 @@ IGNORE_THRUST = 64
 RC_IGNORE = (0, 65535)
 QUIET = frozenset({"COMMAND_ACK", "REQUEST_DATA_STREAM", "SYSTEM_TIME", "PING", "RADIO_STATUS",
                    "PARAM_EXT_REQUEST_LIST", "MISSION_SET_CURRENT", "GPS_RTCM_DATA", "LOG_REQUEST_LIST"})
-COUNTERS = ("rx_rejected", "rx_foreign", "rx_unsupported", "rx_unhandled")
-
-FTP_HEADER = struct.Struct("<HBBBBBBI")  # seq, session, opcode, size, req_opcode, burst_complete, pad, offset
-FTP_TERMINATE_SESSION, FTP_RESET_SESSIONS, FTP_ACK, FTP_NAK = 1, 2, 128, 129
-FTP_LOOKUPS = (3, 4, 14, 16)  # ListDirectory, OpenFileRO, CalcFileCRC32, ListDirectoryWithTime
-FTP_ERR_UNKNOWN_COMMAND, FTP_ERR_FILE_NOT_FOUND = 7, 10
 
 
-class Link(Protocol):
-    """One peer's link as the handlers see it (firmware/mavlink/endpoint.py)."""
+class Handlers(Checks):
+    """Every message type this vehicle handles, by `on_<type>` method of one of its groups."""
 
-    mav: mavlink.MAVLink
-    scheduler: telemetry.Scheduler
-    peer_seen: tuple[int, int] | None
-
-    def send(self, msg: mavlink.MAVLink_message) -> None: ...
-
-
-class Forward(NamedTuple):
-    """A request for the vehicle; `origin` (the message) is answered with a COMMAND_ACK once the
-    vehicle replies, unless it is None (SET_MODE has no ACK)."""
-
-    request: ipc.ArmRequest | ipc.ModeRequest
-    command: int
-    origin: mavlink.MAVLink_message | None
-
-
-class ParamChanged(NamedTuple):
-    name: str
-
-
-class ParamListRequested(NamedTuple):
-    requester: tuple[int, int]
-
-
-class Say(NamedTuple):
-    severity: int
-    text: str
-    to_sender: bool = False  # only the link it came from (else every link)
-    once: bool = False
-    limited: bool = False  # one of many possible answers to bad input: rate-limited
-
-
-class SendTelemetry(NamedTuple):
-    msgid: int
-
-
-Output = ipc.Setpoint | ipc.Sticks | Forward | ParamChanged | ParamListRequested | Say | SendTelemetry
-NOTHING: list[Output] = []
-
-
-def _finite(*values: float) -> bool:
-    return all(isinstance(v, int | float) and math.isfinite(v) for v in values)
-
-
-def command_ack(link: Link, msg: mavlink.MAVLink_message, command: int, result: int) -> None:
-    link.send(link.mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
-
-
-class Handlers:
     def __init__(self, sysid: int, params: ParamTable, controllers: list[str], has_position: bool,
                  vehicle_time_us: Callable[[], int]) -> None:
-        self.sysid = sysid
-        self.params = params
-        self.controllers = controllers
+        super().__init__(sysid, dict.fromkeys(COUNTERS, 0))
         self.has_position = has_position
         self.vehicle_time_us = vehicle_time_us
-        self.counters = dict.fromkeys(COUNTERS, 0)
+        self.parameters = ParameterProtocol(sysid, self.counters, params, controllers)
+        self._groups = (self, self.parameters, NoFilesNoMissions(sysid, self.counters))
         self._thrust = 0.0
+
+    @property
+    def params(self) -> ParamTable:
+        return self.parameters.params
+
+    def send_param(self, link: Link, name: str) -> None:
+        self.parameters.send_param(link, name)
 
     def handle(self, link: Link, msg: mavlink.MAVLink_message) -> list[Output]:
         kind = msg.get_type()
-        fn = getattr(self, "on_" + kind.lower(), None)
+        name = "on_" + kind.lower()
+        fn = next((getattr(g, name) for g in self._groups if hasattr(g, name)), None)
         if fn is None:
             if kind not in QUIET:
                 self._count("rx_unhandled")
@@ -112,19 +75,6 @@ class Handlers:
         except (TypeError, ValueError, OverflowError, UnicodeError, IndexError, KeyError):
             self._count("rx_rejected")
             return NOTHING
-
-    def _count(self, what: str) -> None:
-        self.counters[what] += 1
-
-    def _for_us(self, msg, component: bool = True) -> bool:
-        ok = msg.target_system in (0, self.sysid) and (
-            not component or getattr(msg, "target_component", 0) in (0, 1))
-        if not ok:
-            self._count("rx_foreign")
-        return ok
-
-    def _reject(self) -> None:
-        self._count("rx_rejected")
 
     def _deny(self, link: Link, msg, cmd: int) -> None:
         self._reject()
@@ -145,7 +95,7 @@ class Handlers:
         rates = tuple(0.0 if mask & bit else v for bit, v in
                       ((1, msg.body_roll_rate), (2, msg.body_pitch_rate), (4, msg.body_yaw_rate)))
         thrust = self._thrust if mask & IGNORE_THRUST else msg.thrust
-        if not _finite(*rates, thrust) or max(abs(r) for r in rates) > MAX_RATE or not 0.0 <= thrust <= 1.0:
+        if not finite(*rates, thrust) or max(abs(r) for r in rates) > MAX_RATE or not 0.0 <= thrust <= 1.0:
             return self._reject()
         self._thrust = thrust
         return [ipc.Setpoint(rates, float(thrust))]
@@ -239,86 +189,6 @@ class Handlers:
         command_ack(link, msg, cmd, M.MAV_RESULT_ACCEPTED)
         return [SendTelemetry(msgid)]
 
-    # ---- parameters ----
-    def send_param(self, link: Link, name: str) -> None:
-        table = self.params
-        link.send(link.mav.param_value_encode(name.encode(), table.encode_wire(name), table.specs[name].kind,
-                                              len(table), table.index(name)))
-
-    def on_param_request_list(self, link: Link, msg) -> list[Output] | None:
-        if self._for_us(msg):  # streamed within the link's budget by the Station
-            return [ParamListRequested((msg.get_srcSystem(), msg.get_srcComponent()))]
-        return None
-
-    def on_param_request_read(self, link: Link, msg) -> None:
-        if not self._for_us(msg):
-            return None
-        names = self.params.names
-        if msg.param_index >= 0:
-            if msg.param_index >= len(names):
-                return self._reject()
-            return self.send_param(link, names[msg.param_index])
-        name = msg.param_id.rstrip("\x00")
-        if name not in self.params.specs:
-            return self._reject()
-        return self.send_param(link, name)
-
-    def on_param_set(self, link: Link, msg) -> list[Output] | None:
-        if not self._for_us(msg):
-            return None
-        table = self.params
-        name = msg.param_id.rstrip("\x00")
-        if name not in table.specs:
-            self._reject()
-            return [Say(4, f"Unknown parameter {name[:30]}", to_sender=True, limited=True)]
-        value = table.decode_wire(name, msg.param_value, msg.param_type)
-        problem = ""
-        if name == "CTRL_SEL" and _finite(value) and 0 <= value < len(CONTROLLERS) \
-                and CONTROLLERS[int(value)] not in self.controllers:
-            problem = f"CTRL_SEL: {CONTROLLERS[int(value)]} controller not loaded"
-        problem = problem or table.set(name, value)
-        if problem:
-            self._reject()
-            self.send_param(link, name)
-            return [Say(4, f"Param rejected: {problem}", to_sender=True, limited=True)]
-        return [ParamChanged(name)]
-
-    def on_param_ext_request_read(self, link: Link, msg) -> None:
-        self._count("rx_unsupported")
-
-    # ---- MAVLink FTP (none) ----
-    def on_file_transfer_protocol(self, link: Link, msg) -> None:
-        """No file system: each request is answered at once (NAK, or ACK to end a session), so
-        clients fall back without waiting out their timeouts (MAVProxy's parameter download)."""
-        if not self._for_us(msg):
-            return
-        seq, session, opcode, *_ = FTP_HEADER.unpack_from(bytes(msg.payload))
-        if opcode in (FTP_TERMINATE_SESSION, FTP_RESET_SESSIONS):
-            reply, size, data = FTP_ACK, 0, 0
-        else:
-            reply, size = FTP_NAK, 1
-            data = FTP_ERR_FILE_NOT_FOUND if opcode in FTP_LOOKUPS else FTP_ERR_UNKNOWN_COMMAND
-        self._count("rx_unsupported")
-        body = FTP_HEADER.pack((seq + 1) & 0xFFFF, session, reply, size, opcode, 0, 0, 0) + bytes([data])
-        link.send(link.mav.file_transfer_protocol_encode(0, msg.get_srcSystem(), msg.get_srcComponent(),
-                                                         list(body.ljust(251, b"\0"))))
-
-    # ---- mission (none) and time ----
-    def on_mission_request_list(self, link: Link, msg) -> None:
-        if self._for_us(msg):
-            src = (msg.get_srcSystem(), msg.get_srcComponent())
-            link.send(link.mav.mission_count_encode(*src, 0, msg.mission_type))
-
-    def on_mission_count(self, link: Link, msg) -> None:
-        if self._for_us(msg):
-            result = M.MAV_MISSION_ACCEPTED if msg.count == 0 else M.MAV_MISSION_UNSUPPORTED
-            link.send(link.mav.mission_ack_encode(msg.get_srcSystem(), msg.get_srcComponent(), result,
-                                                  msg.mission_type))
-
-    def on_mission_clear_all(self, link: Link, msg) -> None:
-        if self._for_us(msg):
-            link.send(link.mav.mission_ack_encode(msg.get_srcSystem(), msg.get_srcComponent(),
-                                                  M.MAV_MISSION_ACCEPTED, msg.mission_type))
 
     def on_timesync(self, link: Link, msg) -> None:
         if msg.tc1 == 0:

@@ -20,10 +20,12 @@ import time
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware.mavlink import handlers as h
 from firmware.mavlink import ipc, telemetry
+from firmware.mavlink import outputs as out
 from firmware.mavlink.budget import ParamStreams
 from firmware.mavlink.endpoint import Endpoint, load_signing_key
+from firmware.mavlink.handlers import Handlers
+from firmware.mavlink.replies import PendingCommands, StatusTexts
 from firmware.mavlink.signing import SigningState
 from firmware.mavlink.tlog import TlogWriter
 from firmware.params import ParamTable
@@ -32,11 +34,7 @@ from firmware.vehicle import STABILIZED, custom_mode
 M = mavlink
 SETPOINT_MIN_GAP_S = 0.002  # forward at most 500 setpoint updates per second
 STREAM_POLL_S = 0.002  # read the telemetry slot at 500 Hz of wall time
-ACK_TIMEOUT_S = 1.0
-MAX_PENDING = 8
 STATS_EVERY_S = 1.0
-REJECT_TEXT_EVERY_S = 5.0
-REJECT_TEXTS_PER_S = 5
 PARAM_SAVE_DELAY_S = 0.2
 NICE = -10  # below the flight loop's -20 (timing.LOOP_NICE), above any other local process
 NICE_UNPRIVILEGED = 5
@@ -48,6 +46,27 @@ def idle_snapshot() -> ipc.Snapshot:
     return ipc.Snapshot(0, 0, custom_mode(STABILIZED), 1, 0, 0, 0, (1.0, 0.0, 0.0, 0.0), zero3,
                         (0.0, 0.0, -9.81), (1000.0,) * 4, zero4, zero3, 0.0, zero3, zero3, 0, 0.0,
                         0, 0, 0, 0, 0)
+
+
+def send_health(links: list[Endpoint], stats: dict[str, int], snap: ipc.Snapshot) -> None:
+    """Input health, and the loop's own deadline record, as NAMED_VALUE_INT for any ground station."""
+    t_ms = (snap.t_us // 1000) & 0xFFFFFFFF
+    values = [(name[:10], stats[name]) for name in REPORTED]
+    values += [("loop_miss", snap.misses), ("loop_ticks", snap.ticks)]
+    for ep in links:
+        for name, value in values:
+            ep.send(ep.mav.named_value_int_encode(t_ms, name.encode(), value & 0x7FFFFFFF))
+
+
+def open_links(peers: list[dict], sysid: int, signing: SigningState | None, tlog: TlogWriter | None,
+               has_position: bool) -> list[Endpoint]:
+    """One link per peer. With a signing key, the links marked `signed` require it (all of them
+    when none is marked)."""
+    any_marked = any(p["signed"] for p in peers)
+    return [Endpoint(p["name"], p["host"], int(p["port"]), sysid, i,
+                     signing if p["signed"] or not any_marked else None, tlog,
+                     telemetry.Scheduler(has_position))
+            for i, p in enumerate(peers)]
 
 
 class Station:
@@ -64,82 +83,48 @@ class Station:
         self.tlog = TlogWriter(config["tlog"]) if config.get("tlog") else None
         key = load_signing_key(config["signing_key"]) if config.get("signing_key") else None
         self.signing = SigningState(key) if key is not None else None  # one per vehicle, every link
-        any_marked = any(p["signed"] for p in config["peers"])
-        self.endpoints: list[Endpoint] = []
-        for i, peer in enumerate(config["peers"]):
-            signing = self.signing if peer["signed"] or not any_marked else None
-            ep = Endpoint(peer["name"], peer["host"], int(peer["port"]), self.sysid, i, signing, self.tlog,
-                          telemetry.Scheduler(self.has_position))
-            self.endpoints.append(ep)
+        self.endpoints = open_links(config["peers"], self.sysid, self.signing, self.tlog, self.has_position)
         self.snap = idle_snapshot()
-        self.handlers = h.Handlers(self.sysid, self.params, self.controllers, self.has_position,
+        self.handlers = Handlers(self.sysid, self.params, self.controllers, self.has_position,
                                    lambda: self.snap.t_us)
         self.param_streams = ParamStreams(lambda: len(self.params), self._send_param_index)
-        self.counters = {"ipc_bad": 0, "snapshots": 0, "acks_timed_out": 0}
-        self._pending: dict[int, tuple[Endpoint | None, int, object, float]] = {}
-        self._req = 0
+        self.counters = {"ipc_bad": 0, "snapshots": 0}
+        self.pending = PendingCommands()
+        self.texts = StatusTexts(self.endpoints)
+        self.say = self.texts.say
         self._latest_sp: ipc.Setpoint | None = None
         self._latest_sticks: ipc.Sticks | None = None
         self._sp_sent = 0.0
         self._dirty_since: float | None = None
-        self._said_once: set[str] = set()
-        self._rejects_reported = 0
-        self._last_reject_text = 0.0
-        self._text_window = 0.0
-        self._texts_in_window = 0
-        self._text_id = 0
 
     # ---- what the handlers ask for ----
     def receive(self, ep: Endpoint, msg) -> None:
-        for out in self.handlers.handle(ep, msg):
-            kind = type(out)
+        for output in self.handlers.handle(ep, msg):
+            kind = type(output)
             if kind is ipc.Setpoint:
-                self._latest_sp = out
+                self._latest_sp = output
             elif kind is ipc.Sticks:
-                self._latest_sticks = out
-            elif kind is h.Forward:
-                self._forward(ep, out)
-            elif kind is h.ParamChanged:
-                self._param_changed(out.name)
-            elif kind is h.ParamListRequested:
-                self.param_streams.request(ep, out.requester)
-            elif kind is h.Say:
-                self.say(out.severity, out.text, ep if out.to_sender else None, out.once, out.limited)
-            elif kind is h.SendTelemetry:
-                self._send_one(ep, out.msgid)
+                self._latest_sticks = output
+            elif kind is out.Forward:
+                self._forward(ep, output)
+            elif kind is out.ParamChanged:
+                self._param_changed(output.name)
+            elif kind is out.ParamListRequested:
+                self.param_streams.request(ep, output.requester)
+            elif kind is out.Say:
+                self.say(output.severity, output.text, ep if output.to_sender else None, output.once,
+                         output.limited)
+            elif kind is out.SendTelemetry:
+                self._send_one(ep, output.msgid)
 
-    def say(self, severity: int, text: str, ep: Endpoint | None = None, once: bool = False,
-            limited: bool = False) -> None:
-        """`limited`: one of many possible answers to bad input, at most REJECT_TEXTS_PER_S a second
-        (a flood gets the periodic "Input rejected" summary instead of a text per frame)."""
-        if once:
-            if text in self._said_once:
-                return
-            self._said_once.add(text)
-        if limited:
-            now = time.monotonic()
-            if now - self._text_window >= 1.0:
-                self._text_window, self._texts_in_window = now, 0
-            if self._texts_in_window >= REJECT_TEXTS_PER_S:
-                return
-            self._texts_in_window += 1
-        self._text_id = self._text_id % 0xFFFF + 1
-        for e in [ep] if ep is not None else self.endpoints:
-            for message in telemetry.statustext(e.mav, severity, text, self._text_id):
-                e.send(message)
-
-    def _forward(self, ep: Endpoint, out: h.Forward) -> None:
-        reply_to = ep if out.origin is not None else None
-        if len(self._pending) >= MAX_PENDING:
-            if reply_to is not None:
-                h.command_ack(reply_to, out.origin, out.command, M.MAV_RESULT_TEMPORARILY_REJECTED)
+    def _forward(self, ep: Endpoint, fwd: out.Forward) -> None:
+        req = self.pending.open(ep if fwd.origin is not None else None, fwd.command, fwd.origin)
+        if req is None:
             return
-        self._req += 1
-        self._pending[self._req] = (reply_to, out.command, out.origin, time.monotonic())
         # Setpoints and sticks received before the command must reach the vehicle before it: an
         # ARM right after MANUAL_CONTROL is judged on that throttle, not on the previous one.
         self._flush_setpoints(time.monotonic(), force=True)
-        self._to_flight(out.request._replace(req=self._req))
+        self._to_flight(fwd.request._replace(req=req))
 
     def _send_one(self, ep: Endpoint, msgid: int) -> None:
         if msgid == M.MAVLINK_MSG_ID_HEARTBEAT:
@@ -184,7 +169,7 @@ class Station:
                 return False
             msg = ipc.decode(data)
             if isinstance(msg, ipc.Ack):
-                self._on_ack(msg)
+                self.pending.answer(msg.req, msg.result)
             elif isinstance(msg, ipc.Text):
                 self.say(int(msg.severity), str(msg.text))
             else:
@@ -203,19 +188,8 @@ class Station:
                 if message is not None:
                     ep.send(message)
 
-    def _on_ack(self, ack: ipc.Ack) -> None:
-        pending = self._pending.pop(ack.req, None)
-        if pending is not None and pending[0] is not None:
-            ep, command, msg, _ = pending
-            h.command_ack(ep, msg, command, ack.result)
-
     def _housekeeping(self, now: float) -> None:
-        for req, (ep, command, msg, t) in list(self._pending.items()):
-            if now - t > ACK_TIMEOUT_S:
-                del self._pending[req]
-                self.counters["acks_timed_out"] += 1
-                if ep is not None:
-                    h.command_ack(ep, msg, command, M.MAV_RESULT_TEMPORARILY_REJECTED)
+        self.pending.expire(now)
         if self._dirty_since is not None and now - self._dirty_since > PARAM_SAVE_DELAY_S:
             self._save_params()
 
@@ -236,7 +210,7 @@ class Station:
             self._sp_sent = now
 
     def stats(self) -> dict:
-        c = {**self.counters, **self.handlers.counters}
+        c = {**self.counters, **self.handlers.counters, "acks_timed_out": self.pending.timed_out}
         c["rx_frames"] = sum(ep.rx for ep in self.endpoints)
         c["rx_bad"] = sum(ep.bad for ep in self.endpoints)
         c["tx_frames"] = sum(ep.tx for ep in self.endpoints)
@@ -249,18 +223,8 @@ class Station:
     def _report(self, now: float) -> None:
         stats = self.stats()
         self._to_flight(ipc.LinkStats(stats))
-        rejected = sum(stats[k] for k in ("rx_bad", "rx_rejected", "rx_foreign", "sig_rejected"))
-        t_ms = (self.snap.t_us // 1000) & 0xFFFFFFFF
-        # Input health, and the loop's own deadline record, for any ground station to watch.
-        values = [(name[:10], stats[name]) for name in REPORTED]
-        values += [("loop_miss", self.snap.misses), ("loop_ticks", self.snap.ticks)]
-        for ep in self.endpoints:
-            for name, value in values:
-                ep.send(ep.mav.named_value_int_encode(t_ms, name.encode(), value & 0x7FFFFFFF))
-        if rejected > self._rejects_reported and now - self._last_reject_text >= REJECT_TEXT_EVERY_S:
-            self.say(4, f"Input rejected: bad {stats['rx_bad']} range {stats['rx_rejected']} "
-                        f"foreign {stats['rx_foreign']} sig {stats['sig_rejected']}")
-            self._rejects_reported, self._last_reject_text = rejected, now
+        send_health(self.endpoints, stats, self.snap)
+        self.texts.report_rejects(stats, now)
 
     def run(self) -> None:
         next_hb = time.monotonic()

@@ -80,12 +80,11 @@ class ModeMachine:
         self.mode: Mode = STABILIZED
         self.failsafe = ""  # why LAND was entered by the vehicle itself; "" otherwise
 
-    def arming_problem(self, sensors_ok: str, controller_loaded: bool, throttle_low: bool,
+    def arming_problem(self, sensor_problem: str, controller_loaded: bool, throttle_low: bool,
                        offboard_live: bool) -> str:
-        """Why arming would be refused now ("" if it would not). `sensors_ok` is the sensors' own
-        problem text ("" when healthy)."""
-        if sensors_ok:
-            return sensors_ok
+        """Why arming would be refused now ("" if it would not)."""
+        if sensor_problem:
+            return sensor_problem
         if not controller_loaded:
             return "no controller loaded"
         if self.mode in STICK_MODES and not throttle_low:

@@ -20,6 +20,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from firmware.controller import RateController, RateSetpoint
+from firmware.controllers import FALLBACK_CONTROLLER
 from firmware.estimator import GRAVITY, AttitudeEstimator
 from firmware.loop import Command
 from firmware.params import CONTROLLERS, ParamTable
@@ -60,7 +61,7 @@ SETPOINT_RATE_MAX = 50.0  # rad/s
 
 class Vehicle:
     def __init__(self, params: ParamTable, controllers: Mapping[str, RateController],
-                 fallback: str = "pid", selected: str | None = None) -> None:
+                 fallback: str = FALLBACK_CONTROLLER, selected: str | None = None) -> None:
         self.params = params
         self.controllers = controllers
         self.fallback = fallback if fallback in controllers else next(iter(controllers))

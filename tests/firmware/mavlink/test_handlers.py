@@ -8,8 +8,8 @@ import pickle
 import pytest
 from pymavlink.dialects.v20 import common as M
 
-from firmware.mavlink import handlers as h
-from firmware.mavlink import ipc
+from firmware.mavlink import ipc, outputs
+from firmware.mavlink.handlers import Handlers
 from firmware.mavlink.telemetry import Scheduler
 from firmware.params import ParamTable
 
@@ -31,7 +31,7 @@ class RecordingLink:
 
 @pytest.fixture
 def setup():
-    handlers = h.Handlers(1, ParamTable(), ["pid"], has_position=False, vehicle_time_us=lambda: 5_000)
+    handlers = Handlers(1, ParamTable(), ["pid"], has_position=False, vehicle_time_us=lambda: 5_000)
     gcs = M.MAVLink(None, srcSystem=255, srcComponent=190)
 
     def handle(message) -> list:
@@ -75,18 +75,18 @@ def test_mode_and_arm_commands_are_forwarded_as_requests(setup) -> None:
 def test_parameters_and_requests(setup) -> None:
     handlers, link, gcs, handle = setup
     out = handle(gcs.param_set_encode(1, 1, b"COM_OF_LOSS_T", 1.5, M.MAV_PARAM_TYPE_REAL32))
-    assert out == [h.ParamChanged("COM_OF_LOSS_T")] and handlers.params["COM_OF_LOSS_T"] == 1.5
+    assert out == [outputs.ParamChanged("COM_OF_LOSS_T")] and handlers.params["COM_OF_LOSS_T"] == 1.5
     [say] = handle(gcs.param_set_encode(1, 1, b"NO_SUCH", 1.0, M.MAV_PARAM_TYPE_REAL32))
-    assert isinstance(say, h.Say) and say.to_sender and say.limited
+    assert isinstance(say, outputs.Say) and say.to_sender and say.limited
     [say] = handle(gcs.param_set_encode(1, 1, b"CTRL_SEL", 1, M.MAV_PARAM_TYPE_INT32))  # not loaded
     assert "not loaded" in say.text and link.sent[-1].get_type() == "PARAM_VALUE"
     out = handle(gcs.command_long_encode(1, 1, M.MAV_CMD_REQUEST_MESSAGE, 0,
                                          M.MAVLINK_MSG_ID_AUTOPILOT_VERSION, 0, 0, 0, 0, 0, 0))
-    assert out == [h.SendTelemetry(M.MAVLINK_MSG_ID_AUTOPILOT_VERSION)]
+    assert out == [outputs.SendTelemetry(M.MAVLINK_MSG_ID_AUTOPILOT_VERSION)]
     assert link.sent[-1].get_type() == "COMMAND_ACK" and link.sent[-1].result == M.MAV_RESULT_ACCEPTED
     handle(gcs.timesync_encode(0, 42))
     assert link.sent[-1].tc1 == 5_000_000 and link.sent[-1].ts1 == 42
-    assert handle(gcs.param_request_list_encode(1, 1)) == [h.ParamListRequested((255, 190))]
+    assert handle(gcs.param_request_list_encode(1, 1)) == [outputs.ParamListRequested((255, 190))]
 
 
 def test_ipc_messages_round_trip_and_garbage_is_refused() -> None:

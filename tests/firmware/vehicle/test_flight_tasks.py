@@ -19,7 +19,7 @@ from firmware.vehicle.land_detector import LandDetector
 from firmware.vehicle.param_adapter import VehicleSettings
 
 REST = SensorFrame(0, np.zeros(3), np.array([0.0, 0.0, -9.81]), np.zeros(4))
-HOVER = 0.745
+HOVER = ParamTable()["MPC_THR_HOVER"]
 
 
 def inputs() -> FlightInputs:
