@@ -149,16 +149,18 @@ class LinkedVehicle:
     # ---- TelemetrySink ----
     def publish(self, sample: TickSample) -> None:
         v = self.vehicle
-        if v.outbox:
-            for severity, text in v.outbox:
+        outbox = v.events.outbox
+        if outbox:
+            for severity, text in outbox:
                 self._send(ipc.encode(ipc.Text(severity, text)))
-            v.outbox.clear()
+            outbox.clear()
         self._n += 1
         if self._n % self.every or self._closed:
             return
         self._snapshots += 1
+        modes = v.modes
         if self._snapshots % ARMABLE_EVERY == 1:
-            self._armable = not v.armed and not v.arming_problem()
+            self._armable = not modes.armed and not v.arming_problem()
         if self.truth is not None and self._snapshots % TRUTH_EVERY == 1:
             tr = self.truth()
             self._pos, self._vel = tuple(tr.position.tolist()), tuple(tr.velocity.tolist())
@@ -170,12 +172,12 @@ class LinkedVehicle:
         compute = int(stats.compute_us[(ticks - 1) % stats.capacity]) if stats is not None and ticks else 0
         faults = sum(loop.faults.values()) if loop is not None and loop.faults else 0
         self.slot.write((
-            frame.t_us, v.armed, custom_mode(v.mode), v.landed_state, bool(v.failsafe),
+            frame.t_us, modes.armed, custom_mode(modes.mode), v.landed_state, bool(modes.failsafe),
             CONTROLLERS.index(sample.controller) if sample.controller in CONTROLLERS else 255,
-            self._armable and not v.armed, *v.estimator.q, *frame.gyro.tolist(),
+            self._armable and not modes.armed, *v.estimator.q, *frame.gyro.tolist(),
             *frame.accel.tolist(), *sample.pwm.tolist(), *frame.rotor_speed.tolist(),
             *sp.rates.tolist(), sp.throttle, *self._pos, *self._vel, self.truth is not None,
-            v.estimator.vz, faults, sum(v.counters.values()), stats.deadline_misses if stats else 0,
+            v.estimator.vz, faults, sum(v.events.counters.values()), stats.deadline_misses if stats else 0,
             ticks, compute))
 
     def _send(self, data: bytes) -> None:

@@ -74,24 +74,24 @@ Message = Setpoint | Sticks | ArmRequest | ModeRequest | ParamSet | LinkStats | 
 MESSAGES: tuple[type, ...] = (Setpoint, Sticks, ArmRequest, ModeRequest, ParamSet, LinkStats, Ready, Ack,
                               Text)
 _TAGS = {cls: tag for tag, cls in enumerate(MESSAGES)}
+_ARITY = tuple(len(cls._fields) for cls in MESSAGES)
+_build = tuple.__new__  # NamedTuple construction from a tuple of fields, without re-checking
 
 
 def encode(message: Message) -> bytes:
-    """(tag, *fields), pickled: plain values only cross the socket, never a class reference."""
-    return pickle.dumps((_TAGS[type(message)], *message), protocol=pickle.HIGHEST_PROTOCOL)
+    """(tag, fields), pickled: plain values only cross the socket, never a class reference."""
+    return pickle.dumps((_TAGS[type(message)], tuple(message)), protocol=pickle.HIGHEST_PROTOCOL)
 
 
 def decode(data: bytes) -> Message | None:
     """A received datagram as its message, or None if it is not one we understand."""
     try:
-        raw = pickle.loads(data)
-        tag = raw[0]
-        if type(raw) is not tuple or type(tag) is not int or not 0 <= tag < len(MESSAGES):
-            return None
-        cls = MESSAGES[tag]
-        return cls._make(raw[1:]) if len(raw) - 1 == len(cls._fields) else None
+        tag, fields = pickle.loads(data)
     except Exception:
         return None
+    if type(tag) is int and 0 <= tag < len(MESSAGES) and type(fields) is tuple and len(fields) == _ARITY[tag]:
+        return _build(MESSAGES[tag], fields)
+    return None
 
 
 class Snapshot(NamedTuple):

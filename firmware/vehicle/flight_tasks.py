@@ -22,7 +22,7 @@ import numpy as np
 from firmware.controller import RateSetpoint
 from firmware.estimator import GRAVITY, AttitudeEstimator
 from firmware.sensors import SensorFrame
-from firmware.vehicle.land_detector import LandDetector
+from firmware.vehicle.land_detector import LOW_THRUST, LandDetector
 from firmware.vehicle.modes import IN_AIR, LANDING, ON_GROUND
 from firmware.vehicle.param_adapter import VehicleSettings
 
@@ -117,9 +117,12 @@ class OffboardTask:
         pass
 
     def update(self, t_us: int) -> RateSetpoint:
-        sp = self.inp.offboard if self.inp.offboard is not None else IDLE
-        self.landed_state = self.inp.detector.from_thrust(sp.throttle, self.inp.frame,
-                                                          self.inp.settings.hover_throttle)
+        inp = self.inp
+        sp = inp.offboard if inp.offboard is not None else IDLE
+        hover = inp.settings.hover_throttle
+        # Flying thrust (most ticks) is decided here without a call into the land detector.
+        self.landed_state = (IN_AIR if sp.throttle >= LOW_THRUST * hover
+                             else inp.detector.from_thrust(sp.throttle, inp.frame, hover))
         return sp
 
 

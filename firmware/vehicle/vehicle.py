@@ -195,15 +195,19 @@ class Vehicle:
     # ---- the tick ----
     def command(self, t_us: int, frame: SensorFrame) -> Command:
         self.now_us = t_us
-        self.inputs.frame = frame
+        inp, modes = self.inputs, self.modes
+        inp.frame = frame
         self._estimate(frame)
-        if not self.modes.armed:
+        if not modes.armed:
             self.estimator.vz = 0.0
             self.landed_state = ON_GROUND
             return self._emit(False, self._setpoint)
-        if self._check_failsafe(t_us):
+        s = self.settings
+        offboard_lost = t_us - inp.offboard_us > s.of_loss_us
+        sticks_lost = inp.sticks_us is not None and t_us - inp.sticks_us > s.rc_loss_us
+        if (offboard_lost or sticks_lost) and self._failsafe(offboard_lost, sticks_lost):
             self._activate(on_ground=self.landed_state == ON_GROUND, failsafe=True)
-        task = self.tasks[self.modes.mode]
+        task = self.tasks[modes.mode]
         sp = task.update(t_us)
         self.landed_state = task.landed_state
         if task is self.land and self.land.touchdown:
@@ -234,12 +238,10 @@ class Vehicle:
             cmd = self._command = Command(armed, sp, name)
         return cmd
 
-    def _check_failsafe(self, t_us: int) -> bool:
-        inp = self.inputs
-        sticks_lost = inp.sticks_us is not None and t_us - inp.sticks_us > self.settings.rc_loss_us
-        reason = self.modes.check_failsafe(t_us - inp.offboard_us > self.settings.of_loss_us, sticks_lost)
+    def _failsafe(self, offboard_lost: bool, sticks_lost: bool) -> bool:
+        reason = self.modes.check_failsafe(offboard_lost, sticks_lost)
         if reason == STICKS_LOSS:
-            inp.sticks_us = None  # sticks must come back before they count again
+            self.inputs.sticks_us = None  # sticks must come back before they count again
         return bool(reason)
 
     def _activate(self, on_ground: bool, failsafe: bool) -> None:
