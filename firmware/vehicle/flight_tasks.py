@@ -5,10 +5,10 @@ offboard setpoint, external position fix) and says where it thinks the vehicle i
 (`landed_state`). `activate` is called on entering the mode and on arming in it.
 
 The vertical channel of LAND and HOLD is one law: throttle = hover / cos(tilt) + VZ_GAIN · (vz −
-vz_sp), vz from the estimator, or from the position source while its fix is fresh. HOLD with a
-fix also holds the position where it was entered: position error → velocity setpoint →
-acceleration → tilt (PX4's position and velocity P loops, without the attitude-setpoint
-machinery: the tilt goes through the same angle P as STABILIZED).
+vz_sp), vz from the estimator, or from the position source while its fix is fresh. With a fix,
+HOLD brakes to a stop and holds the position where it stopped: position error → velocity
+setpoint → acceleration → tilt (PX4's position and velocity P loops, without the
+attitude-setpoint machinery: the tilt goes through the same angle P as STABILIZED).
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ HOLD_POS_P = 1.0  # m/s of velocity setpoint per m of position error (PX4 MPC_XY
 HOLD_VEL_P = 1.8  # m/s² per m/s of velocity error (PX4 MPC_XY_VEL_P_ACC)
 HOLD_VEL_MAX = 2.0  # m/s, horizontal and vertical
 HOLD_TILT_MAX = math.radians(20.0)
+HOLD_STOPPED = 0.3  # m/s: below this on every axis the brake is over and the position is held
 _ZERO3 = np.zeros(3)
 IDLE = RateSetpoint(_ZERO3, 0.0)
 
@@ -164,8 +165,8 @@ class LandTask:
 
 class HoldTask:
     """PX4's AUTO.LOITER for a rate-loop vehicle: level, zero vertical speed; with a fresh position
-    fix, back to the position where HOLD was entered. Entered on the ground it stays there at
-    idle, as PX4's land detector keeps a landed vehicle landed."""
+    fix, brake to a stop and hold the position where it stopped. Entered on the ground it stays
+    there at idle, as PX4's land detector keeps a landed vehicle landed."""
 
     def __init__(self, inp: FlightInputs) -> None:
         self.inp = inp
@@ -187,10 +188,13 @@ class HoldTask:
         if fix is None:
             return RateSetpoint(np.array(level_rates(inp, 0.0, 0.0, 0.0)),
                                 vertical_throttle(inp, inp.estimator.vz, 0.0))
-        if self.target is None:
+        if self.target is None and max(map(abs, fix.velocity)) < HOLD_STOPPED:
             self.target = fix.position
-        vel_sp = [_clamp(HOLD_POS_P * (t - p), HOLD_VEL_MAX)
-                  for t, p in zip(self.target, fix.position, strict=True)]
+        if self.target is None:
+            vel_sp = [0.0, 0.0, 0.0]
+        else:
+            vel_sp = [_clamp(HOLD_POS_P * (t - p), HOLD_VEL_MAX)
+                      for t, p in zip(self.target, fix.position, strict=True)]
         acc_n = HOLD_VEL_P * (vel_sp[0] - fix.velocity[0])
         acc_e = HOLD_VEL_P * (vel_sp[1] - fix.velocity[1])
         roll_sp, pitch_sp = tilt_for_acceleration(acc_n, acc_e, inp.estimator.euler()[2])
