@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from firmware.action import PWM_MIN, PWM_SPAN
 from firmware.controller import RateSetpoint
+from firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from firmware.controllers import load_controller
 from firmware.loop import Command, FlightLoop, TickSample
 from firmware.sensors import SensorFrame
@@ -31,7 +32,6 @@ from sim_bridge.tasks import EVAL_TASKS, INFLIGHT_WARMUP_S, continuous_schedule,
 from sim_bridge.twin import Twin, TwinState
 from sitl.traces import Traces
 
-FALLBACK = "pid"
 TASKS = EVAL_TASKS
 
 

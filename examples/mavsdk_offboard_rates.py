@@ -1,14 +1,16 @@
 #!/usr/bin/env python3
 """Offboard attitude rates with MAVSDK-Python (4.x, the native binding): connect, arm, start
 offboard with a setpoint already streaming (PX4's rule), step through body-rate setpoints, and
-measure how the vehicle's rates follow them through MAVSDK's own telemetry; then LAND.
+measure how the vehicle's rates follow them through MAVSDK's own telemetry; then end offboard
+the canonical way, `offboard.stop()` (the vehicle goes to HOLD), and LAND.
 
     fcemu sitl --controller pid --rig rig       # ball-joint rig: rotates freely, cannot fly away
     python examples/mavsdk_offboard_rates.py
 
-On the free rig (the default of `fcemu sitl`) it takes off at hover thrust while it steps, and
-lands at the end. MAVSDK 4 runs the MAVSDK core inside the Python process (no mavsdk_server);
-the vehicle sends to UDP 14540 for an offboard API, where this script listens.
+On the free rig (the default of `fcemu sitl`) it takes off at hover thrust while it steps, holds
+its altitude and position in HOLD, and lands at the end. MAVSDK 4 runs the MAVSDK core inside
+the Python process (no mavsdk_server); the vehicle sends to UDP 14540 for an offboard API, where
+this script listens.
 
 Options: --connect (default udpin://0.0.0.0:14540), --rate deg/s, --hold s per step,
 --thrust (default: hover), --summary FILE.json.
@@ -93,7 +95,10 @@ async def fly(url: str, rate: float, hold: float, thrust: float) -> dict:
             current[0] = None
             await offboard.set_attitude_rate(AttitudeRate(0.0, 0.0, 0.0, thrust))
             mode_in_offboard = (await telemetry.flight_mode()).name
-            # No position estimate, so no HOLD for offboard.stop(): LAND ends offboard and disarms.
+            await offboard.stop()  # HOLD
+            mode_after_stop = (await wait_until(telemetry.subscribe_flight_mode(),
+                                                lambda m: m.name == "HOLD", timeout=5.0)).name
+            await asyncio.sleep(hold)
             await action.land()
             await wait_until(telemetry.subscribe_armed(), lambda armed: not armed, timeout=40.0)
         finally:
@@ -101,6 +106,7 @@ async def fly(url: str, rate: float, hold: float, thrust: float) -> dict:
     worst = max((max(abs(m - s) for m, s in zip(r["measured_deg_s"], r["setpoint_deg_s"], strict=True))
                  for r in results if r["measured_deg_s"] is not None), default=math.inf)
     return {"steps": results, "worst_error_deg_s": round(worst, 2), "mode_during": mode_in_offboard,
+            "mode_after_stop": mode_after_stop,
             "completed": all(r["measured_deg_s"] is not None for r in results)}
 
 

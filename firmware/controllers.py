@@ -10,6 +10,7 @@ from firmware.errors import UserError
 
 # Package data, so an installed wheel flies it as a checkout does.
 DEFAULT_POLICY = Path(str(files("firmware") / "policies" / "iris_rate_ppo.onnx"))
+FALLBACK_CONTROLLER = "pid"  # what flies when a policy faults, and in LAND and HOLD
 
 
 class ControllerSpecError(UserError, ValueError):
@@ -18,7 +19,7 @@ class ControllerSpecError(UserError, ValueError):
 
 def default_controller() -> str:
     """The shipped policy when it is present, else the PID."""
-    return str(DEFAULT_POLICY) if DEFAULT_POLICY.exists() else "pid"
+    return str(DEFAULT_POLICY) if DEFAULT_POLICY.exists() else FALLBACK_CONTROLLER
 
 
 def load_controller(spec: str, loop_rate_hz: float | None = None) -> RateController:

@@ -77,6 +77,15 @@ class PIDRateController:
     def dt(self) -> float:
         return self.pid.dt
 
+    @property
+    def gains(self) -> PIDGains:
+        return self.pid.gains
+
+    def set_gains(self, gains: PIDGains) -> None:
+        """New gains in flight (from parameters); integrator and filter states are kept."""
+        if gains != self.pid.gains:
+            self.pid.set_gains(gains)
+
     def reset(self) -> None:
         self.pid.reset()
         self.mixer.reset()

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from firmware.controllers import load_controller
 from firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
 from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, raise_loop_priority
 
-FALLBACK = "pid"
 # A loop that shares its CPU sleeps between ticks and spins only this last stretch (time.sleep
 # overshoots): spinning through the period would starve the MAVLink processes beside it.
 SHARED_SPIN_US = 300
@@ -218,19 +218,13 @@ def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float |
     """Build the loop with a `Vehicle` commander and start its MAVLink process (`config`)."""
     from firmware.mavlink.bridge import LinkedVehicle, start_mavlink
     from firmware.params import ParamTable
-    from firmware.vehicle import Vehicle
+    from firmware.vehicle import Vehicle, param_adapter
 
     sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0,
                       spin_us=spin_us)
     params = ParamTable()
-    pid = getattr(sitl.loop.controllers.get(FALLBACK), "pid", None)
-    if pid is not None:  # the loaded preset's gains are the defaults a GCS sees
-        g = pid.gains
-        for i, axis in enumerate(("ROLL", "PITCH", "YAW")):
-            for key, values in (("P", g.kp), ("I", g.ki), ("D", g.kd), ("FF", g.kff)):
-                params.set_default(f"PID_{axis}_{key}", values[i])
-        params.set_default("IMU_GYRO_CUTOFF", g.gyro_lowpass_hz)
-        params.set_default("IMU_DGYRO_CUTOFF", g.dterm_lowpass_hz)
+    for pid in param_adapter.tunable_pids(sitl.loop.controllers):
+        param_adapter.set_gain_defaults(params, pid.gains)  # the loaded preset's gains: a GCS's defaults
     params.set_default("MPC_THR_HOVER", hover_throttle(rig))
     problems = params.load(config.params_file) if config.params_file else []
     if explicit_controller or params["CTRL_SEL"] >= len(sitl.loop.controllers):

@@ -17,12 +17,15 @@ import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from typing import Protocol
 
-from firmware.loop import Command, TickSample
+import numpy as np
+
+from firmware.loop import Command, FlightLoop, TickSample
 from firmware.mavlink import ipc
 from firmware.params import CONTROLLERS
 from firmware.sensors import SensorFrame
-from firmware.vehicle import Vehicle, custom_mode
+from firmware.vehicle import Vehicle, custom_mode, mode_from_parts
 
 READY_TIMEOUT_S = 30.0
 ARMABLE_EVERY = 25  # re-run the arming checks for SYS_STATUS every this many snapshots (10 Hz)
@@ -65,11 +68,19 @@ def parse_peer(spec: str, name: str) -> PeerConfig:
     return PeerConfig(name, host, port, signed)
 
 
+class Truth(Protocol):
+    """Where the rig publishes a position (the free twin's ground truth, NED)."""
+
+    position: np.ndarray
+    velocity: np.ndarray
+
+
 class LinkedVehicle:
     """Commander + TelemetrySink: the Vehicle, fed from and reporting to the MAVLink process."""
 
     def __init__(self, vehicle: Vehicle, sock: socket.socket, slot: ipc.SnapshotSlot,
-                 truth: Callable | None = None, every: int = 4, loop: object | None = None) -> None:
+                 truth: Callable[[], Truth] | None = None, every: int = 4,
+                 loop: FlightLoop | None = None) -> None:
         self.vehicle = vehicle
         self.sock = sock
         self.slot = slot
@@ -112,25 +123,24 @@ class LinkedVehicle:
                 return
             self._apply(ipc.decode(data))
 
-    def _apply(self, msg) -> None:
+    def _apply(self, msg: ipc.Message | None) -> None:
         v = self.vehicle
         try:
-            kind = msg[0]
-            if kind == "sp":
-                v.offboard_setpoint(msg[1], msg[2])
-            elif kind == "sticks":
-                v.sticks(*msg[1:5])
-            elif kind == "arm":
-                result, text = v.request_arm(bool(msg[2]), bool(msg[3]))
-                self._send(ipc.encode(("ack", msg[1], result, text)))
-            elif kind == "mode":
-                mode = (msg[2], msg[3]) if msg[2] == 4 else msg[2]
-                result, text = v.request_mode(mode)
-                self._send(ipc.encode(("ack", msg[1], result, text)))
-            elif kind == "param":
-                v.set_param(msg[1], msg[2])
-            elif kind == "stats":
-                self.mavlink_stats = msg[1]
+            kind = type(msg)
+            if kind is ipc.Setpoint:
+                v.offboard_setpoint(msg.rates, msg.thrust)
+            elif kind is ipc.Sticks:
+                v.sticks(*msg)
+            elif kind is ipc.ArmRequest:
+                reply = v.request_arm(bool(msg.arm), bool(msg.force))
+                self._send(ipc.encode(ipc.Ack(msg.req, *reply)))
+            elif kind is ipc.ModeRequest:
+                reply = v.request_mode(mode_from_parts(int(msg.main), int(msg.sub)))
+                self._send(ipc.encode(ipc.Ack(msg.req, *reply)))
+            elif kind is ipc.ParamSet:
+                v.set_param(msg.name, msg.value)
+            elif kind is ipc.LinkStats:
+                self.mavlink_stats = msg.counters
             else:
                 self.bad_ipc += 1
         except (TypeError, IndexError, ValueError, KeyError):
@@ -139,32 +149,35 @@ class LinkedVehicle:
     # ---- TelemetrySink ----
     def publish(self, sample: TickSample) -> None:
         v = self.vehicle
-        if v.outbox:
-            for severity, text in v.outbox:
-                self._send(ipc.encode(("text", severity, text)))
-            v.outbox.clear()
+        outbox = v.events.outbox
+        if outbox:
+            for severity, text in outbox:
+                self._send(ipc.encode(ipc.Text(severity, text)))
+            outbox.clear()
         self._n += 1
         if self._n % self.every or self._closed:
             return
         self._snapshots += 1
+        modes = v.modes
         if self._snapshots % ARMABLE_EVERY == 1:
-            self._armable = not v.armed and not v.arming_problem()
+            self._armable = not modes.armed and not v.arming_problem()
         if self.truth is not None and self._snapshots % TRUTH_EVERY == 1:
             tr = self.truth()
             self._pos, self._vel = tuple(tr.position.tolist()), tuple(tr.velocity.tolist())
+            v.position_fix(self._pos, self._vel)
         frame, sp = sample.frame, sample.command.setpoint
         loop = self.loop
-        stats = getattr(loop, "stats", None)
+        stats = loop.stats if loop is not None else None
         ticks = stats.ticks if stats is not None else self._n
         compute = int(stats.compute_us[(ticks - 1) % stats.capacity]) if stats is not None and ticks else 0
         faults = sum(loop.faults.values()) if loop is not None and loop.faults else 0
         self.slot.write((
-            frame.t_us, v.armed, custom_mode(v.mode), v.landed_state, bool(v.failsafe),
+            frame.t_us, modes.armed, custom_mode(modes.mode), v.landed_state, bool(modes.failsafe),
             CONTROLLERS.index(sample.controller) if sample.controller in CONTROLLERS else 255,
-            self._armable and not v.armed, *v.estimator.q, *frame.gyro.tolist(),
+            self._armable and not modes.armed, *v.estimator.q, *frame.gyro.tolist(),
             *frame.accel.tolist(), *sample.pwm.tolist(), *frame.rotor_speed.tolist(),
             *sp.rates.tolist(), sp.throttle, *self._pos, *self._vel, self.truth is not None,
-            v.estimator.vz, faults, sum(v.counters.values()), stats.deadline_misses if stats else 0,
+            v.estimator.vz, faults, sum(v.events.counters.values()), stats.deadline_misses if stats else 0,
             ticks, compute))
 
     def _send(self, data: bytes) -> None:
@@ -201,11 +214,11 @@ def start_mavlink(config: MavlinkConfig, params: dict[str, float]
         ready = ipc.decode(ours.recv(65536))
     except (TimeoutError, OSError):
         ready = None
-    if not (isinstance(ready, tuple) and ready[0] == "ready"):
+    if not isinstance(ready, ipc.Ready):
         proc.kill()
         raise RuntimeError("the MAVLink process did not start")
     ours.setblocking(False)
-    return proc, ours, slot, ready[1]
+    return proc, ours, slot, ready.ports
 
 
 def stop_mavlink(proc: subprocess.Popen, sock: socket.socket, linked: LinkedVehicle | None = None,

@@ -14,6 +14,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware.mavlink.budget import InputBudget
 from firmware.mavlink.signing import SigningState, signing_now
+from firmware.mavlink.telemetry import Scheduler
 from firmware.mavlink.tlog import TlogWriter
 
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)  # Linux: the socket's drop count with each datagram
@@ -55,8 +56,10 @@ class _Writer:
 
 class Endpoint:
     def __init__(self, name: str, host: str, port: int, sysid: int, link_id: int,
-                 signing: SigningState | None = None, tlog: TlogWriter | None = None) -> None:
+                 signing: SigningState | None = None, tlog: TlogWriter | None = None,
+                 scheduler: Scheduler | None = None) -> None:
         self.name = name
+        self.scheduler = scheduler or Scheduler(has_position=False)  # this link's streams
         self.address = (host, port)
         self.tlog = tlog
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

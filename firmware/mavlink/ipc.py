@@ -4,11 +4,11 @@ Telemetry goes through a shared-memory latest-value slot (`SnapshotSlot`, a seql
 memfd): the loop writes a fixed struct without a system call, the MAVLink process reads the
 newest one when it gets round to it, and neither ever waits for the other. Events go over an
 AF_UNIX SOCK_SEQPACKET socket pair, non-blocking on the flight side (a stalled MAVLink
-process costs a dropped message, never a blocked tick); they are small pickled tuples.
+process costs a dropped message, never a blocked tick), one typed message per datagram
+(`encode` / `decode`):
 
-MAVLink → flight: ("sp", (p, q, r), thrust), ("sticks", roll, pitch_up, yaw, throttle),
-("arm", req, arm, force), ("mode", req, main, sub), ("param", name, value), ("stats", dict).
-Flight → MAVLink: snapshot, ("ack", req, result, text), ("text", severity, text).
+  MAVLink → flight: Setpoint, Sticks, ArmRequest, ModeRequest, ParamSet, LinkStats, Ready.
+  Flight → MAVLink: Ack (to an ArmRequest or ModeRequest, by `req`), Text; and the snapshot.
 """
 
 from __future__ import annotations
@@ -19,8 +19,79 @@ import pickle
 import struct
 from typing import NamedTuple
 
-SNAPSHOT_TAG = b"T"
 _FMT = struct.Struct("<qBIBBBB4f3f3f4f4f3ff3f3fBf3IQQ")
+
+
+class Setpoint(NamedTuple):
+    rates: tuple[float, float, float]  # FRD rad/s
+    thrust: float  # 0..1
+
+
+class Sticks(NamedTuple):
+    roll: float  # -1..1
+    pitch_up: float
+    yaw: float
+    throttle: float  # 0..1
+
+
+class ArmRequest(NamedTuple):
+    arm: bool
+    force: bool
+    req: int = 0  # matches the Ack; set by the MAVLink process when it sends the request
+
+
+class ModeRequest(NamedTuple):
+    main: int  # PX4 custom main mode
+    sub: int
+    req: int = 0
+
+
+class ParamSet(NamedTuple):
+    name: str
+    value: float
+
+
+class LinkStats(NamedTuple):
+    counters: dict[str, int]
+
+
+class Ready(NamedTuple):
+    ports: dict[str, int]  # the MAVLink process's local UDP port per peer
+
+
+class Ack(NamedTuple):
+    req: int
+    result: int  # MAV_RESULT
+    text: str
+
+
+class Text(NamedTuple):
+    severity: int  # MAV_SEVERITY
+    text: str
+
+
+Message = Setpoint | Sticks | ArmRequest | ModeRequest | ParamSet | LinkStats | Ready | Ack | Text
+MESSAGES: tuple[type, ...] = (Setpoint, Sticks, ArmRequest, ModeRequest, ParamSet, LinkStats, Ready, Ack,
+                              Text)
+_TAGS = {cls: tag for tag, cls in enumerate(MESSAGES)}
+_ARITY = tuple(len(cls._fields) for cls in MESSAGES)
+_build = tuple.__new__  # NamedTuple construction from a tuple of fields, without re-checking
+
+
+def encode(message: Message) -> bytes:
+    """(tag, fields), pickled: plain values only cross the socket, never a class reference."""
+    return pickle.dumps((_TAGS[type(message)], tuple(message)), protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def decode(data: bytes) -> Message | None:
+    """A received datagram as its message, or None if it is not one we understand."""
+    try:
+        tag, fields = pickle.loads(data)
+    except Exception:
+        return None
+    if type(tag) is int and 0 <= tag < len(MESSAGES) and type(fields) is tuple and len(fields) == _ARITY[tag]:
+        return _build(MESSAGES[tag], fields)
+    return None
 
 
 class Snapshot(NamedTuple):
@@ -48,17 +119,9 @@ class Snapshot(NamedTuple):
     ticks: int
     compute_us_max: int  # worst tick compute since the previous snapshot
 
-    def pack(self) -> bytes:
-        return SNAPSHOT_TAG + _FMT.pack(self.t_us, self.armed, self.custom_mode, self.landed_state,
-                                        self.failsafe, self.controller, self.armable, *self.q, *self.gyro,
-                                        *self.accel, *self.pwm, *self.rotor_speed, *self.setpoint,
-                                        self.throttle, *self.position, *self.velocity, self.has_position,
-                                        self.vz_estimate, self.faults, self.rejected, self.misses,
-                                        self.ticks, self.compute_us_max)
-
     @classmethod
     def unpack(cls, data: bytes) -> Snapshot:
-        v = _FMT.unpack_from(data, 1)
+        v = _FMT.unpack(data)
         return cls(*v[:7], v[7:11], v[11:14], v[14:17], v[17:21], v[21:25], v[25:28], v[28], v[29:32],
                    v[32:35], *v[35:])
 
@@ -78,6 +141,7 @@ class SnapshotSlot:
         self._read_seq = -1
 
     def write(self, values: tuple) -> None:
+        """`values`: the Snapshot's fields flattened in order (the tick's path builds no NamedTuple)."""
         mem, seq = self._mem, self._seq
         self._SEQ.pack_into(mem, 0, seq + 1)
         _FMT.pack_into(mem, 8, *values)
@@ -96,30 +160,8 @@ class SnapshotSlot:
             data = mem[8:]
             if self._SEQ.unpack_from(mem, 0)[0] == before:
                 self._read_seq = before
-                return Snapshot.unpack(SNAPSHOT_TAG + data)
+                return Snapshot.unpack(data)
         return None
 
     def close(self) -> None:
         self._mem.close()
-
-
-def pack_snapshot(values: tuple) -> bytes:
-    """The tick's fast path: the flat field tuple in `_FMT` order, no NamedTuple built."""
-    return SNAPSHOT_TAG + _FMT.pack(*values)
-
-
-def encode(message: tuple) -> bytes:
-    return pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-
-
-def decode(data: bytes) -> tuple | Snapshot | None:
-    """A received datagram, or None if it is not one we understand."""
-    if not data:
-        return None
-    if data[:1] == SNAPSHOT_TAG:
-        return Snapshot.unpack(data) if len(data) == 1 + _FMT.size else None
-    try:
-        message = pickle.loads(data)
-    except Exception:
-        return None
-    return message if isinstance(message, tuple) and message else None

@@ -1,9 +1,11 @@
-"""The MAVLink process: every peer's link, the handlers, telemetry, parameters, the tlog.
+"""The MAVLink process: every peer's link and its I/O, telemetry, parameter persistence, the tlog.
 
 Started by `firmware.mavlink.bridge.start_mavlink` as `python -m firmware.mavlink.process
 SPEC`; talks to the flight process over the inherited socket `SPEC["fd"]` and exits when
 that closes. HEARTBEAT goes out at 1 Hz of wall time; streams follow the loop clock of the
 snapshots; setpoints are coalesced (newest wins) so a flood of them costs the loop little.
+What a received message means is decided by `Handlers` (firmware/mavlink/handlers.py); the
+`Station` carries out what they return.
 """
 
 from __future__ import annotations
@@ -19,9 +21,11 @@ import time
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware.mavlink import ipc, telemetry
+from firmware.mavlink import outputs as out
 from firmware.mavlink.budget import ParamStreams
 from firmware.mavlink.endpoint import Endpoint, load_signing_key
 from firmware.mavlink.handlers import Handlers
+from firmware.mavlink.replies import PendingCommands, StatusTexts
 from firmware.mavlink.signing import SigningState
 from firmware.mavlink.tlog import TlogWriter
 from firmware.params import ParamTable
@@ -30,16 +34,11 @@ from firmware.vehicle import STABILIZED, custom_mode
 M = mavlink
 SETPOINT_MIN_GAP_S = 0.002  # forward at most 500 setpoint updates per second
 STREAM_POLL_S = 0.002  # read the telemetry slot at 500 Hz of wall time
-ACK_TIMEOUT_S = 1.0
-MAX_PENDING = 8
 STATS_EVERY_S = 1.0
-REJECT_TEXT_EVERY_S = 5.0
-REJECT_TEXTS_PER_S = 5
 PARAM_SAVE_DELAY_S = 0.2
 NICE = -10  # below the flight loop's -20 (timing.LOOP_NICE), above any other local process
 NICE_UNPRIVILEGED = 5
 REPORTED = ("rx_frames", "rx_bad", "rx_rejected", "rx_foreign", "sig_rejected", "rx_shed")
-COUNTERS = ("rx_bad", "rx_rejected", "rx_foreign", "rx_unsupported", "rx_unhandled", "sig_rejected")
 
 
 def idle_snapshot() -> ipc.Snapshot:
@@ -47,6 +46,27 @@ def idle_snapshot() -> ipc.Snapshot:
     return ipc.Snapshot(0, 0, custom_mode(STABILIZED), 1, 0, 0, 0, (1.0, 0.0, 0.0, 0.0), zero3,
                         (0.0, 0.0, -9.81), (1000.0,) * 4, zero4, zero3, 0.0, zero3, zero3, 0, 0.0,
                         0, 0, 0, 0, 0)
+
+
+def send_health(links: list[Endpoint], stats: dict[str, int], snap: ipc.Snapshot) -> None:
+    """Input health, and the loop's own deadline record, as NAMED_VALUE_INT for any ground station."""
+    t_ms = (snap.t_us // 1000) & 0xFFFFFFFF
+    values = [(name[:10], stats[name]) for name in REPORTED]
+    values += [("loop_miss", snap.misses), ("loop_ticks", snap.ticks)]
+    for ep in links:
+        for name, value in values:
+            ep.send(ep.mav.named_value_int_encode(t_ms, name.encode(), value & 0x7FFFFFFF))
+
+
+def open_links(peers: list[dict], sysid: int, signing: SigningState | None, tlog: TlogWriter | None,
+               has_position: bool) -> list[Endpoint]:
+    """One link per peer. With a signing key, the links marked `signed` require it (all of them
+    when none is marked)."""
+    any_marked = any(p["signed"] for p in peers)
+    return [Endpoint(p["name"], p["host"], int(p["port"]), sysid, i,
+                     signing if p["signed"] or not any_marked else None, tlog,
+                     telemetry.Scheduler(has_position))
+            for i, p in enumerate(peers)]
 
 
 class Station:
@@ -63,84 +83,50 @@ class Station:
         self.tlog = TlogWriter(config["tlog"]) if config.get("tlog") else None
         key = load_signing_key(config["signing_key"]) if config.get("signing_key") else None
         self.signing = SigningState(key) if key is not None else None  # one per vehicle, every link
-        any_marked = any(p["signed"] for p in config["peers"])
-        self.endpoints: list[Endpoint] = []
-        self._schedulers: dict[int, telemetry.Scheduler] = {}
-        for i, peer in enumerate(config["peers"]):
-            signing = self.signing if peer["signed"] or not any_marked else None
-            ep = Endpoint(peer["name"], peer["host"], int(peer["port"]), self.sysid, i, signing, self.tlog)
-            self.endpoints.append(ep)
-            self._schedulers[id(ep)] = telemetry.Scheduler(self.has_position)
-        self.handlers = Handlers(self)
-        self.param_streams = ParamStreams(lambda: len(self.params), self._send_param_index)
+        self.endpoints = open_links(config["peers"], self.sysid, self.signing, self.tlog, self.has_position)
         self.snap = idle_snapshot()
-        self.counters = dict.fromkeys(COUNTERS, 0)
-        self.counters.update(rx_frames=0, tx_frames=0, ipc_bad=0, snapshots=0, acks_timed_out=0)
-        self._pending: dict[int, tuple] = {}
-        self._req = 0
-        self._latest_sp: tuple | None = None
-        self._latest_sticks: tuple | None = None
+        self.handlers = Handlers(self.sysid, self.params, self.controllers, self.has_position,
+                                   lambda: self.snap.t_us)
+        self.param_streams = ParamStreams(lambda: len(self.params), self._send_param_index)
+        self.counters = {"ipc_bad": 0, "snapshots": 0}
+        self.pending = PendingCommands()
+        self.texts = StatusTexts(self.endpoints)
+        self.say = self.texts.say
+        self._latest_sp: ipc.Setpoint | None = None
+        self._latest_sticks: ipc.Sticks | None = None
         self._sp_sent = 0.0
         self._dirty_since: float | None = None
-        self._said_once: set[str] = set()
-        self._rejects_reported = 0
-        self._last_reject_text = 0.0
-        self._text_window = 0.0
-        self._texts_in_window = 0
-        self._text_id = 0
 
-    # ---- used by the handlers ----
-    def count(self, what: str, n: int = 1) -> None:
-        self.counters[what] = self.counters.get(what, 0) + n
+    # ---- what the handlers ask for ----
+    def receive(self, ep: Endpoint, msg) -> None:
+        for output in self.handlers.handle(ep, msg):
+            kind = type(output)
+            if kind is ipc.Setpoint:
+                self._latest_sp = output
+            elif kind is ipc.Sticks:
+                self._latest_sticks = output
+            elif kind is out.Forward:
+                self._forward(ep, output)
+            elif kind is out.ParamChanged:
+                self._param_changed(output.name)
+            elif kind is out.ParamListRequested:
+                self.param_streams.request(ep, output.requester)
+            elif kind is out.Say:
+                self.say(output.severity, output.text, ep if output.to_sender else None, output.once,
+                         output.limited)
+            elif kind is out.SendTelemetry:
+                self._send_one(ep, output.msgid)
 
-    def scheduler(self, ep: Endpoint) -> telemetry.Scheduler:
-        return self._schedulers[id(ep)]
-
-    def time_ns(self) -> int:
-        return self.snap.t_us * 1000
-
-    def say(self, severity: int, text: str, ep: Endpoint | None = None, once: bool = False,
-            limited: bool = False) -> None:
-        """`limited`: one of many possible answers to bad input, at most REJECT_TEXTS_PER_S a second
-        (a flood gets the periodic "Input rejected" summary instead of a text per frame)."""
-        if once:
-            if text in self._said_once:
-                return
-            self._said_once.add(text)
-        if limited:
-            now = time.monotonic()
-            if now - self._text_window >= 1.0:
-                self._text_window, self._texts_in_window = now, 0
-            if self._texts_in_window >= REJECT_TEXTS_PER_S:
-                return
-            self._texts_in_window += 1
-        self._text_id = self._text_id % 0xFFFF + 1
-        for e in [ep] if ep is not None else self.endpoints:
-            for message in telemetry.statustext(e.mav, severity, text, self._text_id):
-                e.send(message)
-
-    def ack(self, ep: Endpoint, msg, command: int, result: int, text: str = "") -> None:
-        ep.send(ep.mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()))
-
-    def setpoint(self, message: tuple) -> None:
-        if message[0] == "sp":
-            self._latest_sp = message
-        else:
-            self._latest_sticks = message
-
-    def forward_command(self, ep: Endpoint | None, request: tuple, command: int, msg) -> None:
-        if len(self._pending) >= MAX_PENDING:
-            if ep is not None:
-                self.ack(ep, msg, command, M.MAV_RESULT_TEMPORARILY_REJECTED)
+    def _forward(self, ep: Endpoint, fwd: out.Forward) -> None:
+        req = self.pending.open(ep if fwd.origin is not None else None, fwd.command, fwd.origin)
+        if req is None:
             return
-        self._req += 1
-        self._pending[self._req] = (ep, command, msg, time.monotonic())
         # Setpoints and sticks received before the command must reach the vehicle before it: an
         # ARM right after MANUAL_CONTROL is judged on that throttle, not on the previous one.
         self._flush_setpoints(time.monotonic(), force=True)
-        self._to_flight((request[0], self._req, *request[1:]))
+        self._to_flight(fwd.request._replace(req=req))
 
-    def send_one(self, ep: Endpoint, msgid: int) -> None:
+    def _send_one(self, ep: Endpoint, msgid: int) -> None:
         if msgid == M.MAVLINK_MSG_ID_HEARTBEAT:
             ep.send(telemetry.heartbeat(ep.mav, self.snap))
             return
@@ -148,26 +134,21 @@ class Station:
         if message is not None:
             ep.send(message)
 
-    def send_param(self, ep: Endpoint | None, name: str, index: int) -> None:
-        table = self.params
-        for e in [ep] if ep is not None else self.endpoints:
-            e.send(e.mav.param_value_encode(name.encode(), table.encode_wire(name), table.specs[name].kind,
-                                            len(table), index))
+    def _param_changed(self, name: str) -> None:
+        self._flush_setpoints(time.monotonic(), force=True)
+        self._to_flight(ipc.ParamSet(name, self.params[name]))
+        for ep in self.endpoints:  # every link learns of it, as PX4 does
+            self.handlers.send_param(ep, name)
+        if self._dirty_since is None:
+            self._dirty_since = time.monotonic()
 
     def _send_param_index(self, ep: Endpoint, index: int) -> None:
         names = self.params.names
         if index < len(names):
-            self.send_param(ep, names[index], index)
-
-    def param_changed(self, name: str) -> None:
-        self._flush_setpoints(time.monotonic(), force=True)
-        self._to_flight(("param", name, self.params[name]))
-        self.send_param(None, name, self.params.index(name))  # every link learns of it, as PX4 does
-        if self._dirty_since is None:
-            self._dirty_since = time.monotonic()
+            self.handlers.send_param(ep, names[index])
 
     # ---- plumbing ----
-    def _to_flight(self, message: tuple) -> None:
+    def _to_flight(self, message: ipc.Message) -> None:
         try:
             self.ipc.send(ipc.encode(message))
         except OSError:
@@ -187,12 +168,12 @@ class Station:
             if not data:
                 return False
             msg = ipc.decode(data)
-            if msg is None or isinstance(msg, ipc.Snapshot):
+            if isinstance(msg, ipc.Ack):
+                self.pending.answer(msg.req, msg.result)
+            elif isinstance(msg, ipc.Text):
+                self.say(int(msg.severity), str(msg.text))
+            else:
                 self.counters["ipc_bad"] += 1
-            elif msg[0] == "ack":
-                self.on_ack(*msg[1:4])
-            elif msg[0] == "text":
-                self.say(int(msg[1]), str(msg[2]))
         return True
 
     def _stream(self) -> None:
@@ -202,24 +183,13 @@ class Station:
         self.counters["snapshots"] += 1
         self.snap = latest
         for ep in self.endpoints:
-            for msgid in self.scheduler(ep).due(latest.t_us):
+            for msgid in ep.scheduler.due(latest.t_us):
                 message = telemetry.build(msgid, ep.mav, latest, self._load())
                 if message is not None:
                     ep.send(message)
 
-    def on_ack(self, req: int, result: int, text: str) -> None:
-        pending = self._pending.pop(req, None)
-        if pending is not None and pending[0] is not None:
-            ep, command, msg, _ = pending
-            self.ack(ep, msg, command, result)
-
     def _housekeeping(self, now: float) -> None:
-        for req, (ep, command, msg, t) in list(self._pending.items()):
-            if now - t > ACK_TIMEOUT_S:
-                del self._pending[req]
-                self.counters["acks_timed_out"] += 1
-                if ep is not None:
-                    self.ack(ep, msg, command, M.MAV_RESULT_TEMPORARILY_REJECTED)
+        self.pending.expire(now)
         if self._dirty_since is not None and now - self._dirty_since > PARAM_SAVE_DELAY_S:
             self._save_params()
 
@@ -240,7 +210,7 @@ class Station:
             self._sp_sent = now
 
     def stats(self) -> dict:
-        c = dict(self.counters)
+        c = {**self.counters, **self.handlers.counters, "acks_timed_out": self.pending.timed_out}
         c["rx_frames"] = sum(ep.rx for ep in self.endpoints)
         c["rx_bad"] = sum(ep.bad for ep in self.endpoints)
         c["tx_frames"] = sum(ep.tx for ep in self.endpoints)
@@ -252,19 +222,9 @@ class Station:
 
     def _report(self, now: float) -> None:
         stats = self.stats()
-        self._to_flight(("stats", stats))
-        rejected = sum(stats[k] for k in ("rx_bad", "rx_rejected", "rx_foreign", "sig_rejected"))
-        t_ms = (self.snap.t_us // 1000) & 0xFFFFFFFF
-        # Input health, and the loop's own deadline record, for any ground station to watch.
-        values = [(name[:10], stats[name]) for name in REPORTED]
-        values += [("loop_miss", self.snap.misses), ("loop_ticks", self.snap.ticks)]
-        for ep in self.endpoints:
-            for name, value in values:
-                ep.send(ep.mav.named_value_int_encode(t_ms, name.encode(), value & 0x7FFFFFFF))
-        if rejected > self._rejects_reported and now - self._last_reject_text >= REJECT_TEXT_EVERY_S:
-            self.say(4, f"Input rejected: bad {stats['rx_bad']} range {stats['rx_rejected']} "
-                        f"foreign {stats['rx_foreign']} sig {stats['sig_rejected']}")
-            self._rejects_reported, self._last_reject_text = rejected, now
+        self._to_flight(ipc.LinkStats(stats))
+        send_health(self.endpoints, stats, self.snap)
+        self.texts.report_rejects(stats, now)
 
     def run(self) -> None:
         next_hb = time.monotonic()
@@ -285,7 +245,7 @@ class Station:
                             return
                     else:
                         for msg in r.receive(now):
-                            self.handlers.handle(r, msg)
+                            self.receive(r, msg)
                 now = time.monotonic()
                 if self.param_streams.pending():
                     self.param_streams.pump(now)
@@ -329,7 +289,7 @@ def main(argv: list[str]) -> int:
             pass
     sock = socket.socket(fileno=spec["fd"])
     station = Station(spec["config"], spec["params"], sock, ipc.SnapshotSlot(spec["slot"]))
-    station._to_flight(("ready", {ep.name: ep.sock.getsockname()[1] for ep in station.endpoints}))
+    station._to_flight(ipc.Ready({ep.name: ep.sock.getsockname()[1] for ep in station.endpoints}))
     station.run()
     return 0
 

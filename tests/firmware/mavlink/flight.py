@@ -11,10 +11,12 @@ from pathlib import Path
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as M
 
+from firmware.params import ParamTable
+
 ROOT = Path(__file__).resolve().parents[3]
 
 SETPOINT_EVERY_S = 0.02
-HOVER = 0.745
+HOVER = ParamTable()["MPC_THR_HOVER"]
 
 
 class Flight:

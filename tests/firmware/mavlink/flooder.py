@@ -13,7 +13,9 @@ import time
 
 from pymavlink.dialects.v20 import common as M
 
-HOVER = 0.745
+from firmware.params import ParamTable
+
+HOVER = ParamTable()["MPC_THR_HOVER"]
 BATCH = 100
 
 

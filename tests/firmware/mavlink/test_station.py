@@ -36,10 +36,10 @@ def deliver(st: Station, gcs: M.MAVLink, *messages) -> None:
     ep = st.endpoints[0]
     for m in messages:
         for parsed in ep.mav.parse_buffer(m.pack(gcs)) or []:
-            st.handlers.handle(ep, parsed)
+            st.receive(ep, parsed)
 
 
-def to_flight(sock: socket.socket) -> list[tuple]:
+def to_flight(sock: socket.socket) -> list[ipc.Message]:
     out = []
     while True:
         try:
@@ -54,8 +54,7 @@ def test_sticks_received_before_an_arm_command_reach_the_vehicle_first(station) 
     st._sp_sent = 1e18  # a setpoint just went out: without ordering, the sticks would wait behind the ARM
     deliver(st, gcs, gcs.manual_control_encode(1, 0, 0, 600, 0, 0),
             gcs.command_long_encode(1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
-    kinds = [m[0] for m in to_flight(flight)]
-    assert kinds == ["sticks", "arm"]
+    assert [type(m) for m in to_flight(flight)] == [ipc.Sticks, ipc.ArmRequest]
 
 
 def test_setpoints_before_a_mode_change_and_a_param_set_go_first(station) -> None:
@@ -66,8 +65,9 @@ def test_setpoints_before_a_mode_change_and_a_param_set_go_first(station) -> Non
     deliver(st, gcs, gcs.set_attitude_target_encode(0, 1, 1, 128, [1, 0, 0, 0], 0.2, 0, 0, 0.5),
             gcs.param_set_encode(1, 1, b"COM_OF_LOSS_T", 1.0, M.MAV_PARAM_TYPE_REAL32))
     sent = to_flight(flight)
-    assert [m[0] for m in sent] == ["sp", "mode", "sp", "param"]
-    assert sent[0][1][0] == pytest.approx(0.1) and sent[2][1][0] == pytest.approx(0.2)
+    assert [type(m) for m in sent] == [ipc.Setpoint, ipc.ModeRequest, ipc.Setpoint, ipc.ParamSet]
+    assert sent[0].rates[0] == pytest.approx(0.1) and sent[2].rates[0] == pytest.approx(0.2)
+    assert sent[1] == ipc.ModeRequest(6, 0, req=1) and sent[3] == ipc.ParamSet("COM_OF_LOSS_T", 1.0)
 
 
 def test_nan_means_unset_in_command_params_but_infinity_and_missing_values_are_refused(station) -> None:
@@ -76,15 +76,15 @@ def test_nan_means_unset_in_command_params_but_infinity_and_missing_values_are_r
     arm = M.MAV_CMD_COMPONENT_ARM_DISARM
     deliver(st, gcs, gcs.command_long_encode(1, 1, arm, 0, 1, NAN, NAN, NAN, NAN, NAN, NAN))
     deliver(st, gcs, gcs.command_long_encode(1, 1, M.MAV_CMD_DO_SET_MODE, 0, 1, 5, NAN, NAN, NAN, NAN, NAN))
-    assert [m[0] for m in to_flight(flight)] == ["arm", "mode"]
-    rejected = st.counters["rx_rejected"]
+    assert [type(m) for m in to_flight(flight)] == [ipc.ArmRequest, ipc.ModeRequest]
+    rejected = st.handlers.counters["rx_rejected"]
     deliver(st, gcs, gcs.command_long_encode(1, 1, arm, 0, NAN, 0, 0, 0, 0, 0, 0),
             gcs.command_long_encode(1, 1, arm, 0, 1, math.inf, 0, 0, 0, 0, 0),
             gcs.command_long_encode(1, 1, M.MAV_CMD_DO_SET_MODE, 0, 1, NAN, 0, 0, 0, 0, 0),
             gcs.command_long_encode(1, 1, M.MAV_CMD_DO_SET_MODE, 0, 1, 1e9, 0, 0, 0, 0, 0),
             gcs.command_long_encode(1, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 30, NAN, 0, 0, 0, 0, 0))
     assert to_flight(flight) == []
-    assert st.counters["rx_rejected"] == rejected + 5
+    assert st.handlers.counters["rx_rejected"] == rejected + 5
 
 
 def test_a_frame_cut_short_does_not_swallow_the_next_datagram() -> None:

@@ -76,7 +76,7 @@ def test_offboard_only_while_setpoints_stream() -> None:
     assert cmd.controller == "pid"
     assert not veh.offboard_setpoint((math.nan, 0, 0), 0.5) and not veh.offboard_setpoint((0, 0, 0), 1.5)
     assert veh.counters["setpoint_rejected"] == 2
-    assert veh.request_mode((4, 3))[0] == v.DENIED  # AUTO.LOITER needs a position estimate
+    assert veh.request_mode((4, 4))[0] == v.DENIED  # AUTO.MISSION: no missions
 
 
 def test_offboard_loss_triggers_land_within_timeout_then_disarms() -> None:
@@ -114,7 +114,7 @@ def test_acro_sticks_through_actual_rates_and_rc_loss() -> None:
     veh.request_arm(True)
     veh.sticks(1.0, -0.5, 0.0, 0.6)
     t, cmd = run(veh, 0, 0.05)
-    rates = veh._rates.rates(1.0, -0.5, 0.0)
+    rates = veh.settings.rates.rates(1.0, -0.5, 0.0)
     assert np.allclose(cmd.setpoint.rates, rates)
     assert cmd.setpoint.rates[0] == pytest.approx(math.radians(670))
     assert cmd.setpoint.throttle == 0.6
@@ -172,3 +172,44 @@ def test_a_failsafe_land_entered_on_the_ground_may_be_disarmed() -> None:
     run(veh, 0, 0.5)  # the sticks stop: LAND, while still on the ground
     assert veh.mode == v.LAND and veh.armed
     assert veh.request_arm(False)[0] == v.ACCEPTED and not veh.armed
+
+
+def test_hold_is_px4_auto_loiter_entered_and_left_by_mode_requests() -> None:
+    assert v.custom_mode(v.HOLD) == (4 << 16) | (3 << 24)
+    assert v.mode_from_custom(v.custom_mode(v.HOLD)) == v.HOLD
+    veh = make(CTRL_SEL=1)  # the policy flies OFFBOARD; HOLD, like LAND, flies the fallback PID
+    veh.offboard_setpoint((0, 0, 0), 0.8)
+    veh.request_mode(v.OFFBOARD)
+    veh.request_arm(True)
+    climbing = REST._replace(accel=np.array([0.0, 0.0, -11.0]))
+    t, cmd = run(veh, 0, 0.1, frame=climbing, every=lambda k, t: veh.offboard_setpoint((0, 0, 0), 0.8))
+    assert cmd.controller == "neural" and veh.landed_state == v.IN_AIR
+    assert veh.request_mode(v.HOLD) == (v.ACCEPTED, "") and veh.mode_name() == "HOLD"
+    t, cmd = run(veh, t, 1.0)  # no setpoints needed in HOLD: no failsafe
+    assert veh.mode == v.HOLD and veh.armed and cmd.controller == "pid" and not veh.failsafe
+    assert cmd.setpoint.throttle == pytest.approx(0.745, abs=0.15) and veh.landed_state == v.IN_AIR
+    assert veh.request_arm(False)[0] == v.TEMPORARILY_REJECTED  # in the air
+    assert veh.request_mode(v.STABILIZED)[0] == v.ACCEPTED and veh.mode == v.STABILIZED
+
+
+def test_hold_on_the_ground_idles_and_may_be_disarmed() -> None:
+    veh = make()
+    assert veh.request_mode(v.HOLD)[0] == v.ACCEPTED  # disarmed, on the ground
+    assert veh.request_arm(True)[0] == v.ACCEPTED
+    _, cmd = run(veh, 0, 0.1)
+    assert cmd.armed and cmd.setpoint.throttle == 0.0 and veh.landed_state == v.ON_GROUND
+    assert veh.request_arm(False)[0] == v.ACCEPTED and not veh.armed
+
+
+def test_the_land_detector_runs_in_offboard() -> None:
+    veh = make()
+    veh.offboard_setpoint((0, 0, 0), 0.0)
+    veh.request_mode(v.OFFBOARD)
+    veh.request_arm(True)
+    t, _ = run(veh, 0, 0.05, every=lambda k, t: veh.offboard_setpoint((0, 0, 0), 0.0))
+    assert veh.landed_state == v.ON_GROUND  # idle thrust, at rest
+    t, _ = run(veh, t, 0.05, every=lambda k, t: veh.offboard_setpoint((0, 0, 0), 0.7))
+    assert veh.landed_state == v.IN_AIR  # flying thrust
+    t, _ = run(veh, t, 0.05, frame=REST._replace(gyro=np.array([1.0, 0.0, 0.0])),
+               every=lambda k, t: veh.offboard_setpoint((0, 0, 0), 0.1))
+    assert veh.landed_state == v.IN_AIR  # low thrust but rotating: not on the ground
