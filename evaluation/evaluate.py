@@ -45,7 +45,7 @@ def _fmt(x: float | None) -> str:
 def eval_command(args) -> int:
     specs = args.controller or ["pid"]
     cfg = EvalConfig(task=args.task, episodes=args.episodes, seed=args.seed, episode_s=args.episode_s,
-                     throttle=args.throttle)
+                     throttle=args.throttle, airframe=args.airframe)
     results: list[ControllerResult] = []
     payload = []
     for spec in specs:

@@ -38,6 +38,7 @@ class EvalConfig:
     episode_s: float | None = None  # None: 1 s episodic, 10 s continuous
     throttle: float | None = None  # None: the airframe's hover throttle
     rate_hz: float = 1000.0
+    airframe: str = "iris"  # sim_bridge/airframes/<name>.json or a path, e.g. iris_realistic
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -55,7 +56,9 @@ class EvalConfig:
 
     @property
     def hover_throttle(self) -> float:
-        return self.throttle if self.throttle is not None else (load_airframe().hover_pwm() - 1000) / 1000
+        if self.throttle is not None:
+            return self.throttle
+        return (load_airframe(self.airframe).hover_pwm() - 1000) / 1000
 
 
 def setpoint_schedules(cfg: EvalConfig) -> np.ndarray:
@@ -99,7 +102,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     setpoints = setpoint_schedules(cfg)
     n, ticks = cfg.episodes, cfg.n_ticks
     rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))
-    twin = Twin(rig="rig", dt=1.0 / cfg.rate_hz)
+    twin = Twin(cfg.airframe, rig="rig", dt=1.0 / cfg.rate_hz)
     throttle = cfg.hover_throttle
     faults = 0
     bar = tqdm(range(n), desc=f"eval {spec}", unit="ep", disable=not progress, leave=False)

@@ -87,6 +87,14 @@ class TrainConfig:
     export: str = "best"  # best: the in-training evaluation's best checkpoint (if any); final
     threads: int = 1
     progress: bool = True
+    airframe: str = "iris"  # sim_bridge/airframes/<name>.json, e.g. iris_realistic (effects on)
+    caps_temporal: float = 0.0  # PPO: λ_T of CAPS's ‖π(s_t) − π(s_t+1)‖ (training.caps)
+    caps_spatial: float = 0.0  # PPO: λ_S of CAPS's ‖π(s) − π(s̃)‖, s̃ ~ N(s, caps_sigma²)
+    caps_sigma: float = 0.05  # in VecNormalize's normalised observation units
+
+    @property
+    def caps(self) -> bool:
+        return bool(self.caps_temporal or self.caps_spatial)
 
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
@@ -99,6 +107,8 @@ class TrainConfig:
             raise ValueError(f"--squash is for PPO and TRPO; {self.algo.upper()} squashes already")
         if isinstance(self.throttle, list):
             self.throttle = tuple(self.throttle)
+        if self.caps and self.algo != "ppo":
+            raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
 
     @property
     def obs_fields(self) -> tuple[str, ...]:
@@ -125,7 +135,8 @@ class TrainConfig:
         return {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields,
                 "action_mapping": self.action_mapping, "throttle": self.throttle,
                 "reward": self.reward, "axis_weights": tuple(self.axis_weights),
-                "action_rate_penalty": self.action_rate_penalty}
+                "action_rate_penalty": self.action_rate_penalty,
+                **({"airframe": self.airframe} if self.airframe != "iris" else {})}
 
 
 # ── 3. Environment ────────────────────────────────────────────────────────────────────
@@ -157,6 +168,10 @@ def make_model(cfg: TrainConfig, venv: VecEnv, tb_dir: Path):
         from stable_baselines3.common.noise import NormalActionNoise
 
         hp["action_noise"] = NormalActionNoise(np.zeros(4), NOISE_STD * np.ones(4))
+    if cfg.caps:
+        from training.caps import CapsPPO as Algo
+
+        hp.update(caps_temporal=cfg.caps_temporal, caps_spatial=cfg.caps_spatial, caps_sigma=cfg.caps_sigma)
     return Algo("MlpPolicy", venv, seed=cfg.seed, verbose=0, device="cpu", tensorboard_log=str(tb_dir), **hp)
 
 
@@ -247,7 +262,9 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
             "n_envs": cfg.n_envs,
             "norm_reward": cfg.normalise_reward,
             "hyperparameters": json.loads(json.dumps(algo_hp, default=repr)),
-            "torch_threads": cfg.threads, "command": " ".join(sys.argv)}
+            "torch_threads": cfg.threads, "command": " ".join(sys.argv),
+            **({"caps": {"temporal": cfg.caps_temporal, "spatial": cfg.caps_spatial, "sigma": cfg.caps_sigma}}
+               if cfg.caps else {})}
 
 
 def _spec(cfg: TrainConfig):
