@@ -15,6 +15,7 @@ holds the two paths to the last bit. A new motor effect goes into both, side by 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,6 +122,18 @@ def body_torque(rates: np.ndarray, omega: np.ndarray, omega_before: np.ndarray, 
     return np.stack([-damping[..., 0] * p - q * h_z,
                      -damping[..., 1] * q + p * h_z,
                      -damping[..., 2] * r + spin_up], axis=-1)
+
+
+def body_torque_one(rates: list[float], omega: list[float], before: list[float], damping: list[float],
+                    rotor_inertia: float, spin: list[float], dt: float) -> list[float]:
+    """`body_torque` for one vehicle in plain floats: the same operations in the same order."""
+    s0, s1, s2, s3 = spin
+    w0, w1, w2, w3 = omega
+    b0, b1, b2, b3 = before
+    p, q, r = rates
+    h_z = -(rotor_inertia * ((s0 * w0 + s1 * w1) + (s2 * w2 + s3 * w3)))
+    spin_up = rotor_inertia * (((s0 * (w0 - b0) + s1 * (w1 - b1)) + (s2 * (w2 - b2) + s3 * (w3 - b3))) / dt)
+    return [-damping[0] * p - q * h_z, -damping[1] * q + p * h_z, -damping[2] * r + spin_up]
 
 
 @dataclass(frozen=True)
@@ -275,6 +288,31 @@ class AirframeEffects:
             self.charge = self.charge + self.current * self.dt
         if self.shakes:
             self.phase = advance_phase(self.phase, omega, self.dt)
+
+    # One vehicle (batch shape ()) in plain floats, the batch path's operations in its order:
+    # numpy's per-call overhead on 4-vectors would dominate the twin's 1 kHz step.
+    def speed_scale_one(self) -> float | None:
+        if not self.sags:
+            return None
+        v, k, r, _ = (float(p[0]) for p in self.battery_params)
+        volts = v - k * float(self.charge[0]) - r * float(self.current[0])
+        scale = volts / v
+        return scale if scale > 0.0 else 0.0
+
+    def torque_one(self, rates: list[float], omega: list[float], before: list[float]) -> list[float]:
+        return body_torque_one(rates, omega, before, self.damping.tolist(), float(self.rotor_inertia),
+                               self.spin.tolist(), self.dt)
+
+    def advance_one(self, omega: list[float], thrust: list[float]) -> None:
+        if self.sags:
+            t = [x if x > 0.0 else 0.0 for x in thrust]
+            c = float(self.battery_params[3][0])
+            current = c * ((t[0] * math.sqrt(t[0]) + t[1] * math.sqrt(t[1]))
+                           + (t[2] * math.sqrt(t[2]) + t[3] * math.sqrt(t[3])))
+            self.current[0] = current
+            self.charge[0] = float(self.charge[0]) + current * self.dt
+        if self.shakes:
+            self.phase = advance_phase(self.phase, np.array(omega), self.dt)
 
     @property
     def gyro_effects(self) -> bool:

@@ -136,21 +136,19 @@ class Twin:
             self._step_effects(values)
         mujoco.mj_step(self.model, self.data)
         if not self._plain:
-            self.effects.advance(np.array(self._omega), np.array(self._ctrl))
+            self.effects.advance_one(self._omega, self._ctrl.tolist())
         self._t_us += self.dt_us
         return self._frame()
 
     def _step_effects(self, pwm: list[float]) -> None:
         fx = self.effects
         pwm = fx.command(np.array(pwm)).tolist()
-        scale = fx.speed_scale()
         before = self._omega
-        self._omega, self._ctrl[:] = self.motors.step_one(before, pwm,
-                                                          None if scale is None else float(scale[0]))
+        self._omega, self._ctrl[:] = self.motors.step_one(before, pwm, fx.speed_scale_one())
         if fx.torques:
-            rates = self.data.qvel[self._rot] * FLU_FROM_FRD
-            torque = fx.torque(rates, np.array(self._omega), np.array(before))
-            self.data.qfrc_applied[self._rot] = torque * FLU_FROM_FRD
+            rates = (self.data.qvel[self._rot] * FLU_FROM_FRD).tolist()
+            torque = fx.torque_one(rates, self._omega, before)
+            self.data.qfrc_applied[self._rot] = np.array(torque) * FLU_FROM_FRD
 
     def _frame(self, reset: bool = False) -> SensorFrame:
         imu = self._sensordata[self._imu] * self._imu_sign

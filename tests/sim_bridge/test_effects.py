@@ -259,3 +259,13 @@ def test_realistic_airframe_changes_what_the_env_flies():
     for _ in range(40):
         ia, ib = a.step(action)[4], b.step(action)[4]
     assert np.abs(ia["rate"] - ib["rate"]).max() > 0.05
+
+
+def test_eval_flies_the_airframe_it_is_given():
+    from evaluation.runner import EvalConfig, run_controller
+
+    nominal, realistic = (run_controller("pid", EvalConfig(episodes=2, seed=1, airframe=af), progress=False)
+                          for af in ("iris", "iris_realistic"))
+    np.testing.assert_array_equal(nominal.setpoint, realistic.setpoint)
+    assert np.abs(nominal.rate - realistic.rate).max() > 0.05
+    assert EvalConfig(airframe="iris_realistic").hover_throttle == EvalConfig().hover_throttle  # same body
