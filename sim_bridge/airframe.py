@@ -60,6 +60,7 @@ class Airframe:
     battery_sag_per_charge: float = 0.0  # V per A·s drawn
     battery_resistance: float = 0.0  # Ω, internal
     battery_current_per_thrust: float = 0.0  # A per N^1.5 of each rotor (momentum theory)
+    battery_drawn_at_start: float = 0.0  # A·s already drawn when a flight starts (state of charge)
     effect_sources: tuple[tuple[str, str], ...] = ()  # (field, citation) as the file gives them
 
     @property
@@ -112,6 +113,7 @@ EFFECT_KEYS = {
     "battery_sag_V_per_A_s": "battery_sag_per_charge",
     "battery_resistance_ohm": "battery_resistance",
     "battery_current_A_per_N1_5": "battery_current_per_thrust",
+    "battery_drawn_at_start_A_s": "battery_drawn_at_start",
 }
 
 

@@ -235,6 +235,7 @@ class AirframeEffects:
         self.vibration = np.zeros((*batch_shape, 3))
         self.battery_params = np.zeros((4, *batch_shape, 1))  # V_full, k, R, c
         self.charge = np.zeros((*batch_shape, 1))
+        self.charge_at_start = np.zeros((*batch_shape, 1))
         self.current = np.zeros((*batch_shape, 1))
         self.phase = np.zeros((*batch_shape, 4))
         self.battery = Battery(*self.battery_params, dt)  # views: set_row writes through
@@ -255,6 +256,7 @@ class AirframeEffects:
                    airframe.battery_resistance, airframe.battery_current_per_thrust)
         for params, value in zip(self.battery_params, battery, strict=True):
             params[at] = value
+        self.charge_at_start[at] = airframe.battery_drawn_at_start
         self.torques |= airframe.body_torques
         self.sags |= airframe.battery_sags
         self.shakes |= any(airframe.gyro_vibration)
@@ -265,9 +267,9 @@ class AirframeEffects:
             self.gyro_delays |= bool(airframe.gyro_delay_ticks)
 
     def reset(self, pwm: np.ndarray, rows: np.ndarray | None = None) -> None:
-        """Battery full, rotors at angle 0, the ESC line holding `pwm` (of `rows`)."""
+        """Battery as charged at the start, rotors at angle 0, the ESC line holding `pwm` (of `rows`)."""
         at = ... if rows is None else rows
-        self.charge[at] = 0.0
+        self.charge[at] = self.charge_at_start[at]
         self.current[at] = 0.0
         self.phase[at] = 0.0
         if self.esc_delays:

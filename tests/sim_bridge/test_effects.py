@@ -46,7 +46,7 @@ def test_nominal_has_every_effect_off_and_the_realistic_one_every_effect_on_with
         assert set(sources) == set(effect_fields())
         assert all(len(s) > 10 for s in sources.values())
     for name in effect_fields():
-        if name != "battery_voltage_full":
+        if name not in ("battery_voltage_full", "battery_drawn_at_start"):  # full 3S in both
             assert getattr(REALISTIC, name) != getattr(IRIS, name), name
     # the realistic airframe is the nominal one plus effects
     assert REALISTIC.mass == IRIS.mass and REALISTIC.motor == IRIS.motor
@@ -235,11 +235,16 @@ def test_max_thrust_falls_with_load_and_discharge_over_a_long_full_throttle_run(
     assert thrust_at[60_000] < thrust_at[1000] * 0.98
 
 
-def test_no_load_no_sag():
+def test_no_load_no_sag_and_a_part_drawn_battery_starts_lower():
     fx = AirframeEffects(REALISTIC, DT)
     fx.reset(np.full(4, 1000.0))
-    assert fx.speed_scale()[0] == 1.0
+    assert fx.speed_scale()[0] == 1.0 == fx.speed_scale_one()
     assert not AirframeEffects(IRIS, DT).sags
+    half = AirframeEffects(replace(REALISTIC, battery_drawn_at_start=9000.0), DT)
+    half.reset(np.full(4, 1000.0))
+    expected = 1.0 - REALISTIC.battery_sag_per_charge * 9000.0 / REALISTIC.battery_voltage_full
+    np.testing.assert_allclose(half.speed_scale()[0], expected, rtol=1e-12)
+    assert half.speed_scale_one() == half.speed_scale()[0]
 
 
 # ── every effect on: the batch is the single environment ──────────────────────────────
