@@ -92,3 +92,21 @@ def test_a_short_run_with_caps_on_the_realistic_airframe_trains_end_to_end(tmp_p
     tags = acc.Tags()["scalars"]
     assert {"train/caps_temporal", "train/caps_spatial", "reward/action_rate"} <= set(tags)
     assert all(e.value > 0.0 for e in acc.Scalars("train/caps_spatial"))
+
+
+def _learned(algo: type, **caps: float) -> list[th.Tensor]:
+    model = algo("MlpPolicy", "Pendulum-v1", n_steps=64, batch_size=32, n_epochs=2, seed=5, device="cpu",
+                 policy_kwargs={"net_arch": [16, 16]}, **caps)
+    model.learn(128)
+    assert "zero_grad" not in vars(model.policy.optimizer)  # the hook is gone after train()
+    return [p.detach().clone() for p in model.policy.parameters()]
+
+
+def test_caps_enters_the_ppo_update_and_nothing_else_changes():
+    from stable_baselines3 import PPO
+
+    plain = _learned(PPO)
+    zero = _learned(CapsPPO, caps_temporal=0.0, caps_spatial=0.0)
+    caps = _learned(CapsPPO, caps_temporal=1.0, caps_spatial=1.0, caps_sigma=0.2)
+    assert all(th.equal(a, b) for a, b in zip(plain, zero, strict=True))  # λ = 0: PPO to the bit
+    assert any(not th.equal(a, b) for a, b in zip(plain, caps, strict=True))
