@@ -102,6 +102,7 @@ def _learned(algo: type, **caps: float) -> list[th.Tensor]:
     return [p.detach().clone() for p in model.policy.parameters()]
 
 
+@pytest.mark.slow
 def test_caps_enters_the_ppo_update_and_nothing_else_changes():
     from stable_baselines3 import PPO
 
