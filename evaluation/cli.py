@@ -19,6 +19,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episode-s", type=float, default=None,
                    help="episode length (default 1 s episodic and inflight, 10 s continuous)")
     p.add_argument("--throttle", type=float, default=None, help="collective 0..1 (default: hover)")
+    p.add_argument("--airframe", default="iris",
+                   help="airframe file to fly (sim_bridge/airframes/NAME.json or a path; default: iris, "
+                        "the nominal twin; iris_realistic adds damping, rotor inertia, delays, gyro noise "
+                        "and vibration, battery sag)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--report", metavar="DIR", help="write a Markdown report with figures into DIR")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save the traces (one file per controller)")

@@ -43,6 +43,7 @@ class EvalConfig:
     episode_s: float | None = None  # None: 1 s episodic, 10 s continuous
     throttle: float | None = None  # None: the airframe's hover throttle
     rate_hz: float = 1000.0
+    airframe: str = "iris"  # sim_bridge/airframes/<name>.json or a path, e.g. iris_realistic
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -65,7 +66,7 @@ class EvalConfig:
 
     @property
     def hover_throttle(self) -> float:
-        return self.throttle_for(load_airframe())
+        return self.throttle_for(load_airframe(self.airframe))
 
     def throttle_for(self, airframe: Airframe) -> float:
         """The collective flown: `throttle`, or the airframe's hover throttle."""
@@ -131,7 +132,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     setpoints = setpoint_schedules(cfg)
     n, ticks = cfg.episodes, cfg.warmup_ticks + cfg.n_ticks
     rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))
-    twin = Twin(airframe or "iris", rig="rig", dt=1.0 / cfg.rate_hz)
+    twin = Twin(airframe or cfg.airframe, rig="rig", dt=1.0 / cfg.rate_hz)
     throttle = cfg.throttle_for(twin.airframe)
     start = hover_state(twin.airframe, throttle) if cfg.task == "inflight" else None
     faults = 0

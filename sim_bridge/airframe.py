@@ -9,7 +9,7 @@ twin boundary.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +49,33 @@ class Airframe:
     spin: np.ndarray  # (4,) +1 counter-clockwise, -1 clockwise, seen from above
     motor: MotorSpec
     gear_half_height: float
+    # What a real airframe adds (`sim_bridge.plant`); all off by default, as in the paper's twin.
+    rate_damping: tuple[float, float, float] = (0.0, 0.0, 0.0)  # N·m·s/rad, FRD torque −D·Ω
+    rotor_inertia: float = 0.0  # kg·m² about the spin axis: spin-up reaction and gyroscopic moment
+    esc_delay_ticks: int = 0  # PWM command → motor, whole physics steps
+    gyro_delay_ticks: int = 0  # rate → gyro reading, whole physics steps
+    gyro_noise_std: float = 0.0  # rad/s, white, per sample
+    gyro_vibration: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad/s per (rad/s)² of each rotor
+    battery_voltage_full: float = 12.6  # V
+    battery_sag_per_charge: float = 0.0  # V per A·s drawn
+    battery_resistance: float = 0.0  # Ω, internal
+    battery_current_per_thrust: float = 0.0  # A per N^1.5 of each rotor (momentum theory)
+    battery_drawn_at_start: float = 0.0  # A·s already drawn when a flight starts (state of charge)
+    effect_sources: tuple[tuple[str, str], ...] = ()  # (field, citation) as the file gives them
+
+    @property
+    def battery_sags(self) -> bool:
+        sags = self.battery_sag_per_charge or self.battery_resistance
+        return bool(self.battery_current_per_thrust and sags)
+
+    @property
+    def body_torques(self) -> bool:
+        """Any torque beside the rotors' thrust and drag: damping, spin-up reaction, gyroscopic."""
+        return bool(any(self.rate_damping) or self.rotor_inertia)
+
+    @property
+    def gyro_effects(self) -> bool:
+        return bool(self.gyro_noise_std or any(self.gyro_vibration) or self.gyro_delay_ticks)
 
     @property
     def mass(self) -> float:
@@ -69,23 +96,80 @@ class Airframe:
                km: float = 1.0, tau_up: float = 1.0, tau_down: float = 1.0) -> Airframe:
         """A copy with mass, inertia (one factor, or one per axis) and motor constants multiplied."""
         m = self.motor
-        motor = MotorSpec(m.max_rotor_speed, m.kf * kf, m.km * km, m.tau_up * tau_up, m.tau_down * tau_down,
-                          m.pwm_min, m.pwm_max)
+        motor = replace(m, kf=m.kf * kf, km=m.km * km, tau_up=m.tau_up * tau_up,
+                        tau_down=m.tau_down * tau_down)
         per_axis = inertia if isinstance(inertia, tuple | list) else (inertia,) * 3
         inertia_scaled = tuple(float(i) * f for i, f in zip(self.base_inertia, per_axis, strict=True))
-        return Airframe(self.name, self.base_mass * mass, inertia_scaled,  # type: ignore[arg-type]
-                        self.base_box, self.rotor_mass * mass, self.rotor_radius,
-                        self.rotor_positions, self.spin, motor, self.gear_half_height)
+        return replace(self, base_mass=self.base_mass * mass, base_inertia=inertia_scaled,
+                       rotor_mass=self.rotor_mass * mass, motor=motor)
 
 
-def load_airframe(name_or_path: str | Path = "iris") -> Airframe:
+# The file's "effects" keys (value in the unit the key names, plus its source) → Airframe fields.
+EFFECT_KEYS = {
+    "rate_damping_N_m_s_rad": "rate_damping",
+    "rotor_inertia_kg_m2": "rotor_inertia",
+    "esc_delay_ticks": "esc_delay_ticks",
+    "gyro_delay_ticks": "gyro_delay_ticks",
+    "gyro_noise_std_rad_s": "gyro_noise_std",
+    "gyro_vibration_rad_s_per_rad_s2": "gyro_vibration",
+    "battery_voltage_full_V": "battery_voltage_full",
+    "battery_sag_V_per_A_s": "battery_sag_per_charge",
+    "battery_resistance_ohm": "battery_resistance",
+    "battery_current_A_per_N1_5": "battery_current_per_thrust",
+    "battery_drawn_at_start_A_s": "battery_drawn_at_start",
+}
+
+
+def airframe_names() -> list[str]:
+    return sorted(p.stem for p in AIRFRAME_DIR.glob("*.json") if "." not in p.stem)
+
+
+def _read(name_or_path: str | Path) -> tuple[Path, dict]:
     path = Path(name_or_path)
     if not path.suffix:
         path = AIRFRAME_DIR / f"{name_or_path}.json"
     if not path.exists():
-        known = ", ".join(sorted(p.stem for p in AIRFRAME_DIR.glob("*.json") if "." not in p.stem))
-        raise FileNotFoundError(f"no airframe file {path} (shipped airframes: {known})")
+        raise FileNotFoundError(f"no airframe file {path} (shipped airframes: {', '.join(airframe_names())})")
     raw = json.loads(path.read_text())
+    if "base" in raw:  # a variant: the base airframe's file with these keys (effects merged) replaced
+        beside = path.parent / f"{raw['base']}.json"
+        _, base = _read(beside if beside.exists() else raw["base"])
+        effects = {**base.get("effects", {}), **raw.get("effects", {})}
+        raw = {**base, **raw, "effects": effects}
+    return path, raw
+
+
+def _effects(path: Path, raw: dict) -> dict:
+    values: dict = {}
+    sources = []
+    for key, entry in raw.get("effects", {}).items():
+        if key not in EFFECT_KEYS:
+            raise ValueError(f"{path}: unknown effect {key!r}; known: {', '.join(EFFECT_KEYS)}")
+        name = EFFECT_KEYS[key]
+        value = entry["value"]
+        if isinstance(value, list):
+            value = tuple(float(v) for v in value)
+            if len(value) != 3:
+                raise ValueError(f"{path}: {key} needs 3 values (roll, pitch, yaw)")
+        elif name.endswith("_ticks"):
+            if int(value) != value or value < 0:
+                raise ValueError(f"{path}: {key} must be a whole number of ticks >= 0, got {value}")
+            value = int(value)
+        else:
+            value = float(value)
+        values[name] = value
+        sources.append((name, str(entry.get("source", ""))))
+    values["effect_sources"] = tuple(sources)
+    return values
+
+
+def effect_fields() -> tuple[str, ...]:
+    """The Airframe fields of the effects, the names a randomisation draws."""
+    return tuple(f.name for f in fields(Airframe) if f.name in EFFECT_KEYS.values())
+
+
+def load_airframe(name_or_path: str | Path = "iris") -> Airframe:
+    path, raw = _read(name_or_path)
     motors = raw["motors"]
     if len(motors) != 4:
         raise ValueError(f"{path}: a Quad X airframe needs 4 motors, found {len(motors)}")
@@ -109,6 +193,7 @@ def load_airframe(name_or_path: str | Path = "iris") -> Airframe:
             pwm_max=float(m.get("pwm_max_us", 2000)),
         ),
         gear_half_height=float(raw["landing_gear_half_height_m"]),
+        **_effects(path, raw),
     )
 
 

@@ -90,6 +90,8 @@ class EnvConfig:
             object.__setattr__(self, "airframe", load_airframe(self.airframe))
         if isinstance(self.randomize, Randomization):
             self.randomize.check_airframe(self.airframe)
+        if self.noise is None and self.base_airframe.gyro_noise_std:  # the airframe's own gyro noise
+            object.__setattr__(self, "noise", SensorNoise(gyro_std=self.base_airframe.gyro_noise_std))
         if self.throttle is None:
             hover = (self.base_airframe.hover_pwm() - PWM_MIN) / PWM_SPAN
             object.__setattr__(self, "throttle", hover)
@@ -219,7 +221,8 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)
         self.render_mode = render_mode
         self._task = RateTask(self.config)
-        self._n_steps, self._noisy = self.config.n_steps, self.config.noisy
+        self._n_steps = self.config.n_steps
+        self._noisy = self.config.noisy or self.config.base_airframe.gyro_effects  # the gyro is not the rate
         self._factors: dict[str, float] = {}
         self._set_twin(self.config.base_airframe)
         self._episode: Episode | None = None

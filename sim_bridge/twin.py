@@ -2,8 +2,10 @@
 
 `Twin.step(pwm)` advances exactly one physics step (1 ms by default) and returns the
 `SensorFrame` the flight controller would read next. The motors and sensors are
-`sim_bridge.plant`'s models; MuJoCo integrates the rigid body. Everything random (sensor
-noise, initial state) draws from the generator seeded by `reset(seed)`.
+`sim_bridge.plant`'s models; MuJoCo integrates the rigid body under the rotors' thrust and
+the airframe's other torques (`AirframeEffects`: damping, spin-up reaction, gyroscopic
+moment, applied as generalised forces on the body's rotational joint). Everything random
+(sensor noise, initial state) draws from the generator seeded by `reset(seed)`.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 
 from firmware.sensors import SensorFrame
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf, load_airframe
-from sim_bridge.plant import MotorModel, SensorModel, SensorNoise
+from sim_bridge.plant import AirframeEffects, MotorModel, SensorModel, SensorNoise
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,8 @@ class Twin:
     ) -> None:
         self.airframe = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
         self.rig = rig
+        if noise is None and self.airframe.gyro_noise_std:
+            noise = SensorNoise(gyro_std=self.airframe.gyro_noise_std)
         self.sensors = SensorModel(noise)
         self.noise = self.sensors.noise
         self.dt = dt
@@ -72,6 +76,10 @@ class Twin:
         self._ctrl = self.data.ctrl
         self._imu_sign = np.tile(FLU_FROM_FRD, 2)
         self._noisy = self.sensors.enabled
+        self.effects = AirframeEffects(self.airframe, dt)
+        self._rot = slice(0, 3) if rig == "rig" else slice(3, 6)
+        self._plain = not (self.effects.torques or self.effects.sags or self.effects.esc_delays
+                           or self.effects.shakes)
         self._omega = [0.0] * 4
         self._t_us = 0
         self._rng = np.random.default_rng()
@@ -110,7 +118,8 @@ class Twin:
         self.data.ctrl[:] = self.motors.thrust_one(self._omega)
         mujoco.mj_forward(self.model, self.data)
         self._t_us = 0
-        return self._frame()
+        self.effects.reset(np.asarray(self.airframe.motor.pwm_for_rotor_speed(np.array(self._omega))))
+        return self._frame(reset=True)
 
     def step(self, pwm: np.ndarray) -> SensorFrame:
         """Apply PWM (µs, Betaflight motor order) for one step; return the next sensor frame."""
@@ -121,18 +130,38 @@ class Twin:
             values = []
         if len(values) != 4 or not all(isinstance(v, (float, int)) and math.isfinite(v) for v in values):
             raise ValueError(f"pwm must be 4 finite values in µs, got {pwm!r}")
-        self._omega, self._ctrl[:] = self.motors.step_one(self._omega, values)
+        if self._plain:
+            self._omega, self._ctrl[:] = self.motors.step_one(self._omega, values)
+        else:
+            self._step_effects(values)
         mujoco.mj_step(self.model, self.data)
+        if not self._plain:
+            self.effects.advance_one(self._omega, self._ctrl.tolist())
         self._t_us += self.dt_us
         return self._frame()
 
-    def _frame(self) -> SensorFrame:
+    def _step_effects(self, pwm: list[float]) -> None:
+        fx = self.effects
+        pwm = fx.command(np.array(pwm)).tolist()
+        before = self._omega
+        self._omega, self._ctrl[:] = self.motors.step_one(before, pwm, fx.speed_scale_one())
+        if fx.torques:
+            rates = (self.data.qvel[self._rot] * FLU_FROM_FRD).tolist()
+            torque = fx.torque_one(rates, self._omega, before)
+            self.data.qfrc_applied[self._rot] = np.array(torque) * FLU_FROM_FRD
+
+    def _frame(self, reset: bool = False) -> SensorFrame:
         imu = self._sensordata[self._imu] * self._imu_sign
         gyro, accel = imu[0:3], imu[3:6]
         omega = np.array(self._omega)
+        fx = self.effects
+        if fx.shakes:
+            gyro = fx.gyro_truth(gyro, omega)
         if self._noisy:
             gyro, accel, omega = self.sensors.read(gyro, accel, omega,
                                                    self._rng.standard_normal(SensorModel.DRAWS))
+        if fx.gyro_delays:
+            gyro = fx.gyro_delayed(gyro, reset=reset)
         return SensorFrame(self._t_us, gyro, accel, omega)
 
     def truth(self) -> Truth:

@@ -32,11 +32,13 @@ from mujoco import rollout
 
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf
 from sim_bridge.env import EnvConfig, RateTask, draw_episode
-from sim_bridge.plant import NoiseStreams, SensorModel
+from sim_bridge.plant import AirframeEffects, NoiseStreams, SensorModel
 from sim_bridge.twin import Twin
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
 NOISE_BLOCK = 256  # steps of sensor noise drawn at a time per copy
+MAX_DELAY_TICKS = 32  # the longest ESC or gyro delay a copy's airframe may have
+CTRL_AND_TORQUE = mujoco.mjtState.mjSTATE_CTRL.value | mujoco.mjtState.mjSTATE_QFRC_APPLIED.value
 
 
 class BatchedRateEnv(VectorEnv):
@@ -69,6 +71,10 @@ class BatchedRateEnv(VectorEnv):
         g = self._model.sensor("gyro").adr[0]
         self._gyro = slice(g, g + 3)
         self._motors, self._sensors = twin.motors, SensorModel(cfg.noise)
+        self._fx = AirframeEffects(cfg.base_airframe, cfg.dt, (n,), MAX_DELAY_TICKS)
+        nq, nv = self._model.nq, self._model.nv
+        self._qvel = slice(1 + nq, 1 + nq + 3)  # FULLPHYSICS: time, qpos, qvel, ...
+        self._control = np.zeros((n, 1, 4 + nv))  # ctrl, qfrc_applied: with body torques
         self._per_model = bool(set(cfg.randomize or {}) & {"mass", "inertia", "km"})
 
         self._n_steps, self._noisy = cfg.n_steps, cfg.noisy
@@ -107,14 +113,24 @@ class BatchedRateEnv(VectorEnv):
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict]:
         pwm = self._task.pwm(actions, self._throttle)
-        self._omega, self._ctrl[:, 0] = self._motors.step(self._omega, pwm, self._kf)
-        self._pool.rollout(self._models, self._datas, self._state, self._ctrl, skip_checks=True, nstep=1,
-                           state=self._next, sensordata=self._sens, initial_warmstart=None,
+        fx = self._fx
+        before = self._omega
+        self._omega, self._ctrl[:, 0] = self._motors.step(before, fx.command(pwm), self._kf, fx.speed_scale())
+        control, spec = self._ctrl, mujoco.mjtState.mjSTATE_CTRL.value
+        if fx.torques:
+            rates = self._state[:, self._qvel] * FLU_FROM_FRD
+            control, spec = self._control, CTRL_AND_TORQUE
+            control[:, 0, :4] = self._ctrl[:, 0]
+            control[:, 0, 4:7] = fx.torque(rates, self._omega, before) * FLU_FROM_FRD
+        self._pool.rollout(self._models, self._datas, self._state, control, control_spec=spec,
+                           skip_checks=True, nstep=1, state=self._next, sensordata=self._sens,
+                           initial_warmstart=None,
                            chunk_size=max(1, self.num_envs // (2 * len(self._datas))))
         self._state[:] = self._next[:, 0]
+        fx.advance(self._omega, self._ctrl[:, 0])
         self._t += 1
         rate = self._sens[:, 0, self._gyro] * FLU_FROM_FRD
-        gyro, rotor = self._measure(rate, self._rows)
+        gyro, rotor = self._measure(rate, self._rows, False)
         setpoint = self._sched[self._rows, self._t]
         obs, reward, info = self._task.step(setpoint, rate, gyro, rotor, pwm)
         truncated = self._t >= self._n_steps
@@ -147,11 +163,13 @@ class BatchedRateEnv(VectorEnv):
                 self._set_airframe(i, self.config.base_airframe.scaled(**ep.factors))
             if self._noise is not None:
                 self._noise.reseed(i, ep.noise_seed)
-        gyro, rotor = self._measure(self._sens[idx, 0, self._gyro] * FLU_FROM_FRD, idx)
+        self._fx.reset(np.full((idx.size, 4), self._motors.pwm_min), idx)
+        gyro, rotor = self._measure(self._sens[idx, 0, self._gyro] * FLU_FROM_FRD, idx, True)
         return self._task.reset(self._sched[idx, 0], gyro, rotor, rows)
 
     def _set_airframe(self, i: int, airframe: Airframe) -> None:
         self._kf[i] = airframe.motor.kf
+        self._fx.set_row(i, airframe)
         if not self._per_model:
             return
         model = mujoco.MjModel.from_xml_string(build_mjcf(airframe, "rig", self.config.dt))
@@ -162,13 +180,19 @@ class BatchedRateEnv(VectorEnv):
         mujoco.mj_forward(model, d)
         self._sens[i, 0] = d.sensordata  # the twin's first frame after reset
 
-    def _measure(self, rate: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """What the gyro and rotor speed sensors of copies `idx` report, from each copy's noise stream."""
+    def _measure(self, rate: np.ndarray, idx: np.ndarray, reset: bool) -> tuple[np.ndarray, np.ndarray]:
+        """What the gyro and rotor speed sensors of copies `idx` report, from each copy's noise stream.
+
+        `reset`: the copies start an episode (the gyro delay line starts over holding the reading).
+        """
         omega = self._omega[idx]
-        if self._noise is None:
-            return rate, omega
-        gyro, _, rotor = self._sensors.read(rate, None, omega, self._noise.next(idx))
-        return gyro, rotor
+        fx = self._fx
+        gyro = fx.gyro_truth(rate, omega, idx) if fx.shakes else rate
+        if self._noise is not None:
+            gyro, _, omega = self._sensors.read(gyro, None, omega, self._noise.next(idx))
+        if fx.gyro_delays:
+            gyro = fx.gyro_delayed(gyro, None if not reset else idx, reset)
+        return gyro, omega
 
 
 def _sb3_adapter() -> type:

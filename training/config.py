@@ -106,6 +106,13 @@ class TrainConfig:
                                  "final: the last model", choices=("best", "final"))
     threads: int = option(1, "torch threads")
     progress: bool = option(True, "progress bar")
+    airframe: str = option("iris", "airframe to train on: sim_bridge/airframes/NAME.json "
+                                   "(e.g. iris_realistic, every effect on) or a path")
+    caps_temporal: float = option(0.0, "PPO: CAPS temporal smoothness weight λ_T, ‖π(s_t) − π(s_t+1)‖ "
+                                        "(training.caps)")
+    caps_spatial: float = option(0.0, "PPO: CAPS spatial smoothness weight λ_S, ‖π(s) − π(s̃)‖, "
+                                       "s̃ ~ N(s, caps_sigma²)")
+    caps_sigma: float = option(0.05, "CAPS spatial noise, in normalised observation units")
 
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
@@ -123,6 +130,12 @@ class TrainConfig:
         self.axis_weights = tuple(self.axis_weights)
         if self.out is None:
             self.out = f"runs/{self.algo}"
+        if self.caps and self.algo != "ppo":
+            raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
+
+    @property
+    def caps(self) -> bool:
+        return bool(self.caps_temporal or self.caps_spatial)
 
     @property
     def obs_fields(self) -> tuple[str, ...]:
@@ -149,7 +162,8 @@ class TrainConfig:
         return {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields,
                 "action_mapping": self.action_mapping, "throttle": self.throttle,
                 "reward": self.reward, "axis_weights": tuple(self.axis_weights),
-                "action_rate_penalty": self.action_rate_penalty}
+                "action_rate_penalty": self.action_rate_penalty,
+                **({"airframe": self.airframe} if self.airframe != "iris" else {})}
 
 
 # ── The command line, generated from the fields ────────────────────────────────────────

@@ -63,6 +63,10 @@ def make_model(cfg: TrainConfig, venv: VecEnv, tb_dir: Path):
         from stable_baselines3.common.noise import NormalActionNoise
 
         hp["action_noise"] = NormalActionNoise(np.zeros(4), NOISE_STD * np.ones(4))
+    if cfg.caps:
+        from training.caps import CapsPPO as Algo
+
+        hp.update(caps_temporal=cfg.caps_temporal, caps_spatial=cfg.caps_spatial, caps_sigma=cfg.caps_sigma)
     return Algo("MlpPolicy", venv, seed=cfg.seed, verbose=0, device="cpu", tensorboard_log=str(tb_dir), **hp)
 
 
@@ -155,7 +159,9 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
             "n_envs": cfg.n_envs,
             "norm_reward": cfg.normalise_reward,
             "hyperparameters": json.loads(json.dumps(algo_hp, default=repr)),
-            "torch_threads": cfg.threads, "command": " ".join(sys.argv)}
+            "torch_threads": cfg.threads, "command": " ".join(sys.argv),
+            **({"caps": {"temporal": cfg.caps_temporal, "spatial": cfg.caps_spatial, "sigma": cfg.caps_sigma}}
+               if cfg.caps else {})}
 
 
 def _spec(cfg: TrainConfig):
