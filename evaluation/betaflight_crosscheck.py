@@ -152,7 +152,7 @@ def _run(args) -> int:
     if args.rig == "free":
         return _run_free(args, rc)
     commands = rc.quantise(episodic_commands(args.seed, args.episodes))
-    hover = (load_airframe().hover_pwm() - 1000.0) / 1000.0
+    hover = load_airframe().hover_throttle()
     throttle_ch = rc.throttle_channel(hover)
     ticks = round(args.episode_s * 1000)
     run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="fcemu_betaflight_"))

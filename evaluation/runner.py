@@ -69,7 +69,7 @@ class EvalConfig:
 
     def throttle_for(self, airframe: Airframe) -> float:
         """The collective flown: `throttle`, or the airframe's hover throttle."""
-        return self.throttle if self.throttle is not None else (airframe.hover_pwm() - PWM_MIN) / PWM_SPAN
+        return self.throttle if self.throttle is not None else airframe.hover_throttle()
 
 
 def setpoint_schedules(cfg: EvalConfig) -> np.ndarray:

@@ -91,8 +91,7 @@ class EnvConfig:
         if isinstance(self.randomize, Randomization):
             self.randomize.check_airframe(self.airframe)
         if self.throttle is None:
-            hover = (self.base_airframe.hover_pwm() - PWM_MIN) / PWM_SPAN
-            object.__setattr__(self, "throttle", hover)
+            object.__setattr__(self, "throttle", self.base_airframe.hover_throttle())
         elif isinstance(self.throttle, list):
             object.__setattr__(self, "throttle", tuple(self.throttle))
         if self.n_steps < 1:
