@@ -9,6 +9,7 @@ continuous episode, until MuJoCo resets the unstable state.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -24,26 +25,34 @@ def _actions(seed: int, shape: tuple[int, ...]) -> np.ndarray:
     return np.concatenate([half, -half])
 
 
+def _steps_per_s(step_block: Callable[[], int], seconds: float) -> float:
+    """Steps per second of repeated `step_block()` calls (each returns the steps it took) after a warm-up."""
+
+    def run(until: float) -> int:
+        steps = 0
+        while time.perf_counter() < until:
+            steps += step_block()
+        return steps
+
+    run(time.perf_counter() + min(0.2, seconds / 10))
+    start = time.perf_counter()
+    steps = run(start + seconds)
+    return steps / (time.perf_counter() - start)
+
+
 def env_steps_per_s(seconds: float = 2.0, seed: int = 0, **env_kwargs: Any) -> float:
     """Steps per second of one `RateControlEnv` (episodic task unless told otherwise)."""
     env = RateControlEnv(**env_kwargs)
     actions = _actions(seed, (4,))
     env.reset(seed=seed)
-    steps = 0
 
-    def run(until: float) -> None:
-        nonlocal steps
-        while time.perf_counter() < until:
-            for a in actions:
-                if env.step(a)[3]:
-                    env.reset()
-            steps += len(actions)
+    def step_block() -> int:
+        for a in actions:
+            if env.step(a)[3]:
+                env.reset()
+        return len(actions)
 
-    run(time.perf_counter() + min(0.2, seconds / 10))
-    steps = 0
-    start = time.perf_counter()
-    run(start + seconds)
-    return steps / (time.perf_counter() - start)
+    return _steps_per_s(step_block, seconds)
 
 
 def vec_env_steps_per_s(n_envs: int = 128, seconds: float = 2.0, seed: int = 0, nthread: int = 0,
@@ -52,21 +61,14 @@ def vec_env_steps_per_s(n_envs: int = 128, seconds: float = 2.0, seed: int = 0, 
     env = BatchedRateEnv(n_envs, nthread=nthread, **env_kwargs)
     actions = _actions(seed, (n_envs, 4))
     env.reset(seed=seed)
-    calls = 0
 
-    def run(until: float) -> None:
-        nonlocal calls
-        while time.perf_counter() < until:
-            for a in actions:
-                env.step(a)  # auto-resets finished copies
-            calls += len(actions)
+    def step_block() -> int:
+        for a in actions:
+            env.step(a)  # auto-resets finished copies
+        return len(actions) * n_envs
 
     try:
-        run(time.perf_counter() + min(0.2, seconds / 10))
-        calls = 0
-        start = time.perf_counter()
-        run(start + seconds)
-        return calls * n_envs / (time.perf_counter() - start)
+        return _steps_per_s(step_block, seconds)
     finally:
         env.close()
 

@@ -45,10 +45,8 @@ def bench_inference(args) -> int:
     if not model.endswith(".onnx"):
         raise SystemExit("fcemu bench inference: no policy given and none shipped; pass --model FILE.onnx")
     r = measure_inference(model, args.samples)
-    if args.json:
-        print(json.dumps(r))
-    else:
-        print(f"{r['model']}: onnxruntime median {r['median_us']:.1f} µs, p99 {r['p99_us']:.1f} µs; "
-              f"full controller update (observation + inference + mapping) median "
-              f"{r['update_median_us']:.1f} µs, p99 {r['update_p99_us']:.1f} µs over {r['samples']} samples")
+    print(json.dumps(r) if args.json else
+          f"{r['model']}: onnxruntime median {r['median_us']:.1f} µs, p99 {r['p99_us']:.1f} µs; "
+          f"full controller update (observation + inference + mapping) median "
+          f"{r['update_median_us']:.1f} µs, p99 {r['update_p99_us']:.1f} µs over {r['samples']} samples")
     return 0

@@ -7,7 +7,7 @@
 The loop is the firmware's, stripped to its core: read the frame, `controller.update`,
 `twin.step`, at 1 kHz on `Twin(rig="rig")`. Commands are the paper's episodic task
 (Ω* ~ U[-5.24, 5.24]³ rad/s held for 1 s from rest) at hover throttle
-((hover_pwm − 1000) / 1000), drawn from `--seed`; scores are the paper's metrics from
+(`Airframe.hover_throttle`), drawn from `--seed`; scores are the paper's metrics from
 `evaluation.metrics`.
 
 The search is a deterministic pattern search in log-gain space: each knob is tried a step
@@ -242,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
 
     clean = Twin(rig="rig")
     noisy = Twin(rig="rig", noise=SensorNoise(gyro_std=args.gyro_noise))
-    throttle = (clean.airframe.hover_pwm() - 1000.0) / 1000.0
+    throttle = clean.airframe.hover_throttle()
     tuning = commands(args.seed, args.episodes)
     held_out = commands(args.seed + 1, args.check_episodes)
     paper = load_preset("paper")

@@ -17,9 +17,10 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.metrics import AXES, EvalMetrics, compute_metrics
+from evaluation.runner import TraceRecorder
 from firmware.controller import RateSetpoint
 from firmware.controllers import load_controller
-from firmware.loop import Command, FlightLoop, TickSample
+from firmware.loop import Command, FlightLoop
 from firmware.sensors import SensorFrame
 from firmware.timing import LockstepClock
 from sim_bridge.airframe import load_airframe
@@ -43,16 +44,6 @@ class _Hold:
         return self.command_
 
 
-class _Record:
-    def __init__(self, rate: np.ndarray, pwm: np.ndarray) -> None:
-        self.rate, self.pwm, self.k = rate, pwm, 0
-
-    def publish(self, sample: TickSample) -> None:
-        self.rate[self.k] = sample.frame.gyro
-        self.pwm[self.k] = sample.pwm
-        self.k += 1
-
-
 def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, progress: bool = False) -> Traces:
     """fcemu's firmware loop, lockstep on the rig, each command from rest (as `fcemu eval`)."""
     controller = load_controller(spec)
@@ -61,7 +52,8 @@ def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, prog
     rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))
     for i in tqdm(range(n), desc=spec, unit="ep", disable=not progress, leave=False):
         loop = FlightLoop(InProcessLink(twin), twin.reset(), {"main": controller},
-                          _Hold(commands[i], throttle), LockstepClock(), 1000.0, [_Record(rate[i], pwm[i])])
+                          _Hold(commands[i], throttle), LockstepClock(), 1000.0,
+                          [TraceRecorder(rate[i], pwm[i])])
         for k in range(ticks):
             loop.tick(k * loop.period_us)
     setpoint = np.broadcast_to(commands[:, None, :], (n, ticks, 3)).copy()
@@ -152,7 +144,7 @@ def _run(args) -> int:
     if args.rig == "free":
         return _run_free(args, rc)
     commands = rc.quantise(episodic_commands(args.seed, args.episodes))
-    hover = (load_airframe().hover_pwm() - 1000.0) / 1000.0
+    hover = load_airframe().hover_throttle()
     throttle_ch = rc.throttle_channel(hover)
     ticks = round(args.episode_s * 1000)
     run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="fcemu_betaflight_"))

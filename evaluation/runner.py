@@ -70,7 +70,7 @@ class EvalConfig:
 
     def throttle_for(self, airframe: Airframe) -> float:
         """The collective flown: `throttle`, or the airframe's hover throttle."""
-        return self.throttle if self.throttle is not None else (airframe.hover_pwm() - PWM_MIN) / PWM_SPAN
+        return self.throttle if self.throttle is not None else airframe.hover_throttle()
 
 
 def setpoint_schedules(cfg: EvalConfig) -> np.ndarray:
@@ -99,7 +99,9 @@ class _Schedule:
         return self.commands[min(t_us // self.period_us, len(self.commands) - 1)]
 
 
-class _Recorder:
+class TraceRecorder:
+    """Telemetry sink writing tick k's gyro rate and PWM into row k of the given arrays."""
+
     def __init__(self, rate: np.ndarray, pwm: np.ndarray) -> None:
         self.rate, self.pwm, self.k = rate, pwm, 0
 
@@ -139,7 +141,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     bar = tqdm(range(n), desc=f"eval {spec}", unit="ep", disable=not progress, leave=False)
     for i in bar:
         commander = _Schedule(setpoints[i], throttle, round(1e6 / cfg.rate_hz))
-        recorder = _Recorder(rate[i], pwm[i])
+        recorder = TraceRecorder(rate[i], pwm[i])
         loop = FlightLoop(InProcessLink(twin), twin.reset(state=start), controllers, commander,
                           LockstepClock(), cfg.rate_hz, [recorder], fallback=FALLBACK if neural else None)
         for k in range(ticks):

@@ -41,6 +41,12 @@ def _error(exc: Exception) -> int:
     return 2
 
 
+def _print_report(args, report: dict, summary: str) -> int:
+    """The report as one JSON line with --json, else the one-line summary."""
+    print(json.dumps(report) if args.json else summary)
+    return 0
+
+
 def export_command(args) -> int:
     if getattr(args, "target", "onnx") == "c":
         return _export_c(args)
@@ -51,13 +57,11 @@ def export_command(args) -> int:
     except (ExportError, FileNotFoundError) as exc:
         print(f"fcemu export: {exc}", file=sys.stderr)
         return 2
-    if args.json:
-        print(json.dumps(report))
-    else:
-        print(f"wrote {report['out']} ({report['bytes']} bytes, {report['algorithm']}, "
-              f"{report['training_steps']} steps); parity over {report['parity_samples']} observations: "
-              f"max |onnx − torch| = {report['parity_max_abs_diff']:.2e} (≤ 1e-5: ok)")
-    return 0
+    return _print_report(args, report,
+                         f"wrote {report['out']} ({report['bytes']} bytes, {report['algorithm']}, "
+                         f"{report['training_steps']} steps); parity over {report['parity_samples']} "
+                         f"observations: max |onnx − torch| = {report['parity_max_abs_diff']:.2e} "
+                         "(≤ 1e-5: ok)")
 
 
 def _export_c(args) -> int:
@@ -67,13 +71,11 @@ def _export_c(args) -> int:
         report = export_c(args.checkpoint, args.out, args.parity_samples, args.tanh)
     except CExportError as exc:
         return _error(exc)
-    if args.json:
-        print(json.dumps(report))
-    else:
-        print(f"wrote C99 sources and {report['out']}/libfcemu_policy.so; parity with onnxruntime over "
-              f"{report['parity_samples']} observations: max |c − onnx| = {report['max_abs_diff']:.2e}, "
-              f"max {report['max_ulp']} ULP (figures in {report['out']}/parity.json)")
-    return 0
+    return _print_report(args, report,
+                         f"wrote C99 sources and {report['out']}/libfcemu_policy.so; parity with onnxruntime "
+                         f"over {report['parity_samples']} observations: max |c − onnx| = "
+                         f"{report['max_abs_diff']:.2e}, max {report['max_ulp']} ULP "
+                         f"(figures in {report['out']}/parity.json)")
 
 
 def bench_mcu_command(args) -> int:

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from firmware.action import PWM_MIN, PWM_SPAN
+
 AIRFRAME_DIR = Path(__file__).parent / "airframes"
 FLU_FROM_FRD = np.array([1.0, -1.0, -1.0])  # also NED <-> (north, west, up)
 RIGS = ("rig", "free")
@@ -91,6 +93,10 @@ class Airframe:
 
     def hover_pwm(self, gravity: float = 9.81) -> float:
         return float(self.motor.pwm_for_rotor_speed(self.hover_rotor_speed(gravity)))
+
+    def hover_throttle(self, gravity: float = 9.81) -> float:
+        """The collective setpoint (0..1, the firmware's throttle-to-PWM scale) that holds the weight."""
+        return (self.hover_pwm(gravity) - PWM_MIN) / PWM_SPAN
 
     def scaled(self, mass: float = 1.0, inertia: float | tuple[float, float, float] = 1.0, kf: float = 1.0,
                km: float = 1.0, tau_up: float = 1.0, tau_down: float = 1.0) -> Airframe:

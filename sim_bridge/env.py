@@ -93,8 +93,7 @@ class EnvConfig:
         if self.noise is None and self.base_airframe.gyro_noise_std:  # the airframe's own gyro noise
             object.__setattr__(self, "noise", SensorNoise(gyro_std=self.base_airframe.gyro_noise_std))
         if self.throttle is None:
-            hover = (self.base_airframe.hover_pwm() - PWM_MIN) / PWM_SPAN
-            object.__setattr__(self, "throttle", hover)
+            object.__setattr__(self, "throttle", self.base_airframe.hover_throttle())
         elif isinstance(self.throttle, list):
             object.__setattr__(self, "throttle", tuple(self.throttle))
         if self.n_steps < 1:

@@ -4,57 +4,61 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T", int, float)
 
 
-def _speed(text: str) -> str:
+def _number(convert: type[T], ok: Callable[[T], bool], requirement: str) -> Callable[[str], T]:
+    """An argparse `type`: `convert` the text, then insist on `ok`; each failure one line naming the text."""
+    kind = "a whole number" if convert is int else "a number"
+
+    def parse(text: str) -> T:
+        try:
+            value = convert(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not {kind}: {text!r}") from None
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"{text!r}: {requirement}")
+        return value
+
+    return parse
+
+
+def _accepted_by(check: Callable[[str], object]) -> Callable[[str], str]:
+    """An argparse `type` keeping the text once `check` accepts it; its ValueError is the error."""
+
+    def parse(text: str) -> str:
+        try:
+            check(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+        return text
+
+    return parse
+
+
+def _check_speed(text: str) -> None:
     from sitl.sitl import parse_speed
 
-    try:
-        parse_speed(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
+    parse_speed(text)
 
 
-def loop_rate(text: str) -> float:
-    try:
-        rate = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(rate) or not 0 < rate <= 100_000 or 1e6 % rate:
-        raise argparse.ArgumentTypeError(f"{text!r}: the loop rate must divide one second into whole "
-                                         "microseconds (e.g. 500, 1000, 2000)")
-    return rate
-
-
-def seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds >= 0")
-    return value
-
-
-def _instance(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if not 0 <= value <= 254:  # system id 1+N must be a MAVLink system id, 1..255
-        raise argparse.ArgumentTypeError(f"{text!r}: the instance must be in 0..254")
-    return value
-
-
-def _peer(text: str) -> str:
+def _check_peer(text: str) -> None:
     from firmware.mavlink.bridge import parse_peer
 
-    try:
-        parse_peer(text, "peer")
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
+    parse_peer(text, "peer")
+
+
+loop_rate = _number(float, lambda rate: math.isfinite(rate) and 0 < rate <= 100_000 and not 1e6 % rate,
+                    "the loop rate must divide one second into whole microseconds (e.g. 500, 1000, 2000)")
+seconds = _number(float, lambda value: math.isfinite(value) and value >= 0,
+                  "must be a finite number of seconds >= 0")
+# System id 1+N must be a MAVLink system id, 1..255.
+_instance = _number(int, lambda value: 0 <= value <= 254, "the instance must be in 0..254")
+_speed = _accepted_by(_check_speed)
+_peer = _accepted_by(_check_peer)
 
 
 def add_mavlink_options(p: argparse.ArgumentParser) -> None:

@@ -88,15 +88,11 @@ def parse_speed(text: str) -> float | None:
     return value
 
 
-def hover_throttle(rig: str = "free") -> float:
-    from sim_bridge.airframe import load_airframe
-
-    return (load_airframe().hover_pwm() - 1000.0) / 1000.0
-
-
 def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
     """What `fcemu sitl --no-mavlink` flies: rate doublets on each axis in turn."""
-    hover = hover_throttle()
+    from sim_bridge.airframe import load_airframe
+
+    hover = load_airframe().hover_throttle()
     climb = min(1.0, hover + 0.08) if rig == "free" else hover
     schedule: list[tuple[float, Sequence[float], float]] = [(0.0, (0, 0, 0), climb)]
     t = 1.0
@@ -219,13 +215,14 @@ def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float |
     from firmware.mavlink.bridge import LinkedVehicle, start_mavlink
     from firmware.params import ParamTable
     from firmware.vehicle import Vehicle, param_adapter
+    from sim_bridge.airframe import load_airframe
 
     sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0,
                       spin_us=spin_us)
     params = ParamTable()
     for pid in param_adapter.tunable_pids(sitl.loop.controllers):
         param_adapter.set_gain_defaults(params, pid.gains)  # the loaded preset's gains: a GCS's defaults
-    params.set_default("MPC_THR_HOVER", hover_throttle(rig))
+    params.set_default("MPC_THR_HOVER", load_airframe().hover_throttle())
     problems = params.load(config.params_file) if config.params_file else []
     if explicit_controller or params["CTRL_SEL"] >= len(sitl.loop.controllers):
         params.set("CTRL_SEL", ("pid", "neural").index(sitl.selected))

@@ -81,7 +81,7 @@ def test_mavsdk_offboard_stop_and_action_hold_hold_altitude(sitl) -> None:
     altitude it was entered at; then LAND brings it down and it disarms."""
     from sim_bridge.airframe import load_airframe
 
-    hover = (load_airframe().hover_pwm() - 1000.0) / 1000.0
+    hover = load_airframe().hover_throttle()
     offboard_port = free_udp_port()
     s = sitl(rig="free", offboard=offboard_port)
     script = subprocess.run(

@@ -121,7 +121,7 @@ def test_hold_in_the_free_twin_keeps_altitude_after_a_climb(with_fix: bool) -> N
 
     twin = Twin(rig="free")
     link = InProcessLink(twin)
-    hover = (load_airframe().hover_pwm() - 1000.0) / 1000.0
+    hover = load_airframe().hover_throttle()
     params = ParamTable()
     params.set_default("MPC_THR_HOVER", hover)
     pid = PIDRateController.from_preset()
