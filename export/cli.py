@@ -55,8 +55,7 @@ def export_command(args) -> int:
     try:
         report = export_policy(args.checkpoint, args.out, args.parity_samples)
     except (ExportError, FileNotFoundError) as exc:
-        print(f"fcemu export: {exc}", file=sys.stderr)
-        return 2
+        return _error(exc)
     return _print_report(args, report,
                          f"wrote {report['out']} ({report['bytes']} bytes, {report['algorithm']}, "
                          f"{report['training_steps']} steps); parity over {report['parity_samples']} "

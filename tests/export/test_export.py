@@ -158,7 +158,8 @@ def test_cli_exit_codes(runs, tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["parity_ok"]
     Args.checkpoint = str(tmp_path / "nowhere.zip")
     assert export_command(Args) == 2
-    assert "no such checkpoint" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith("fcemu: error: ") and "no such checkpoint" in err and err.count("\n") == 1
 
 
 def test_actor_output_is_independent_of_batch(runs):
