@@ -33,6 +33,7 @@ from sim_bridge.twin import Twin, TwinState
 from sitl.traces import Traces
 
 TASKS = EVAL_TASKS
+NOISE_STREAM = 0x6e6f6973  # "nois": the twin's sensor-noise seeds, a stream apart from the commands'
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,11 @@ class EvalConfig:
     def throttle_for(self, airframe: Airframe) -> float:
         """The collective flown: `throttle`, or the airframe's hover throttle."""
         return self.throttle if self.throttle is not None else airframe.hover_throttle()
+
+
+def sensor_noise_seeds(cfg: EvalConfig) -> np.ndarray:
+    """Per episode, the seed of the twin's sensor noise (an airframe with gyro noise draws it)."""
+    return np.random.SeedSequence(cfg.seed, spawn_key=(NOISE_STREAM,)).generate_state(cfg.episodes, np.uint64)
 
 
 def setpoint_schedules(cfg: EvalConfig) -> np.ndarray:
@@ -137,13 +143,15 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     twin = Twin(airframe or cfg.airframe, rig="rig", dt=1.0 / cfg.rate_hz)
     throttle = cfg.throttle_for(twin.airframe)
     start = hover_state(twin.airframe, throttle) if cfg.task == "inflight" else None
+    noise_seeds = sensor_noise_seeds(cfg)
     faults = 0
     bar = tqdm(range(n), desc=f"eval {spec}", unit="ep", disable=not progress, leave=False)
     for i in bar:
         commander = _Schedule(setpoints[i], throttle, round(1e6 / cfg.rate_hz))
         recorder = TraceRecorder(rate[i], pwm[i])
-        loop = FlightLoop(InProcessLink(twin), twin.reset(state=start), controllers, commander,
-                          LockstepClock(), cfg.rate_hz, [recorder], fallback=FALLBACK if neural else None)
+        first = twin.reset(int(noise_seeds[i]), start)
+        loop = FlightLoop(InProcessLink(twin), first, controllers, commander, LockstepClock(), cfg.rate_hz,
+                          [recorder], fallback=FALLBACK if neural else None)
         for k in range(ticks):
             loop.tick(k * loop.period_us)
         faults += sum(loop.faults.values())

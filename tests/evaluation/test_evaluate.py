@@ -71,6 +71,17 @@ def test_eval_report_compares_controllers_side_by_side(tmp_path):
     assert len(list(tmp_path.glob("continuous_*.png"))) == 2
 
 
+def test_an_airframe_with_gyro_noise_flies_the_same_for_the_same_seed():
+    cfg = EvalConfig(episodes=2, episode_s=0.05, seed=3, airframe="iris_realistic")
+    assert load_airframe(cfg.airframe).gyro_noise_std > 0.0
+    first, again = run_controller("pid", cfg, progress=False), run_controller("pid", cfg, progress=False)
+    np.testing.assert_array_equal(first.rate, again.rate)
+    np.testing.assert_array_equal(first.pwm, again.pwm)
+    other = run_controller("pid", EvalConfig(episodes=2, episode_s=0.05, seed=4, airframe="iris_realistic"),
+                           progress=False)
+    assert not np.array_equal(other.rate[:, 1:], first.rate[:, 1:])
+
+
 def test_a_bad_task_is_refused():
     with pytest.raises(ValueError):
         EvalConfig(task="hover")
