@@ -265,6 +265,11 @@ class AirframeEffects:
             self.gyro_line.set_delay(row, airframe.gyro_delay_ticks)
             self.esc_delays |= bool(airframe.esc_delay_ticks)
             self.gyro_delays |= bool(airframe.gyro_delay_ticks)
+        if not self.shape:
+            # The one-vehicle path's parameters as plain floats, taken here rather than per step.
+            self._damping_one, self._inertia_one = self.damping.tolist(), float(self.rotor_inertia)
+            self._spin_one = self.spin.tolist()
+            self._battery_one = tuple(float(p[0]) for p in self.battery_params)
 
     def reset(self, pwm: np.ndarray, rows: np.ndarray | None = None) -> None:
         """Battery as charged at the start, rotors at angle 0, the ESC line holding `pwm` (of `rows`)."""
@@ -296,19 +301,19 @@ class AirframeEffects:
     def speed_scale_one(self) -> float | None:
         if not self.sags:
             return None
-        v, k, r, _ = (float(p[0]) for p in self.battery_params)
+        v, k, r, _ = self._battery_one
         volts = v - k * float(self.charge[0]) - r * float(self.current[0])
         scale = volts / v
         return scale if scale > 0.0 else 0.0
 
     def torque_one(self, rates: list[float], omega: list[float], before: list[float]) -> list[float]:
-        return body_torque_one(rates, omega, before, self.damping.tolist(), float(self.rotor_inertia),
-                               self.spin.tolist(), self.dt)
+        return body_torque_one(rates, omega, before, self._damping_one, self._inertia_one, self._spin_one,
+                               self.dt)
 
     def advance_one(self, omega: list[float], thrust: list[float]) -> None:
         if self.sags:
             t = [x if x > 0.0 else 0.0 for x in thrust]
-            c = float(self.battery_params[3][0])
+            c = self._battery_one[3]
             current = c * ((t[0] * math.sqrt(t[0]) + t[1] * math.sqrt(t[1]))
                            + (t[2] * math.sqrt(t[2]) + t[3] * math.sqrt(t[3])))
             self.current[0] = current
