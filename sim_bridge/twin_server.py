@@ -114,6 +114,10 @@ class UdpTwinServer:
             ("received", "steps", "resets", "duplicates", "byes", "takeovers", "errors_sent", "shed",
              "muted_senders", "revoked", *BAD_PACKET_KINDS), 0)
         self.budget = SenderBudget()
+        if _OWNER_QUEUE:  # SO_REUSEPORT would share a taken port; a plain bind refuses it
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+                probe.bind((host, port))
+                port = probe.getsockname()[1]
         self._sock = _reuse_port_socket()
         self._sock.bind((host, port))
         self._owner_sock: socket.socket | None = None

@@ -149,3 +149,12 @@ def test_an_owner_that_storms_resets_loses_its_session() -> None:
             time.sleep(0.001)
         assert srv.counters["revoked"] == 1 and srv.counters["shed"] > 0
         assert other.reset(seed=1).t_us == 0 and other.pwm_write(np.full(4, 1500.0)).t_us == 1000
+
+
+def test_a_second_server_cannot_take_a_port_in_use() -> None:
+    with UdpTwinServer(Twin(rig="rig")) as srv:
+        with pytest.raises(OSError):  # SO_REUSEPORT must not let it share (and split) the traffic
+            UdpTwinServer(Twin(rig="rig"), port=srv.address[1])
+        with UdpTwinClient(*srv.address, timeout=0.5) as client:
+            client.reset(seed=1)
+            client.pwm_write(np.full(4, 1500.0))
