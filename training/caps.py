@@ -74,7 +74,9 @@ class CapsPPO(PPO):
             temporal, spatial = self.caps_losses(*pairs)
             terms["temporal"].append(float(temporal.detach()))
             terms["spatial"].append(float(spatial.detach()))
-            (self.caps_temporal * temporal + self.caps_spatial * spatial).backward()
+            loss = self.caps_temporal * temporal + self.caps_spatial * spatial
+            if loss.requires_grad:  # a rollout of one step per environment has no pairs: nothing to add
+                loss.backward()
 
         optimizer.zero_grad = zero_grad_then_caps  # type: ignore[method-assign]
         try:

@@ -67,6 +67,15 @@ def test_pairs_never_cross_an_episode_boundary():
     assert pairs == {(0.0, 2.0), (2.0, 4.0), (6.0, 8.0), (1.0, 3.0), (3.0, 5.0), (5.0, 7.0), (7.0, 9.0)}
 
 
+def test_a_rollout_without_pairs_trains_as_plain_ppo():
+    from stable_baselines3.common.env_util import make_vec_env
+
+    model = CapsPPO("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2, seed=0), n_steps=1, batch_size=2,
+                    n_epochs=1, seed=0, device="cpu", caps_temporal=1.0, caps_spatial=1.0)
+    model.learn(4)  # one step per environment: no (s_t, s_t+1) pair in any rollout
+    assert model.num_timesteps == 4
+
+
 def test_weights_must_be_non_negative():
     with pytest.raises(ValueError, match="caps_temporal"):
         CapsPPO("MlpPolicy", "Pendulum-v1", caps_temporal=-1.0)
