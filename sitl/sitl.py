@@ -19,7 +19,7 @@ import numpy as np
 from firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from firmware.controllers import load_controller
 from firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
-from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, raise_loop_priority
+from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, prioritize_loop
 
 # A loop that shares its CPU sleeps between ticks and spins only this last stretch (time.sleep
 # overshoots): spinning through the period would starve the MAVLink processes beside it.
@@ -259,10 +259,7 @@ def owns_a_core(instance: int) -> bool:
 def claim_cpu(helper_pids: Sequence[int], own_core: bool) -> Callable[[], None]:
     if own_core:
         return give_loop_a_core(helper_pids)
-    lower, problem = raise_loop_priority()
-    if problem:
-        print(f"fcemu: note: the flight loop runs at normal priority ({problem})", file=sys.stderr)
-    return lower
+    return prioritize_loop()
 
 
 def sitl_command(args) -> int:
