@@ -63,10 +63,6 @@ class CPolicyController:
         self.name = f"c:{self.path.name}"
         self.reset()
 
-    def describe(self) -> dict[str, object]:
-        meta = {k: v for k, v in self.metadata.items() if k != "observation"}
-        return {"path": str(self.path), "observation": json.loads(self.metadata["observation"]), **meta}
-
     def reset(self) -> None:
         self._lib.fcemu_policy_reset(self._state)
 
