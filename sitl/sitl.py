@@ -110,10 +110,9 @@ def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
 
 def flying_line(controller: str) -> str:
     """One line for the console saying which controller flies and from where."""
-    from firmware.c_policy import is_c_policy_dir
-    from firmware.controllers import DEFAULT_POLICY
+    from firmware.controllers import DEFAULT_POLICY, is_policy
 
-    if controller.endswith(".onnx") or is_c_policy_dir(controller):
+    if is_policy(controller):
         kind = "neural" if controller.endswith(".onnx") else "c_policy"
         return f"fcemu: flying {kind}:{Path(controller).stem} ({controller})"
     if controller == "pid" and not DEFAULT_POLICY.exists():
@@ -123,9 +122,9 @@ def flying_line(controller: str) -> str:
 
 def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
     """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks."""
-    from firmware.c_policy import is_c_policy_dir
+    from firmware.controllers import is_policy
 
-    if controller.endswith(".onnx") or is_c_policy_dir(controller):
+    if is_policy(controller):
         return {"neural": load_controller(controller, rate_hz), FALLBACK: load_controller(FALLBACK)}, "neural"
     return {FALLBACK: load_controller(controller, rate_hz)}, FALLBACK
 
