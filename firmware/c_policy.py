@@ -37,7 +37,14 @@ class CPolicyController:
         if not lib_path.is_file() or not contract_path.is_file():
             raise PolicyContractError(f"{self.path}: no {LIBRARY} and {CONTRACT}; write them with "
                                       f"`fcemu export POLICY.onnx --target c --out {self.path}`")
-        self.metadata: dict[str, str] = json.loads(contract_path.read_text())["metadata"]
+        try:
+            metadata = json.loads(contract_path.read_text())["metadata"]
+        except (OSError, ValueError, RecursionError, TypeError, KeyError) as exc:
+            raise PolicyContractError(f"{contract_path}: not a contract written by `fcemu export` "
+                                      f"({type(exc).__name__}: {str(exc)[:80]})") from None
+        if not isinstance(metadata, dict) or not all(isinstance(v, str) for v in metadata.values()):
+            raise PolicyContractError(f"{contract_path}: metadata is not a table of strings")
+        self.metadata: dict[str, str] = metadata
         contract = PolicyContract.from_metadata(self.metadata, str(self.path), loop_rate_hz)
         trained_rate = contract.loop_rate_hz
         try:
@@ -55,10 +62,6 @@ class CPolicyController:
         self.trained_rate_hz = trained_rate
         self.name = f"c:{self.path.name}"
         self.reset()
-
-    def describe(self) -> dict[str, object]:
-        meta = {k: v for k, v in self.metadata.items() if k != "observation"}
-        return {"path": str(self.path), "observation": json.loads(self.metadata["observation"]), **meta}
 
     def reset(self) -> None:
         self._lib.fcemu_policy_reset(self._state)

@@ -22,6 +22,13 @@ def default_controller() -> str:
     return str(DEFAULT_POLICY) if DEFAULT_POLICY.exists() else FALLBACK_CONTROLLER
 
 
+def is_policy(spec: str) -> bool:
+    """A learned policy (flown as CTRL_SEL `neural`): an ONNX file or an exported C policy directory."""
+    from firmware.c_policy import is_c_policy_dir
+
+    return spec.endswith(".onnx") or is_c_policy_dir(spec)
+
+
 def load_controller(spec: str, loop_rate_hz: float | None = None) -> RateController:
     """`loop_rate_hz`: the rate the loop will run it at; a policy trained for another rate is refused."""
     if spec == "pid" or spec.startswith("pid:"):

@@ -13,7 +13,6 @@ reaches the model.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -105,10 +104,6 @@ class NeuralRateController:
         except Exception as exc:  # onnxruntime raises several unrelated types for a graph that cannot run
             raise PolicyContractError(f"{self.path}: the model does not run ({_first_line(exc)})") from exc
         self.contract.check_outputs(actions, str(self.path))
-
-    def describe(self) -> dict[str, object]:
-        meta = {k: v for k, v in self.metadata.items() if k != "observation"}
-        return {"path": str(self.path), "observation": json.loads(self.metadata["observation"]), **meta}
 
     def reset(self) -> None:
         self._fresh = True

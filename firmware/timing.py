@@ -168,19 +168,25 @@ def _set_autogroup_nice(value: int) -> None:
     Path("/proc/self/autogroup").write_text(f"{value}\n")
 
 
+def prioritize_loop() -> Callable[[], None]:
+    """`raise_loop_priority`, saying on stderr when the system refuses; returns the undo."""
+    lower, problem = raise_loop_priority()
+    if problem:
+        print(f"fcemu: note: the flight loop runs at normal priority ({problem}); other load on this "
+              "machine can make it miss deadlines (run as root or grant CAP_SYS_NICE)", file=sys.stderr)
+    return lower
+
+
 def give_loop_a_core(helper_pids: Iterable[int]) -> Callable[[], None]:
     """Pin this process (the flight loop) to one CPU and `helper_pids` to the others, and raise
-    its priority (`raise_loop_priority`; said on stderr when the system refuses).
+    its priority (`prioritize_loop`).
 
     The loop spins through its period, so on a 2-core machine the MAVLink process and its
     peers otherwise keep preempting it mid-tick: measured with `fcemu bench loop --mavlink`,
     compute p50/p99 43/148 µs shared vs 28/99 µs pinned. Returns a function that undoes it.
     Does not pin with fewer than two CPUs.
     """
-    lower, problem = raise_loop_priority()
-    if problem:
-        print(f"fcemu: note: the flight loop runs at normal priority ({problem}); other load on this "
-              "machine can make it miss deadlines (run as root or grant CAP_SYS_NICE)", file=sys.stderr)
+    lower = prioritize_loop()
     original = os.sched_getaffinity(0)
     cpus = sorted(original)
     if len(cpus) < 2:

@@ -58,6 +58,11 @@ seconds = _number(float, lambda value: math.isfinite(value) and value >= 0,
 # System id 1+N must be a MAVLink system id, 1..255.
 _instance = _number(int, lambda value: 0 <= value <= 254, "the instance must be in 0..254")
 _speed = _accepted_by(_check_speed)
+_positive_seconds = _number(float, lambda value: math.isfinite(value) and value > 0,
+                            "must be a finite number of seconds > 0")
+# Betaflight stores rc_rate and srate in units of 10 deg/s, 1..255.
+_rate_dps = _number(float, lambda value: value % 10 == 0 and 10 <= value <= 2550,
+                    "must be a multiple of 10 deg/s in 10..2550")
 _peer = _accepted_by(_check_peer)
 
 
@@ -107,16 +112,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                                           "(--crosscheck: against fcemu's pid:betaflight)")
     p.add_argument("--episodes", type=int, default=10)
     p.add_argument("--seed", type=int, default=0, help="the evaluator's command seed (as fcemu eval)")
-    p.add_argument("--episode-s", type=float, default=1.0)
+    p.add_argument("--episode-s", type=_positive_seconds, default=1.0)
     p.add_argument("--rig", choices=("rig", "free"), default="rig",
                    help="rig: seeded steps on the ball joint; free: take-off, doublets and descent, "
                         "all from RC sticks")
-    p.add_argument("--duration", type=float, default=8.0, help="--rig free: seconds of flight")
+    p.add_argument("--duration", type=_positive_seconds, default=8.0, help="--rig free: seconds of flight")
     p.add_argument("--crosscheck", action="store_true",
                    help="also fly fcemu's pid:betaflight preset on the same commands and compare")
     p.add_argument("--speed", type=float, default=1.0,
                    help="pace of the twin against wall time (Betaflight follows the FDM timestamps)")
-    p.add_argument("--rate-dps", type=float, default=400.0,
+    p.add_argument("--rate-dps", type=_rate_dps, default=400.0,
                    help="Betaflight's linear ACTUAL rate at full stick, deg/s (the stick resolution)")
     p.add_argument("--run-dir", default=None, help="where the SITL keeps eeprom.bin and its log "
                                                    "(default: a fresh temporary directory)")

@@ -19,7 +19,7 @@ import numpy as np
 from firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from firmware.controllers import load_controller
 from firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
-from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, raise_loop_priority
+from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, prioritize_loop
 
 # A loop that shares its CPU sleeps between ticks and spins only this last stretch (time.sleep
 # overshoots): spinning through the period would starve the MAVLink processes beside it.
@@ -110,10 +110,9 @@ def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
 
 def flying_line(controller: str) -> str:
     """One line for the console saying which controller flies and from where."""
-    from firmware.c_policy import is_c_policy_dir
-    from firmware.controllers import DEFAULT_POLICY
+    from firmware.controllers import DEFAULT_POLICY, is_policy
 
-    if controller.endswith(".onnx") or is_c_policy_dir(controller):
+    if is_policy(controller):
         kind = "neural" if controller.endswith(".onnx") else "c_policy"
         return f"fcemu: flying {kind}:{Path(controller).stem} ({controller})"
     if controller == "pid" and not DEFAULT_POLICY.exists():
@@ -123,9 +122,9 @@ def flying_line(controller: str) -> str:
 
 def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
     """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks."""
-    from firmware.c_policy import is_c_policy_dir
+    from firmware.controllers import is_policy
 
-    if controller.endswith(".onnx") or is_c_policy_dir(controller):
+    if is_policy(controller):
         return {"neural": load_controller(controller, rate_hz), FALLBACK: load_controller(FALLBACK)}, "neural"
     return {FALLBACK: load_controller(controller, rate_hz)}, FALLBACK
 
@@ -259,10 +258,7 @@ def owns_a_core(instance: int) -> bool:
 def claim_cpu(helper_pids: Sequence[int], own_core: bool) -> Callable[[], None]:
     if own_core:
         return give_loop_a_core(helper_pids)
-    lower, problem = raise_loop_priority()
-    if problem:
-        print(f"fcemu: note: the flight loop runs at normal priority ({problem})", file=sys.stderr)
-    return lower
+    return prioritize_loop()
 
 
 def sitl_command(args) -> int:

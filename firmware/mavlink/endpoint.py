@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import socket
 import struct
+import time
 from pathlib import Path
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -94,10 +95,13 @@ class Endpoint:
         """Whether to read this link now: not while it is over its input ceiling (`InputBudget`)."""
         return self.budget.open(now)
 
-    def receive(self, now: float = 0.0) -> list:
+    def receive(self, now: float | None = None) -> list:
         """Frames waiting on the socket, parsed, within the link's input budget; bad ones come back
         as MAVLink_bad_data. A sender over its share has its datagrams dropped unparsed; a link over
-        its ceiling is left to the kernel, which drops what its buffer cannot hold (counted too)."""
+        its ceiling is left to the kernel, which drops what its buffer cannot hold (counted too).
+        `now`: the caller's time.monotonic() (read here when not given)."""
+        if now is None:
+            now = time.monotonic()
         out = []
         budget = self.budget
         for _ in range(256):
@@ -105,9 +109,7 @@ class Endpoint:
                 break
             try:
                 data, ancillary, _, sender = self.sock.recvmsg(65536, ANCILLARY_SPACE)
-            except (BlockingIOError, ConnectionRefusedError):
-                break
-            except OSError:
+            except OSError:  # nothing waiting (BlockingIOError), a refused send's ICMP, a closed socket
                 break
             for level, kind, value in ancillary:
                 if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(value) >= 4:

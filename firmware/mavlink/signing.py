@@ -58,7 +58,3 @@ class SigningState:
         self.streams[stream] = stamp
         self.timestamp = max(self.timestamp, stamp)
         return True
-
-    @property
-    def rejected(self) -> int:
-        return self.bad_signature + self.replayed + self.too_old

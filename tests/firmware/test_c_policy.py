@@ -72,6 +72,15 @@ def test_refuses_a_directory_without_the_build(tmp_path: Path, exported: Path) -
         load_controller(str(tmp_path / "nothing_here"))
 
 
+@pytest.mark.parametrize("contract", ["{not json", "[]", '{"other": 1}', '{"metadata": {"observation": 3}}'])
+def test_refuses_a_contract_that_is_not_one(tmp_path: Path, exported: Path, contract: str) -> None:
+    for name in ("fcemu_policy.h", "libfcemu_policy.so"):
+        (tmp_path / name).write_bytes((exported / name).read_bytes())
+    (tmp_path / "contract.json").write_text(contract)
+    with pytest.raises(PolicyContractError, match=r"contract\.json"):
+        load_controller(str(tmp_path))
+
+
 def test_flies_the_evaluation_like_the_onnx_policy(exported: Path) -> None:
     cfg = EvalConfig(episodes=3, seed=7)
     ours = run_controller(str(exported), cfg, progress=False)
