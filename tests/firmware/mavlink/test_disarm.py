@@ -64,8 +64,16 @@ class Hover:
 def test_disarm_in_flight_is_refused_unless_forced(sitl) -> None:
     s = sitl(rig="free")
     off = connect(s.offboard_port, source_system=245, source_component=190)
-    off.mav.param_request_read_send(1, 1, b"MPC_THR_HOVER", -1)
-    hover = Hover(off, wait_for(off, "PARAM_VALUE", lambda m: m.param_id == "MPC_THR_HOVER").param_value)
+    for _ in range(10):  # a GCS asks again when an answer does not come (a busy machine)
+        off.mav.param_request_read_send(1, 1, b"MPC_THR_HOVER", -1)
+        try:
+            value = wait_for(off, "PARAM_VALUE", lambda m: m.param_id == "MPC_THR_HOVER", timeout=2.0)
+            break
+        except TimeoutError:
+            continue
+    else:
+        raise AssertionError("MPC_THR_HOVER never answered")
+    hover = Hover(off, value.param_value)
     off.mav.param_set_send(1, 1, b"COM_RC_LOSS_T", 2.0, M.MAV_PARAM_TYPE_REAL32)  # a busy test process
     hover.fly(0.3)
     assert hover.command(1).result == M.MAV_RESULT_ACCEPTED
