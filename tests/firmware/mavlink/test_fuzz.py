@@ -140,6 +140,11 @@ def test_a_setpoint_flood_is_shed_and_the_loop_keeps_its_deadlines(sitl) -> None
     deadlines than in the baseline around it (wide margin: the machine is shared)."""
     s = sitl(rig="rig", duration=300.0)
     gcs, off = connect(s.gcs_port), connect(s.offboard_port, source_system=245, source_component=190)
+    # The flight process asks for it as its loop starts, which may come after the MAVLink
+    # process's first HEARTBEAT.
+    deadline = time.monotonic() + 10.0
+    while os.getpriority(os.PRIO_PROCESS, s.proc.pid) != -20 and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert os.getpriority(os.PRIO_PROCESS, s.proc.pid) == -20  # the flight process asked for it
     flight = Flight(off, gcs)
     off.mav.param_set_send(1, 1, b"COM_OF_LOSS_T", 2.0, M.MAV_PARAM_TYPE_REAL32)  # a busy test process
