@@ -99,15 +99,26 @@ class Airframe:
         return (self.hover_pwm(gravity) - PWM_MIN) / PWM_SPAN
 
     def scaled(self, mass: float = 1.0, inertia: float | tuple[float, float, float] = 1.0, kf: float = 1.0,
-               km: float = 1.0, tau_up: float = 1.0, tau_down: float = 1.0) -> Airframe:
-        """A copy with mass, inertia (one factor, or one per axis) and motor constants multiplied."""
+               km: float = 1.0, tau_up: float = 1.0, tau_down: float = 1.0, **effects: object) -> Airframe:
+        """A copy with mass, inertia (one factor, or one per axis) and motor constants multiplied.
+
+        `effects` sets effect fields (`effect_fields()`) to the values given, e.g. a
+        randomisation's draw; in a per-axis value, None keeps this airframe's axis.
+        """
         m = self.motor
         motor = replace(m, kf=m.kf * kf, km=m.km * km, tau_up=m.tau_up * tau_up,
                         tau_down=m.tau_down * tau_down)
         per_axis = inertia if isinstance(inertia, tuple | list) else (inertia,) * 3
         inertia_scaled = tuple(float(i) * f for i, f in zip(self.base_inertia, per_axis, strict=True))
+        unknown = sorted(set(effects) - set(effect_fields()))
+        if unknown:
+            raise TypeError(f"scaled() got unknown effect(s) {unknown}; known: {effect_fields()}")
+        for name, value in effects.items():
+            if isinstance(value, tuple | list):
+                effects[name] = tuple(float(getattr(self, name)[i]) if v is None else float(v)
+                                      for i, v in enumerate(value))
         return replace(self, base_mass=self.base_mass * mass, base_inertia=inertia_scaled,
-                       rotor_mass=self.rotor_mass * mass, motor=motor)
+                       rotor_mass=self.rotor_mass * mass, motor=motor, **effects)  # type: ignore[arg-type]
 
 
 # The file's "effects" keys (value in the unit the key names, plus its source) → Airframe fields.

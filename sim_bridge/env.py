@@ -21,7 +21,7 @@ reward and info after.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -115,7 +115,25 @@ class EnvConfig:
 
     @property
     def noisy(self) -> bool:
-        return self.noise is not None and self.noise.enabled
+        """Whether an episode draws sensor noise: the configured noise, or a randomised gyro noise."""
+        return (self.noise is not None and self.noise.enabled) or self.draws_gyro_noise
+
+    @property
+    def draws_gyro_noise(self) -> bool:
+        """The randomisation draws each episode's gyro noise (it replaces `noise.gyro_std`)."""
+        return isinstance(self.randomize, Randomization) and self.randomize.draws_gyro_noise
+
+    @property
+    def gyro_is_not_rate(self) -> bool:
+        """Whether some episode's gyro may read other than the rate: noise, vibration or delay."""
+        drawn = isinstance(self.randomize, Randomization) and self.randomize.draws_gyro_effects
+        return self.noisy or self.base_airframe.gyro_effects or drawn
+
+    def episode_noise(self, airframe: Airframe) -> SensorNoise | None:
+        """The sensor noise of an episode flying `airframe` (a draw of the randomisation)."""
+        if not self.draws_gyro_noise:
+            return self.noise
+        return replace(self.noise or SensorNoise(), gyro_std=airframe.gyro_noise_std)
 
     @property
     def rate_reward(self) -> RateReward:
@@ -221,7 +239,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         self.render_mode = render_mode
         self._task = RateTask(self.config)
         self._n_steps = self.config.n_steps
-        self._noisy = self.config.noisy or self.config.base_airframe.gyro_effects  # the gyro is not the rate
+        self._noisy = self.config.gyro_is_not_rate
         self._factors: dict[str, float] = {}
         self._set_twin(self.config.base_airframe)
         self._episode: Episode | None = None
@@ -262,7 +280,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         return obs, float(reward), False, self._t >= self._n_steps, info
 
     def _set_twin(self, airframe: Airframe) -> None:
-        self._twin = Twin(airframe, "rig", self.config.noise, self.config.dt)
+        self._twin = Twin(airframe, "rig", self.config.episode_noise(airframe), self.config.dt)
         adr = self._twin.model.sensor("gyro").adr[0]
         self._gyro_clean = self._twin.data.sensordata[adr:adr + 3]
 

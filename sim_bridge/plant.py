@@ -38,8 +38,8 @@ class MotorModel:
     pwm_max: float
     max_rotor_speed: float  # rad/s at pwm_max
     speed_per_us: float  # rad/s of command per µs of PWM
-    alpha_up: float  # fraction of a rising speed gap closed per step
-    alpha_down: float  # fraction of a falling speed gap closed per step
+    alpha_up: float | np.ndarray  # fraction of a rising speed gap closed per step (per vehicle (n, 1))
+    alpha_down: float | np.ndarray  # fraction of a falling speed gap closed per step
     kf: float  # thrust = kf·ω², N/(rad/s)²
     km: float  # yaw moment = km·thrust, m
     dt: float
@@ -373,10 +373,15 @@ class SensorModel:
         self._accel_bias = np.asarray(self.noise.accel_bias, dtype=np.float64)
 
     def read(self, gyro: np.ndarray, accel: np.ndarray | None, rotor_speed: np.ndarray,
-             z: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-        """Readings of the true rates (..., 3), specific force (None: not wanted), rotor speeds (..., 4)."""
+             z: np.ndarray, gyro_std: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Readings of the true rates (..., 3), specific force (None: not wanted), rotor speeds (..., 4).
+
+        `gyro_std` replaces the noise's gyro std, e.g. per vehicle (n, 1) of randomised airframes.
+        """
         n = self.noise
-        gyro = gyro + (self._gyro_bias + n.gyro_std * z[..., 0:3])
+        std = n.gyro_std if gyro_std is None else gyro_std
+        gyro = gyro + (self._gyro_bias + std * z[..., 0:3])
         if accel is not None:
             accel = accel + (self._accel_bias + n.accel_std * z[..., 3:6])
         rotor_speed = rotor_speed + n.rotor_speed_std * z[..., 6:10]

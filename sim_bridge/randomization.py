@@ -2,13 +2,20 @@
 
 `airframes/<name>.randomization.json` gives, per parameter, its unit, nominal value (the
 airframe file's), range [lo, hi] and a source or justification. Every parameter is drawn
-independently from U[lo, hi]; `Randomization.draw` returns the draw as scale factors
-(value / nominal) keyed by `Airframe.scaled`'s keywords, so an environment or the
-evaluator builds the airframe with `base.scaled(**factors)`.
+independently, in `PARAMETERS` order. `Randomization.draw` returns one airframe as
+`Airframe.scaled` keywords, so an environment or the evaluator builds it with
+`base.scaled(**draw)`:
+
+- mass, inertia and motor constants ("scale"): drawn from U[lo, hi], given as the factor
+  value / nominal; lo <= nominal <= hi.
+- the airframe's effects ("value", `sim_bridge.plant`): drawn from U[lo, hi], given as the
+  value itself. The nominal twin has most effects off (0), so the range need not hold the
+  nominal (e.g. battery resistance); per-axis effects give a 3-tuple, None where not drawn.
+- latencies in whole ticks ("ticks"): an integer drawn uniformly from lo..hi inclusive.
 
 A parameter becomes randomisable when the twin honours it: add its row to `PARAMETERS`
-(where its nominal lives in the airframe and which `scaled` keyword it sets) and its range
-to the file.
+(where its nominal lives in the airframe, which `scaled` keyword it sets, how it is drawn)
+and its range to the file.
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -27,17 +34,46 @@ from sim_bridge.airframe import AIRFRAME_DIR, Airframe, load_airframe
 SUFFIX = ".randomization.json"
 NOMINAL_RTOL = 1e-9
 
-# file key -> (the airframe's nominal value, Airframe.scaled keyword, axis for per-axis keywords)
-PARAMETERS: dict[str, tuple[Callable[[Airframe], float], str, int | None]] = {
-    "mass": (lambda a: a.mass, "mass", None),
-    "inertia_xx": (lambda a: a.base_inertia[0], "inertia", 0),
-    "inertia_yy": (lambda a: a.base_inertia[1], "inertia", 1),
-    "inertia_zz": (lambda a: a.base_inertia[2], "inertia", 2),
-    "kf": (lambda a: a.motor.kf, "kf", None),
-    "km": (lambda a: a.motor.km, "km", None),
-    "tau_up": (lambda a: a.motor.tau_up, "tau_up", None),
-    "tau_down": (lambda a: a.motor.tau_down, "tau_down", None),
+class Parameter(NamedTuple):
+    nominal: Callable[[Airframe], float]  # the airframe's value
+    keyword: str  # the Airframe.scaled keyword it sets
+    axis: int | None = None  # for per-axis keywords
+    kind: str = "scale"  # scale: a factor of the nominal; value: the drawn value; ticks: a whole number
+
+
+def _axis(name: str, axis: int) -> Parameter:
+    return Parameter(lambda a: getattr(a, name)[axis], name, axis, "value")
+
+
+def _effect(name: str, kind: str = "value") -> Parameter:
+    return Parameter(lambda a: getattr(a, name), name, None, kind)
+
+
+PARAMETERS: dict[str, Parameter] = {
+    "mass": Parameter(lambda a: a.mass, "mass"),
+    "inertia_xx": Parameter(lambda a: a.base_inertia[0], "inertia", 0),
+    "inertia_yy": Parameter(lambda a: a.base_inertia[1], "inertia", 1),
+    "inertia_zz": Parameter(lambda a: a.base_inertia[2], "inertia", 2),
+    "kf": Parameter(lambda a: a.motor.kf, "kf"),
+    "km": Parameter(lambda a: a.motor.km, "km"),
+    "tau_up": Parameter(lambda a: a.motor.tau_up, "tau_up"),
+    "tau_down": Parameter(lambda a: a.motor.tau_down, "tau_down"),
+    "rate_damping_roll": _axis("rate_damping", 0),
+    "rate_damping_pitch": _axis("rate_damping", 1),
+    "rate_damping_yaw": _axis("rate_damping", 2),
+    "rotor_inertia": _effect("rotor_inertia"),
+    "esc_delay_ticks": _effect("esc_delay_ticks", "ticks"),
+    "gyro_delay_ticks": _effect("gyro_delay_ticks", "ticks"),
+    "gyro_noise_std": _effect("gyro_noise_std"),
+    "gyro_vibration_roll": _axis("gyro_vibration", 0),
+    "gyro_vibration_pitch": _axis("gyro_vibration", 1),
+    "gyro_vibration_yaw": _axis("gyro_vibration", 2),
+    "battery_sag_per_charge": _effect("battery_sag_per_charge"),
+    "battery_resistance": _effect("battery_resistance"),
+    "battery_current_per_thrust": _effect("battery_current_per_thrust"),
+    "battery_drawn_at_start": _effect("battery_drawn_at_start"),
 }
+GYRO_KEYWORDS = frozenset({"gyro_noise_std", "gyro_vibration", "gyro_delay_ticks"})
 
 
 class RandomizationError(ValueError):
@@ -67,7 +103,7 @@ class Randomization:
     path: Path | None = None
 
     def __iter__(self) -> Iterator[str]:
-        return iter(dict.fromkeys(PARAMETERS[p.key][1] for p in self._ordered()))
+        return iter(dict.fromkeys(PARAMETERS[p.key].keyword for p in self._ordered()))
 
     def __len__(self) -> int:
         return len(self.parameters)
@@ -84,18 +120,33 @@ class Randomization:
         return sorted(self.parameters, key=lambda p: order.index(p.key))
 
     def draw(self, rng: np.random.Generator) -> dict[str, Any]:
-        """One airframe: {scaled keyword: factor}; per-axis keywords get a 3-tuple (1.0 where not drawn)."""
-        factors: dict[str, Any] = {}
+        """One airframe as `Airframe.scaled` keywords: factors of mass, inertia and motor constants
+        (per-axis: a 3-tuple, 1.0 where not drawn), effect values (per-axis: None where not drawn)."""
+        out: dict[str, Any] = {}
         for p in self._ordered():
-            factor = float(rng.uniform(p.lo, p.hi)) / p.nominal
-            _, keyword, axis = PARAMETERS[p.key]
-            if axis is None:
-                factors[keyword] = factor
+            _, keyword, axis, kind = PARAMETERS[p.key]
+            if kind == "ticks":
+                value: Any = int(rng.integers(round(p.lo), round(p.hi) + 1))
             else:
-                axes = list(factors.get(keyword, (1.0, 1.0, 1.0)))
-                axes[axis] = factor
-                factors[keyword] = tuple(axes)
-        return factors
+                value = float(rng.uniform(p.lo, p.hi))
+                if kind == "scale":
+                    value /= p.nominal
+            if axis is None:
+                out[keyword] = value
+            else:
+                axes = list(out.get(keyword, (1.0, 1.0, 1.0) if kind == "scale" else (None, None, None)))
+                axes[axis] = value
+                out[keyword] = tuple(axes)
+        return out
+
+    @property
+    def draws_gyro_noise(self) -> bool:
+        return any(PARAMETERS[p.key].keyword == "gyro_noise_std" for p in self.parameters)
+
+    @property
+    def draws_gyro_effects(self) -> bool:
+        """Whether a drawn airframe's gyro may read other than the rate (noise, vibration, delay)."""
+        return any(PARAMETERS[p.key].keyword in GYRO_KEYWORDS for p in self.parameters)
 
     def base_airframe(self) -> Airframe:
         """The airframe the ranges are for: the file beside them, else the shipped one by name."""
@@ -113,7 +164,7 @@ class Randomization:
             raise RandomizationError(f"{where}: ranges are for airframe {self.airframe!r}, "
                                      f"not {airframe.name!r}")
         for p in self.parameters:
-            actual = PARAMETERS[p.key][0](airframe)
+            actual = PARAMETERS[p.key].nominal(airframe)
             if not math.isclose(p.nominal, actual, rel_tol=NOMINAL_RTOL):
                 raise RandomizationError(f"{where}: {p.key} nominal {p.nominal:g} is not the airframe's "
                                          f"{actual:g}")
@@ -142,7 +193,8 @@ def load_randomization(name_or_path: str | Path = "iris") -> Randomization:
 
 
 def parse_randomization(raw: Any, where: str = "ranges") -> Randomization:
-    """Validate the file's JSON object: known keys, finite positive numbers, lo <= nominal <= hi, a source."""
+    """Validate the file's JSON object: known keys, finite numbers (positive, lo <= nominal <= hi for
+    scale factors; >= 0 for effects; whole for ticks), lo <= hi, a source."""
     if not isinstance(raw, dict):
         raise RandomizationError(f"{where}: expected a JSON object, got {type(raw).__name__}")
     airframe = raw.get("airframe")
@@ -167,14 +219,23 @@ def _parameter(key: str, entry: Any, where: str) -> ParameterRange:
     rng = entry["range"]
     if not isinstance(rng, list) or len(rng) != 2:
         raise RandomizationError(f"{at}: range must be [lo, hi], got {rng!r}")
+    kind = PARAMETERS[key].kind
     values = (entry["nominal"], *rng)
-    if not all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and v > 0
-               for v in values):
+    finite = all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in values)
+    if kind == "scale" and not (finite and min(values) > 0):
         raise RandomizationError(f"{at}: nominal and range must be finite positive numbers, got "
                                  f"nominal {entry['nominal']!r}, range {rng!r}")
+    if kind != "scale" and not (finite and min(values) >= 0):
+        raise RandomizationError(f"{at}: an effect's nominal and range must be finite numbers >= 0, got "
+                                 f"nominal {entry['nominal']!r}, range {rng!r}")
     nominal, lo, hi = (float(v) for v in values)
-    if not lo <= nominal <= hi:
+    if kind == "scale" and not lo <= nominal <= hi:
         raise RandomizationError(f"{at}: need lo <= nominal <= hi, got {lo:g} <= {nominal:g} <= {hi:g}")
+    if not lo <= hi:
+        raise RandomizationError(f"{at}: need lo <= hi, got [{lo:g}, {hi:g}]")
+    if kind == "ticks" and not all(float(v).is_integer() for v in values):
+        raise RandomizationError(f"{at}: ticks must be whole numbers, got nominal {entry['nominal']!r}, "
+                                 f"range {rng!r}")
     source = entry["source"]
     if not isinstance(source, str) or not source.strip():
         raise RandomizationError(f"{at}: source must say where the range comes from")

@@ -21,6 +21,7 @@ returns the first observation of the next one, and `info["final_obs"]` holds the
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -32,7 +33,7 @@ from mujoco import rollout
 
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf
 from sim_bridge.env import EnvConfig, RateTask, draw_episode
-from sim_bridge.plant import AirframeEffects, NoiseStreams, SensorModel
+from sim_bridge.plant import AirframeEffects, MotorModel, NoiseStreams, SensorModel
 from sim_bridge.twin import Twin
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
@@ -80,7 +81,11 @@ class BatchedRateEnv(VectorEnv):
         self._n_steps, self._noisy = cfg.n_steps, cfg.noisy
         self._rows = np.arange(n)
         self._models = [self._model] * n
-        self._kf = np.full((n, 1), self._motors.kf)  # per copy: randomised airframes scale it
+        # Per copy, what a randomised airframe changes in the motors and the gyro noise.
+        self._kf = np.full((n, 1), self._motors.kf)
+        self._motors = replace(self._motors, alpha_up=np.full((n, 1), self._motors.alpha_up),
+                               alpha_down=np.full((n, 1), self._motors.alpha_down))
+        self._gyro_std = np.full((n, 1), cfg.noise.gyro_std if cfg.noise is not None else 0.0)
         self._state = np.tile(self._state0, (n, 1))
         self._next = np.empty((n, 1, self._state0.size))
         self._sens = np.tile(self._sens0, (n, 1, 1))
@@ -169,6 +174,10 @@ class BatchedRateEnv(VectorEnv):
 
     def _set_airframe(self, i: int, airframe: Airframe) -> None:
         self._kf[i] = airframe.motor.kf
+        lag = MotorModel.from_spec(airframe.motor, self.config.dt)  # the single twin's arithmetic
+        self._motors.alpha_up[i], self._motors.alpha_down[i] = lag.alpha_up, lag.alpha_down
+        if self.config.draws_gyro_noise:
+            self._gyro_std[i] = airframe.gyro_noise_std
         self._fx.set_row(i, airframe)
         if not self._per_model:
             return
@@ -189,7 +198,8 @@ class BatchedRateEnv(VectorEnv):
         fx = self._fx
         gyro = fx.gyro_truth(rate, omega, idx) if fx.shakes else rate
         if self._noise is not None:
-            gyro, _, omega = self._sensors.read(gyro, None, omega, self._noise.next(idx))
+            gyro, _, omega = self._sensors.read(gyro, None, omega, self._noise.next(idx),
+                                                self._gyro_std[idx] if self.config.draws_gyro_noise else None)
         if fx.gyro_delays:
             gyro = fx.gyro_delayed(gyro, None if not reset else idx, reset)
         return gyro, omega

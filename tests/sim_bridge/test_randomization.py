@@ -21,11 +21,23 @@ def test_the_shipped_ranges_load_and_match_the_airframe():
     assert ranges.path == SHIPPED and ranges.airframe == "iris"
     assert {p.key for p in ranges.parameters} == set(PARAMETERS)  # every parameter the twin honours
     iris = load_airframe("iris")
+    realistic = load_airframe("iris_realistic")
     for p in ranges.parameters:
-        assert p.lo < p.nominal < p.hi, p.key
-        assert p.nominal == pytest.approx(PARAMETERS[p.key][0](iris), rel=1e-12)
+        kind = PARAMETERS[p.key].kind
+        if kind == "scale":
+            assert p.lo < p.nominal < p.hi, p.key
+        else:  # an effect: off in the nominal twin, its range around iris_realistic's value
+            assert p.nominal == 0 and p.lo < p.hi, p.key
+            assert p.lo <= PARAMETERS[p.key].nominal(realistic) <= p.hi, p.key
+        assert p.nominal == pytest.approx(PARAMETERS[p.key].nominal(iris), rel=1e-12)
         assert p.source.strip() and p.unit
-    assert list(ranges) == ["mass", "inertia", "kf", "km", "tau_up", "tau_down"]  # Airframe.scaled keywords
+    assert list(ranges) == ["mass", "inertia", "kf", "km", "tau_up", "tau_down", "rate_damping",
+                            "rotor_inertia", "esc_delay_ticks", "gyro_delay_ticks", "gyro_noise_std",
+                            "gyro_vibration", "battery_sag_per_charge", "battery_resistance",
+                            "battery_current_per_thrust",
+                            "battery_drawn_at_start"]  # Airframe.scaled keywords
+    assert (ranges.parameter("esc_delay_ticks").lo, ranges.parameter("esc_delay_ticks").hi) == (0, 2)
+    assert (ranges.parameter("gyro_delay_ticks").lo, ranges.parameter("gyro_delay_ticks").hi) == (0, 3)
 
 
 def _write(tmp_path, edit) -> str:
@@ -52,6 +64,11 @@ def _set(key: str, field: str, value):
     (_set("tau_up", "range", [0.0, 0.02]), r"tau_up: nominal and range must be finite positive numbers"),
     (_set("tau_down", "source", " "), r"tau_down: source must say where the range comes from"),
     (_set("mass", "nominal", 1.5), r"mass nominal 1.5 is not the airframe's 1.6"),
+    (_set("rotor_inertia", "nominal", 1e-6), r"rotor_inertia nominal 1e-06 is not the airframe's 0"),
+    (_set("battery_resistance", "range", [-0.01, 0.06]), r"battery_resistance: an effect's nominal and range "
+                                                         r"must be finite numbers >= 0"),
+    (_set("gyro_noise_std", "range", [0.02, 0.01]), r"gyro_noise_std: need lo <= hi, got \[0.02, 0.01\]"),
+    (_set("esc_delay_ticks", "range", [0, 1.5]), r"esc_delay_ticks: ticks must be whole numbers"),
     (lambda raw: raw["parameters"]["inertia_xx"].pop("unit"), r"inertia_xx: missing \['unit'\]"),
     (lambda raw: raw.update(airframe="x500"), r"cannot load airframe 'x500'"),
     (lambda raw: raw.update(parameters=[]), r"\"parameters\" must be a non-empty object"),
@@ -72,19 +89,47 @@ def test_a_missing_or_unreadable_file_is_refused(tmp_path):
         load_randomization(bad)
 
 
+def _drawn_values(ranges, draw) -> dict[str, float]:
+    """Each file key's drawn value, from a draw's `Airframe.scaled` keywords."""
+    out = {}
+    for p in ranges.parameters:
+        _, keyword, axis, kind = PARAMETERS[p.key]
+        value = draw[keyword] if axis is None else draw[keyword][axis]
+        out[p.key] = value * p.nominal if kind == "scale" else value
+    return out
+
+
 def test_draws_are_reproducible_by_seed_and_within_range():
     ranges = load_randomization("iris")
     draws = [ranges.draw(np.random.default_rng(s)) for s in (5, 5, 6)]
     assert draws[0] == draws[1] and draws[0] != draws[2]
     rng = np.random.default_rng(0)
-    for _ in range(200):
-        f = ranges.draw(rng)
-        values = {"mass": f["mass"], "kf": f["kf"], "km": f["km"], "tau_up": f["tau_up"],
-                  "tau_down": f["tau_down"], "inertia_xx": f["inertia"][0], "inertia_yy": f["inertia"][1],
-                  "inertia_zz": f["inertia"][2]}
-        for key, factor in values.items():
+    ticks = {"esc_delay_ticks": set(), "gyro_delay_ticks": set()}
+    for _ in range(300):
+        for key, value in _drawn_values(ranges, ranges.draw(rng)).items():
             p = ranges.parameter(key)
-            assert p.lo <= factor * p.nominal <= p.hi, key
+            assert p.lo <= value <= p.hi, key
+            if key in ticks:
+                assert isinstance(value, int)
+                ticks[key].add(value)
+    assert ticks == {"esc_delay_ticks": {0, 1, 2}, "gyro_delay_ticks": {0, 1, 2, 3}}  # every tick is drawn
+
+
+def test_a_draw_builds_the_airframe_it_names():
+    ranges = load_randomization("iris")
+    draw = ranges.draw(np.random.default_rng(3))
+    af, iris = ranges.base_airframe().scaled(**draw), load_airframe("iris")
+    assert af.rate_damping == draw["rate_damping"] and af.gyro_vibration == draw["gyro_vibration"]
+    for name in ("rotor_inertia", "esc_delay_ticks", "gyro_delay_ticks", "gyro_noise_std",
+                 "battery_resistance", "battery_sag_per_charge", "battery_current_per_thrust",
+                 "battery_drawn_at_start"):
+        assert getattr(af, name) == draw[name], name
+    assert af.battery_sags and af.body_torques and af.gyro_effects
+    assert af.motor.kf == iris.motor.kf * draw["kf"]
+    one_axis = iris.scaled(rate_damping=(None, 0.02, None))  # an axis not drawn keeps the airframe's
+    assert one_axis.rate_damping == (0.0, 0.02, 0.0)
+    with pytest.raises(TypeError, match="unknown effect"):
+        iris.scaled(drag=1.0)
 
 
 def test_the_env_draws_airframes_from_the_file_per_episode():
@@ -113,18 +158,21 @@ def test_the_pm_fraction_mapping_draws_as_before():
     assert env.episode.factors == expected
 
 
-def _batch_matches_single(ranges, steps: int = 60) -> bool:
-    batch = BatchedRateEnv(1, randomize=ranges, episode_s=0.2)
-    single = RateControlEnv(randomize=ranges, episode_s=0.2)
+def _batch_matches_single(ranges, steps: int = 60, n: int = 1, episode_s: float = 0.2) -> bool:
+    """Copy i of a batch and a single env seeded 3 + i, the same actions, across auto-resets."""
+    batch = BatchedRateEnv(n, randomize=ranges, episode_s=episode_s)
+    singles = [RateControlEnv(randomize=ranges, episode_s=episode_s) for _ in range(n)]
     ob, _ = batch.reset(seed=3)
-    os_, _ = single.reset(seed=3)
-    same = np.array_equal(ob[0], os_)
+    same = all(np.array_equal(ob[i], e.reset(seed=3 + i)[0]) for i, e in enumerate(singles))
     rng = np.random.default_rng(0)
     for _ in range(steps):
-        a = rng.uniform(-1, 1, (1, 4)).astype(np.float32)
-        ob = batch.step(a)[0]
-        os_ = single.step(a[0])[0]
-        same &= np.array_equal(ob[0], os_)
+        a = rng.uniform(-1, 1, (n, 4)).astype(np.float32)
+        ob, reward, _, truncated, _ = batch.step(a)
+        for i, env in enumerate(singles):
+            o, r, _, trunc, _ = env.step(a[i])
+            if trunc:
+                o, _ = env.reset()
+            same &= np.array_equal(ob[i], o) and r == reward[i] and trunc == truncated[i]
     return bool(same)
 
 
@@ -136,7 +184,16 @@ def test_the_batched_training_env_honours_the_file_for_mass_inertia_and_motor_co
     assert _batch_matches_single(load_randomization(_write(tmp_path, pin_motor_lag)))
 
 
-@pytest.mark.xfail(strict=True, reason="BatchedRateEnv steps every copy with one motor lag (vec_env.py); "
-                                       "per-copy tau_up/tau_down is its owner's change")
 def test_the_batched_training_env_honours_the_motor_lag_ranges():
     assert _batch_matches_single(load_randomization("iris"))
+
+
+def test_the_batched_training_env_draws_every_effect_per_copy_and_episode():
+    """Four copies, each its own airframe per episode (lag, delays, noise, battery...), as single envs."""
+    ranges = load_randomization("iris")
+    assert _batch_matches_single(ranges, steps=130, n=4, episode_s=0.04)
+    batch = BatchedRateEnv(4, randomize=ranges, episode_s=0.04)
+    batch.reset(seed=3)
+    drawn = batch.episode_factors
+    assert len({f["esc_delay_ticks"] for f in drawn} | {f["gyro_delay_ticks"] for f in drawn}) > 1
+    assert len({f["gyro_noise_std"] for f in drawn}) == 4 and len({f["tau_up"] for f in drawn}) == 4
