@@ -206,7 +206,29 @@ def parse_randomization(raw: Any, where: str = "ranges") -> Randomization:
     unknown = sorted(set(params) - set(PARAMETERS))
     if unknown:
         raise RandomizationError(f"{where}: unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return Randomization(airframe, tuple(_parameter(key, entry, where) for key, entry in params.items()))
+    ranges = Randomization(airframe, tuple(_parameter(key, entry, where) for key, entry in params.items()))
+    _check_inertia(ranges, where)
+    return ranges
+
+
+def _check_inertia(ranges: Randomization, where: str) -> None:
+    """Every draw must be a rigid body: each principal inertia at most the sum of the other two."""
+    axes = ("inertia_xx", "inertia_yy", "inertia_zz")
+    bounds = {}
+    for key in axes:
+        try:
+            p = ranges.parameter(key)
+            bounds[key] = (p.lo, p.hi)
+        except KeyError:
+            continue
+    if len(bounds) < 3:
+        return  # checked when the file draws all three axes
+    for key in axes:
+        others = [bounds[k][0] for k in axes if k != key]
+        if bounds[key][1] > sum(others):
+            raise RandomizationError(f"{where}: {key} up to {bounds[key][1]:g} exceeds the other two axes' "
+                                     f"lowest sum {sum(others):g}: such a draw is no rigid body "
+                                     f"(I_i <= I_j + I_k)")
 
 
 def _parameter(key: str, entry: Any, where: str) -> ParameterRange:

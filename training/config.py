@@ -108,6 +108,11 @@ class TrainConfig:
     progress: bool = option(True, "progress bar")
     airframe: str = option("iris", "airframe to train on: sim_bridge/airframes/NAME.json "
                                    "(e.g. iris_realistic, every effect on) or a path")
+    randomize: str | None = option(
+        None, "domain randomisation: draw each episode's airframe (mass, inertia, motor constants, latency, "
+              "noise, damping, battery) from ranges, a shipped name (iris: "
+              "sim_bridge/airframes/iris.randomization.json) or a file; default: the nominal airframe",
+        metavar="NAME|FILE")
     caps_temporal: float = option(0.0, "PPO: CAPS temporal smoothness weight λ_T, ‖π(s_t) − π(s_t+1)‖ "
                                         "(training.caps)")
     caps_spatial: float = option(0.0, "PPO: CAPS spatial smoothness weight λ_S, ‖π(s) − π(s̃)‖, "
@@ -132,6 +137,15 @@ class TrainConfig:
             self.out = f"runs/{self.algo}"
         if self.caps and self.algo != "ppo":
             raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
+        if self.randomize is not None:
+            from sim_bridge.airframe import load_airframe
+            from sim_bridge.randomization import load_randomization
+
+            try:
+                airframe = load_airframe(self.airframe)
+            except (OSError, ValueError, KeyError) as exc:
+                raise ValueError(f"--airframe {self.airframe}: {exc}") from None
+            load_randomization(self.randomize).check_airframe(airframe)  # RandomizationError: a ValueError
 
     @property
     def caps(self) -> bool:
@@ -163,7 +177,8 @@ class TrainConfig:
                 "action_mapping": self.action_mapping, "throttle": self.throttle,
                 "reward": self.reward, "axis_weights": tuple(self.axis_weights),
                 "action_rate_penalty": self.action_rate_penalty,
-                **({"airframe": self.airframe} if self.airframe != "iris" else {})}
+                **({"airframe": self.airframe} if self.airframe != "iris" else {}),
+                **({"randomize": self.randomize} if self.randomize is not None else {})}
 
 
 # ── The command line, generated from the fields ────────────────────────────────────────

@@ -5,7 +5,13 @@ time (~40 ms each); during training we want a verdict in about a second. This fl
 deterministic policy, with its observation normalisation, on `BatchedRateEnv` (the same
 twin arithmetic, bit for bit) and builds the same `Traces`, so `compute_metrics` scores
 it exactly as `fcemu eval` would. Copy i flies the command `episodic_commands(seed + i, 1)`,
-so the PID reference is `run_controller(pid, EvalConfig(episodes=1, seed=seed + i))`.
+so the PID reference is `run_controller(pid, EvalConfig(episodes=1, seed=seed + i))`. Both
+fly the training airframe as it is, without randomisation; the trace holds the gyro's
+reading, as the firmware loop records it (on an airframe with gyro noise the two draw
+different noise).
+
+`bar_verdict` judges the policy against the best PID preset by issue 10's criteria;
+`selection_key` ranks in-training evaluations for the exported checkpoint.
 """
 
 from __future__ import annotations
@@ -32,18 +38,20 @@ def concat_traces(parts: list[Traces], controller: str, seed: int) -> Traces:
                   controller=controller, seed=seed, task="episodic")
 
 
-def pid_reference(spec: str, n: int, seed: int) -> Traces:
+def pid_reference(spec: str, n: int, seed: int, airframe: str = "iris") -> Traces:
     """The PID flown through the firmware loop on the commands the batched evaluation uses."""
-    parts = [run_controller(spec, EvalConfig(episodes=1, seed=seed + i), progress=False) for i in range(n)]
+    parts = [run_controller(spec, EvalConfig(episodes=1, seed=seed + i, airframe=airframe), progress=False)
+             for i in range(n)]
     return concat_traces(parts, spec, seed)
 
 
-def pid_references(specs: tuple[str, ...], n: int, seed: int) -> dict[str, EvalMetrics]:
+def pid_references(specs: tuple[str, ...], n: int, seed: int,
+                   airframe: str = "iris") -> dict[str, EvalMetrics]:
     """Metrics of each PID preset that loads (a preset file still missing is skipped)."""
     out = {}
     for spec in specs:
         try:
-            out[spec] = compute_metrics(pid_reference(spec, n, seed))
+            out[spec] = compute_metrics(pid_reference(spec, n, seed, airframe))
         except FileNotFoundError:
             continue
     if not out:
@@ -53,18 +61,19 @@ def pid_references(specs: tuple[str, ...], n: int, seed: int) -> dict[str, EvalM
 
 @dataclass
 class BatchedEvaluator:
-    """Fly a policy (obs → action, already normalised inside) over n fixed commands at hover."""
+    """Fly a policy (obs → action, already normalised inside) over n fixed commands at hover on `airframe`."""
 
     n: int
     seed: int
     memory: int = 1
     action_mapping: str = "throttle"
     obs_fields: tuple[str, ...] = FIELDS
+    airframe: str = "iris"
     env: BatchedRateEnv = field(init=False)
 
     def __post_init__(self) -> None:
         self.env = BatchedRateEnv(self.n, task="episodic", memory=self.memory, obs_fields=self.obs_fields,
-                                  action_mapping=self.action_mapping, throttle=None)
+                                  action_mapping=self.action_mapping, throttle=None, airframe=self.airframe)
 
     def traces(self, act, name: str = "policy") -> Traces:
         """`act(obs (n, size) float32) -> actions (n, 4)`; trace sample k is tick k, as in the runner."""
@@ -77,7 +86,7 @@ class BatchedEvaluator:
             obs, _, _, _, info = env.step(np.clip(act(obs), -1.0, 1.0))
             pwm[:, k] = info["pwm"]
             if k + 1 < ticks:
-                rate[:, k + 1] = info["rate"]
+                rate[:, k + 1] = info["gyro"]
         t = np.arange(ticks) * env.config.dt
         return Traces(t, setpoint, rate, pwm, controller=name, seed=self.seed, task="episodic")
 
@@ -94,20 +103,72 @@ def sb3_actor(model, vecnormalize=None):
     return act
 
 
-def bar_verdict(policy: EvalMetrics, pids: dict[str, EvalMetrics], error_ratio: float = 0.8,
-                min_success: float = 99.5) -> dict:
-    """Issue 5's bar against the best PID preset (lowest Error sum); every criterion and its margin."""
+ERROR_RATIO_BAR = 0.95  # Error sum ≤ this × the PID's
+PEAK_MARGIN_PCT = 3.0  # Peak ≤ the PID's + this, every axis
+SUCCESS_BAR_PCT = 99.8  # Success ≥ this, every axis
+SMOOTHNESS_BAR = 1.5  # smoothness (mean |Δpwm| per step) ≤ this × the PID's
+
+
+def bar_verdict(policy: EvalMetrics, pids: dict[str, EvalMetrics], error_ratio: float = ERROR_RATIO_BAR,
+                min_success: float = SUCCESS_BAR_PCT, peak_margin: float = PEAK_MARGIN_PCT,
+                smoothness_ratio: float = SMOOTHNESS_BAR) -> dict:
+    """The bar against the best PID preset (lowest Error sum); every criterion, its figures and its check.
+
+    Error sum ≤ `error_ratio` × the PID's; Rise ≤ the PID's, Peak ≤ the PID's + `peak_margin`
+    points and Success ≥ `min_success` % on every axis; smoothness ≤ `smoothness_ratio` × the
+    PID's. A figure that is missing (NaN: e.g. no episode rose) fails its check.
+    """
     best = min(pids, key=lambda k: error_sum(pids[k]))
     ref = pids[best]
     pol_sum, ref_sum = error_sum(policy), error_sum(ref)
     rise = {a: [policy.stat("rise_ms", a).mean, ref.stat("rise_ms", a).mean] for a in AXES}
+    peak = {a: [policy.stat("peak_pct", a).mean, ref.stat("peak_pct", a).mean] for a in AXES}
     success = {a: policy.stat("success_pct", a).mean for a in AXES}
+    # smoothness is one figure over the motors, the same on every axis
+    smooth, smooth_pid = policy.stat("smoothness", "roll").mean, ref.stat("smoothness", "roll").mean
     checks = {
         "error_ratio": pol_sum / ref_sum <= error_ratio,
-        "success": all(success[a] >= min_success for a in AXES),
         "rise": all(p <= r for p, r in rise.values()),
+        "peak": all(p <= r + peak_margin for p, r in peak.values()),
+        "success": all(success[a] >= min_success for a in AXES),
+        "smoothness": smooth <= smoothness_ratio * smooth_pid,
     }
     return {"best_pid": best, "policy_error_sum": pol_sum, "pid_error_sum": ref_sum,
             "error_ratio": pol_sum / ref_sum, "error_ratio_bar": error_ratio,
             "success_pct": success, "success_bar": min_success,
-            "rise_ms_policy_vs_pid": rise, "checks": checks, "meets_bar": all(checks.values())}
+            "rise_ms_policy_vs_pid": rise, "peak_pct_policy_vs_pid": peak, "peak_margin": peak_margin,
+            "smoothness": smooth, "pid_smoothness": smooth_pid, "smoothness_ratio": smooth / smooth_pid,
+            "smoothness_bar": smoothness_ratio,
+            "checks": checks, "meets_bar": all(checks.values())}
+
+
+def selection_key(verdict: dict) -> tuple[int, float]:
+    """Rank of an evaluation for the exported checkpoint (`--export best`); lower is better.
+
+    One meeting every criterion beats one that does not; among those meeting, the lowest
+    Error wins; among the others, the lowest Error ratio × max(1, smoothness ratio / bar),
+    i.e. the Error ratio with a penalty for output roughness beyond the bar.
+    """
+    if verdict["meets_bar"]:
+        return 0, verdict["error_ratio"]
+    rough = verdict["smoothness_ratio"] / verdict["smoothness_bar"]
+    penalty = rough if rough > 1.0 else 1.0  # NaN smoothness: no penalty rather than an unrankable key
+    return 1, verdict["error_ratio"] * penalty
+
+
+def format_verdict(verdict: dict) -> str:
+    """The verdict on one line: each criterion's figures against the PID's, and which hold."""
+    def pair(key: str, fmt: str) -> str:
+        return "/".join(f"{p:{fmt}}<{r:{fmt}}" for p, r in verdict[key].values())
+
+    v = verdict
+    failed = [k for k, ok in v["checks"].items() if not ok]
+    success = "/".join(f"{x:.1f}" for x in v["success_pct"].values())
+    return (f"error {v['policy_error_sum']:.1f} vs {v['best_pid']} {v['pid_error_sum']:.1f} "
+            f"(×{v['error_ratio']:.3f} ≤ {v['error_ratio_bar']}), "
+            f"rise ms {pair('rise_ms_policy_vs_pid', '.0f')}, "
+            f"peak % {pair('peak_pct_policy_vs_pid', '.1f')} (+{v['peak_margin']:g}), "
+            f"success % {success} (≥ {v['success_bar']}), "
+            f"smoothness {v['smoothness']:.2f} vs {v['pid_smoothness']:.2f} "
+            f"(×{v['smoothness_ratio']:.2f} ≤ {v['smoothness_bar']}) "
+            f"→ {'MET' if v['meets_bar'] else 'not met: ' + ', '.join(failed)}")

@@ -90,9 +90,12 @@ class RewardTermsCallback(BaseCallback):
 class PidRaceCallback(BaseCallback):
     """Every `every` steps, score the deterministic policy on fixed commands against the PID.
 
-    Records each evaluation (steps, wall time, error ratio, bar verdict) and saves the best
-    policy so far (lowest Error sum) as a checkpoint, `best` holding its path; with
-    `stop_at_bar`, ends training once the bar is met.
+    Both fly `cfg.airframe` as it is (no randomisation: the race is on the nominal
+    airframe). Records each evaluation (steps, wall time, the bar's verdict,
+    `quick_eval.bar_verdict`) and saves the best policy so far as a checkpoint, `best`
+    holding its path: best by `quick_eval.selection_key` (one meeting the bar beats one
+    that does not; then lowest Error, rough outputs penalised). With `stop_at_bar`, ends
+    training once the bar is met.
     """
 
     def __init__(self, cfg: TrainConfig, every: int, stop_at_bar: bool = False) -> None:
@@ -100,12 +103,12 @@ class PidRaceCallback(BaseCallback):
         self.cfg, self.every, self.stop_at_bar = cfg, every, stop_at_bar
         self.history: list[dict[str, Any]] = []
         self.best: Path | None = None
-        self._best_ratio = np.inf
+        self._best_key: tuple[int, float] = (2, np.inf)
         self._next = every
         self._t0 = time.perf_counter()
         self.evaluator = quick_eval.BatchedEvaluator(cfg.eval_commands, cfg.eval_seed, cfg.memory,
-                                                     cfg.action_mapping, cfg.obs_fields)
-        self.pids = quick_eval.pid_references(PID_PRESETS, cfg.eval_commands, cfg.eval_seed)
+                                                     cfg.action_mapping, cfg.obs_fields, cfg.airframe)
+        self.pids = quick_eval.pid_references(PID_PRESETS, cfg.eval_commands, cfg.eval_seed, cfg.airframe)
 
     def _on_training_start(self) -> None:
         self._t0 = time.perf_counter()
@@ -117,8 +120,11 @@ class PidRaceCallback(BaseCallback):
         verdict = self.evaluate()
         self.logger.record("eval/error_ratio_vs_pid", verdict["error_ratio"])
         self.logger.record("eval/error_sum", verdict["policy_error_sum"])
-        if verdict["error_ratio"] < self._best_ratio:
-            self._best_ratio = verdict["error_ratio"]
+        self.logger.record("eval/smoothness_ratio_vs_pid", verdict["smoothness_ratio"])
+        self.logger.record("eval/meets_bar", float(verdict["meets_bar"]))
+        key = quick_eval.selection_key(verdict)
+        if key < self._best_key:
+            self._best_key = key
             self.best = self.save_checkpoint()
         return not (self.stop_at_bar and verdict["meets_bar"])
 
@@ -138,14 +144,10 @@ class PidRaceCallback(BaseCallback):
         metrics = compute_metrics(traces)
         verdict = quick_eval.bar_verdict(metrics, self.pids)
         verdict.update(steps=self.num_timesteps, wall_s=time.perf_counter() - self._t0,
-                       smoothness=metrics.stat("smoothness", "roll").mean)  # one figure, the same per axis
+                       selection_key=list(quick_eval.selection_key(verdict)))
         self.history.append(verdict)
-        rise = "/".join(f"{p:.0f}<{r:.0f}" for p, r in verdict["rise_ms_policy_vs_pid"].values())
-        print(f"[eval] {self.num_timesteps} steps {verdict['wall_s']:.0f} s: error "
-              f"{verdict['policy_error_sum']:.1f} vs {verdict['best_pid']} {verdict['pid_error_sum']:.1f}"
-              f" (×{verdict['error_ratio']:.3f}), success "
-              f"{'/'.join(f'{v:.1f}' for v in verdict['success_pct'].values())}, rise {rise}",
-              file=sys.stderr)
+        print(f"[eval] {self.num_timesteps} steps {verdict['wall_s']:.0f} s: "
+              f"{quick_eval.format_verdict(verdict)}", file=sys.stderr)
         return verdict
 
 
@@ -223,7 +225,7 @@ def evaluate_run(out: Path, cfg: TrainConfig, specs: tuple[str, ...] = ("pid", "
     from evaluation.report import ControllerResult, write_report
     from evaluation.runner import EvalConfig, run_controller
 
-    ecfg = EvalConfig(task="episodic", episodes=cfg.eval_episodes, seed=cfg.eval_seed)
+    ecfg = EvalConfig(task="episodic", episodes=cfg.eval_episodes, seed=cfg.eval_seed, airframe=cfg.airframe)
     policy = str(out / "policy.onnx")
     results, metrics = [], {}
     for spec in (*specs, policy):
@@ -255,8 +257,7 @@ def print_summary(summary: dict[str, Any]) -> None:
         print(f"  {r['controller']:>28}  error {cells['error']} (sum {total:.1f})  rise ms {cells['rise_ms']}"
               f"  peak % {cells['peak_pct']}  success % {cells['success_pct']}")
     bar = summary["eval"]["bar"]
-    print(f"  bar vs {bar['best_pid']}: error ×{bar['error_ratio']:.3f} (≤ {bar['error_ratio_bar']}), "
-          f"checks {bar['checks']} → {'MET' if bar['meets_bar'] else 'not met'}")
+    print(f"  bar: {quick_eval.format_verdict(bar)}")
 
 
 # ── 8. Command line ───────────────────────────────────────────────────────────────────

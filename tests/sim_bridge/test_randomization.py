@@ -69,6 +69,8 @@ def _set(key: str, field: str, value):
                                                          r"must be finite numbers >= 0"),
     (_set("gyro_noise_std", "range", [0.02, 0.01]), r"gyro_noise_std: need lo <= hi, got \[0.02, 0.01\]"),
     (_set("esc_delay_ticks", "range", [0, 1.5]), r"esc_delay_ticks: ticks must be whole numbers"),
+    (_set("inertia_zz", "range", [0.0136, 0.0204]), r"inertia_zz up to 0.0204 exceeds the other two axes' "
+                                                     r"lowest sum 0.0184"),
     (lambda raw: raw["parameters"]["inertia_xx"].pop("unit"), r"inertia_xx: missing \['unit'\]"),
     (lambda raw: raw.update(airframe="x500"), r"cannot load airframe 'x500'"),
     (lambda raw: raw.update(parameters=[]), r"\"parameters\" must be a non-empty object"),

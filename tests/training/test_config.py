@@ -103,3 +103,18 @@ def test_building_the_parsers_loads_neither_torch_nor_ray():
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
     assert out.stdout.strip() == "[]", out.stderr
+
+
+def test_randomize_reaches_the_training_env_and_is_off_by_default():
+    assert "randomize" not in TrainConfig().env_kwargs()  # the nominal airframe, exactly as before
+    cfg = from_args(build_parser().parse_args(["train", "--randomize", "iris"]))
+    assert cfg.env_kwargs()["randomize"] == "iris"
+    from sim_bridge.vec_env import BatchedRateEnv
+
+    env = BatchedRateEnv(2, **{**cfg.env_kwargs(), "episode_s": 0.01})
+    env.reset(seed=0)
+    assert {"mass", "tau_up", "gyro_noise_std", "esc_delay_ticks"} <= set(env.episode_factors[0])
+    with pytest.raises(ValueError, match="no randomisation file"):
+        TrainConfig(randomize="nosuch")
+    with pytest.raises(ValueError, match="ranges are for airframe 'iris', not 'iris_realistic'"):
+        TrainConfig(randomize="iris", airframe="iris_realistic")

@@ -58,11 +58,11 @@ def test_in_training_evaluation_exports_its_best_checkpoint(run):
     out, summary = run
     evals = summary["in_training_evals"]
     assert [e["steps"] for e in evals] == [2048, 4096]
-    best = min(evals, key=lambda e: e["error_ratio"])
+    best = min(evals, key=quick_eval.selection_key)
     assert summary["exported"] == str(out / "checkpoints" / f"ppo_{best['steps']}_steps.zip")
     meta = NeuralRateController(out / "policy.onnx").metadata
     assert meta["training_steps"] == str(best["steps"])  # the checkpoint's own step count
-    assert all(set(e["checks"]) == {"error_ratio", "success", "rise"} for e in evals)
+    assert all(set(e["checks"]) == {"error_ratio", "rise", "peak", "success", "smoothness"} for e in evals)
 
 
 def test_reward_terms_are_logged_separately(run):
@@ -113,11 +113,12 @@ def test_bar_verdict_names_each_criterion(run):
     traces = run_controller(str(out / "policy.onnx"), EvalConfig(episodes=4, seed=2), progress=False)
     pid = run_controller("pid", EvalConfig(episodes=4, seed=2), progress=False)
     verdict = quick_eval.bar_verdict(compute_metrics(traces), {"pid": compute_metrics(pid)})
-    assert set(verdict["checks"]) == {"error_ratio", "success", "rise"}
+    assert set(verdict["checks"]) == {"error_ratio", "rise", "peak", "success", "smoothness"}
     assert verdict["meets_bar"] is False  # 4096 steps of training do not beat a PID
     assert verdict["error_ratio"] > 1.0
     same = quick_eval.bar_verdict(compute_metrics(pid), {"pid": compute_metrics(pid)})
     assert same["error_ratio"] == 1.0 and not same["checks"]["error_ratio"] and same["checks"]["rise"]
+    assert same["checks"]["peak"] and same["checks"]["smoothness"] and same["smoothness_ratio"] == 1.0
 
 
 def test_unclipped_reward_weights_the_axes_and_never_saturates():
@@ -157,3 +158,24 @@ def test_gym_make_with_the_training_env_kwargs_gives_the_training_reward():
         assert np.float32(reward) == rewards[0]
     assert rewards[0] != np.float32(venv.unwrapped.last_info["paper_reward"][0])  # not the paper's reward
     venv.close()
+
+
+def test_a_randomised_run_trains_end_to_end_and_races_on_the_nominal_airframe(tmp_path):
+    out = tmp_path / "rand"
+    cfg = TrainConfig(algo="ppo", steps=2048, seed=1, out=str(out), envs=8, checkpoint_every=2048,
+                      eval_every=2048, eval_commands=2, eval_episodes=0, randomize="iris", progress=False,
+                      hp={"n_steps": 128, "batch_size": 256})
+    summary = train(cfg)
+    assert json.loads((out / "config.json").read_text())["env"]["randomize"] == "iris"
+    assert summary["export"]["parity_ok"] and len(summary["in_training_evals"]) == 1
+    assert "smoothness_ratio" in summary["in_training_evals"][0]
+
+
+def test_the_race_flies_the_training_airframe():
+    from training.train import PidRaceCallback
+
+    race = PidRaceCallback(TrainConfig(airframe="iris_realistic", eval_commands=2), every=1000)
+    assert race.evaluator.env.config.base_airframe.name == "iris_realistic"
+    assert race.evaluator.env.config.randomize is None
+    nominal = quick_eval.pid_references(("pid",), 2, 1)["pid"]
+    assert quick_eval.error_sum(race.pids["pid"]) != quick_eval.error_sum(nominal)
