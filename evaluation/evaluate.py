@@ -23,7 +23,7 @@ REPORT_CONTINUOUS_S = 10.0
 def result_json(spec: str, cfg: EvalConfig, metrics: EvalMetrics,
                 perturbed: PerturbedResult | None = None) -> dict:
     out = {"controller": spec, "episodes": cfg.episodes, "seed": cfg.seed, "task": cfg.task,
-           "metrics": metrics.to_json(), "details": metrics.details_json()}
+           "airframe": cfg.airframe, "metrics": metrics.to_json(), "details": metrics.details_json()}
     if perturbed is not None:
         out["perturbed"] = perturbed.metrics.to_json()
         out["perturbation"] = perturbed.details_json()
@@ -51,10 +51,12 @@ def _fmt(x: float | None) -> str:
     return "n/a" if x is None or x != x else f"{x:.1f}"
 
 
-def _airframes(args) -> list[PerturbedAirframe]:
+def _airframes(args) -> tuple[list[PerturbedAirframe], str | None]:
+    """The perturbed airframes and the path of the ranges they were drawn from (none without --perturb)."""
     if not args.perturb:
-        return []
-    return perturbed_airframes(load_randomization(args.ranges), args.perturb, args.perturb_seed)
+        return [], None
+    ranges = load_randomization(args.ranges)
+    return perturbed_airframes(ranges, args.perturb, args.perturb_seed), str(ranges.path)
 
 
 def eval_command(args) -> int:
@@ -64,7 +66,7 @@ def eval_command(args) -> int:
                          throttle=args.throttle, airframe=args.airframe)
         if args.perturb < 0:
             raise ValueError(f"--perturb must be >= 0, got {args.perturb}")
-        airframes = _airframes(args)
+        airframes, ranges = _airframes(args)
     except (RandomizationError, ValueError) as exc:
         print(f"fcemu: error: {exc}", file=sys.stderr)
         return 2
@@ -80,7 +82,7 @@ def eval_command(args) -> int:
         if airframes:
             bar.set_postfix_str(spec)
             perturbed = fly_perturbed(spec, cfg, airframes, args.perturb_seed,
-                                      on_airframe=lambda _: bar.update())
+                                      on_airframe=lambda _: bar.update(), ranges=ranges)
         payload.append(result_json(spec, cfg, metrics, perturbed))
         if args.save_traces:
             out = save_traces(traces_path(args.save_traces, spec, len(specs) > 1), traces)
@@ -99,7 +101,7 @@ def eval_command(args) -> int:
     if args.report:
         command = "fcemu " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         md = write_report(args.report, results, command=command, seed=cfg.seed, task=cfg.task,
-                          episodes=cfg.episodes)
+                          episodes=cfg.episodes, airframe=cfg.airframe)
         print(f"report: {md}", file=sys.stderr)
     if args.json:
         print(json.dumps(payload[0] if len(payload) == 1 else {"results": payload}))

@@ -59,9 +59,10 @@ class PerturbedResult:
     success_min: np.ndarray  # (N,) per airframe: the lowest axis Success %
     airframes: tuple[PerturbedAirframe, ...]
     seed: int
+    ranges: str | None = None  # the randomisation file the airframes were drawn from
 
     def details_json(self) -> dict[str, Any]:
-        return {"airframes": len(self.airframes), "perturb_seed": self.seed,
+        return {"airframes": len(self.airframes), "perturb_seed": self.seed, "ranges": self.ranges,
                 "error_sum_per_airframe": [float(v) for v in self.error_sum],
                 "success_min_pct_per_airframe": [float(v) for v in self.success_min],
                 "factors": [a.factors_json() for a in self.airframes],
@@ -69,8 +70,12 @@ class PerturbedResult:
 
 
 def fly_perturbed(spec: str, cfg: EvalConfig, airframes: Sequence[PerturbedAirframe], seed: int,
-                  on_airframe: Callable[[int], None] | None = None) -> PerturbedResult:
-    """Fly `spec` over the commands of `cfg` on each airframe; pool the per-episode metrics."""
+                  on_airframe: Callable[[int], None] | None = None,
+                  ranges: str | None = None) -> PerturbedResult:
+    """Fly `spec` over the commands of `cfg` on each airframe; pool the per-episode metrics.
+
+    `ranges`: the randomisation file the airframes were drawn from, recorded with the result.
+    """
     parts, error_sum, success_min = [], [], []
     unit = "episode"
     for a in airframes:
@@ -83,4 +88,4 @@ def fly_perturbed(spec: str, cfg: EvalConfig, airframes: Sequence[PerturbedAirfr
         if on_airframe is not None:
             on_airframe(a.index)
     return PerturbedResult(aggregate(pool_episode_metrics(parts), unit=unit), np.array(error_sum),
-                           np.array(success_min), tuple(airframes), seed)
+                           np.array(success_min), tuple(airframes), seed, ranges)

@@ -273,8 +273,12 @@ def write_report(
     episodes: int | None = None,
     step_episode: int = 0,
     title: str = "fcemu evaluation",
+    airframe: str = "iris",
 ) -> Path:
-    """Write `report.md` and its PNGs into out_dir (created); returns the Markdown path."""
+    """Write `report.md` and its PNGs into out_dir (created); returns the Markdown path.
+
+    `airframe`: the airframe flown (a name under sim_bridge/airframes or a path).
+    """
     if not results:
         raise ValueError("write_report: no results")
     out = Path(out_dir)
@@ -287,7 +291,8 @@ def write_report(
         command,
         "```",
         "",
-        f"Seed {seed}, task {task}, {n_text} evaluation {results[0].metrics.unit}s per controller. "
+        f"Seed {seed}, task {task}, airframe `{airframe}`, {n_text} evaluation {results[0].metrics.unit}s "
+        "per controller. "
         "Controllers evaluated with the same seed see the same commands.",
         "",
         "## Results, laid out as the paper's Table \"best\"",
@@ -316,7 +321,8 @@ def write_report(
         parts[parts.index("## Figures"):parts.index("## Figures")] = [
             "## Robustness: the same commands on perturbed airframes", "",
             f"{len(first.airframes)} airframes drawn from the randomisation ranges "
-            f"(`sim_bridge/airframes/*.randomization.json`) with perturb seed {first.seed}, a stream "
+            f"(`{first.ranges or 'sim_bridge/airframes/*.randomization.json'}`) with perturb seed "
+            f"{first.seed}, a stream "
             "training never draws from; perturbed rows pool every airframe's episodes. Error Σ is "
             "the mean Error per command summed over the axes.", "",
             robustness_table(results), "",

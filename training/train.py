@@ -237,6 +237,7 @@ def evaluate_run(out: Path, cfg: TrainConfig, specs: tuple[str, ...] = ("pid", "
                "results": [result_json(s, ecfg, metrics[s]) for s in metrics], "bar": verdict}
     (out / "eval.json").write_text(json.dumps(payload, indent=2, default=float) + "\n")
     write_report(out / "report", results, command=" ".join(sys.argv), seed=ecfg.seed, task=ecfg.task,
+                 airframe=ecfg.airframe,
                  episodes=ecfg.episodes, title=f"fcemu training run {out.name}")
     return payload
 

@@ -19,7 +19,7 @@ from evaluation.perturb import fly_perturbed, perturbed_airframes
 from evaluation.report import ControllerResult, write_report
 from evaluation.runner import EvalConfig, run_controller
 from fcemu.cli import main
-from sim_bridge.airframe import load_airframe
+from sim_bridge.airframe import AIRFRAME_DIR, load_airframe
 from sim_bridge.env import EnvConfig, draw_episode
 from sim_bridge.randomization import load_randomization
 
@@ -117,7 +117,12 @@ def test_eval_perturb_json_shape_and_determinism(fcemu, tmp_path):
     assert first == again
     assert other["perturbed"] != first["perturbed"] and other["metrics"] == first["metrics"]
     assert first["perturbed"] != first["metrics"] and first["task"] == "inflight"
-    assert "| pid | 2 perturbed |" in (tmp_path / "report.md").read_text()
+    report = (tmp_path / "report.md").read_text()
+    assert "| pid | 2 perturbed |" in report
+    assert first["airframe"] == "iris" and "airframe `iris`" in report  # what was flown, recorded
+    assert first["perturbation"]["ranges"] == str(AIRFRAME_DIR / "iris.randomization.json")
+    assert first["perturbation"]["ranges"] in report
+    assert "perturbation" not in json.loads(fcemu(*FAST[:-3], "--json").stdout)
 
 
 def test_a_bad_ranges_file_is_a_user_error(fcemu, tmp_path):
