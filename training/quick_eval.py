@@ -10,7 +10,7 @@ fly the training airframe as it is, without randomisation; the trace holds the g
 reading, as the firmware loop records it (on an airframe with gyro noise the two draw
 different noise).
 
-`bar_verdict` judges the policy against the best PID preset by issue 10's criteria;
+`bar_verdict` judges the policy against the best PID preset by the shipped policy's criteria;
 `selection_key` ranks in-training evaluations for the exported checkpoint.
 """
 
