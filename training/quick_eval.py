@@ -157,9 +157,10 @@ def selection_key(verdict: dict) -> tuple[int, float]:
 
 
 def format_verdict(verdict: dict) -> str:
-    """The verdict on one line: each criterion's figures against the PID's, and which hold."""
+    """The verdict on one line: each criterion's figures (roll/pitch/yaw) vs the PID's, and which fail."""
     def pair(key: str, fmt: str) -> str:
-        return "/".join(f"{p:{fmt}}<{r:{fmt}}" for p, r in verdict[key].values())
+        pol, ref = zip(*verdict[key].values(), strict=True)
+        return f"{'/'.join(f'{x:{fmt}}' for x in pol)} vs {'/'.join(f'{x:{fmt}}' for x in ref)}"
 
     v = verdict
     failed = [k for k, ok in v["checks"].items() if not ok]
