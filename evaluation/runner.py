@@ -3,8 +3,9 @@
 Every controller is flown exactly as firmware would fly it: `firmware.loop.FlightLoop`
 ticking in lockstep against the twin, with the PID as fallback. The commands come from
 the seed (`sim_bridge.tasks`), so controllers evaluated with the same seed see the same
-ones. Trace sample k is tick k: the setpoint, the gyro rate the controller read, and the
-PWM it wrote; sample 0 is the vehicle at rest. In the inflight task the episode starts at
+ones. Trace sample k is tick k: the setpoint, the body rate (the gyro's reading without
+vibration, noise or delay: what the vehicle did, which the metrics judge) and the PWM
+written; sample 0 is the vehicle at rest. In the inflight task the episode starts at
 steady hover (rotors at the speed the throttle commands, rates zero, level) and flies
 `INFLIGHT_WARMUP_S` of zero rate before the command, so the controller's own state
 (integrator, filters, observation history) is warm; those samples have t < 0 and the
@@ -106,15 +107,31 @@ class _Schedule:
 
 
 class TraceRecorder:
-    """Telemetry sink writing tick k's gyro rate and PWM into row k of the given arrays."""
+    """Telemetry sink writing tick k's rate and PWM into row k of the given arrays.
 
-    def __init__(self, rate: np.ndarray, pwm: np.ndarray) -> None:
-        self.rate, self.pwm, self.k = rate, pwm, 0
+    The rate is the gyro reading the controller used, unless `clean` is given: a callable
+    returning the body rate of the frame the plant has just produced (e.g. `Twin.clean_gyro`),
+    which on an airframe with gyro noise, vibration or delay is what the metrics should
+    judge. A sample publishes tick k after the plant has stepped to tick k + 1, so the clean
+    rate goes into row k + 1; `start` fills row 0 from the reset frame.
+    """
+
+    def __init__(self, rate: np.ndarray, pwm: np.ndarray,
+                 clean: Callable[[], np.ndarray] | None = None) -> None:
+        self.rate, self.pwm, self.k, self.clean = rate, pwm, 0, clean
+
+    def start(self) -> None:
+        if self.clean is not None:
+            self.rate[0] = self.clean()
 
     def publish(self, sample: TickSample) -> None:
-        self.rate[self.k] = sample.frame.gyro
-        self.pwm[self.k] = sample.pwm
-        self.k += 1
+        k = self.k
+        if self.clean is None:
+            self.rate[k] = sample.frame.gyro
+        elif k + 1 < len(self.rate):
+            self.rate[k + 1] = self.clean()
+        self.pwm[k] = sample.pwm
+        self.k = k + 1
 
 
 def hover_state(airframe: Airframe, throttle: float) -> TwinState:
@@ -148,8 +165,9 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     bar = tqdm(range(n), desc=f"eval {spec}", unit="ep", disable=not progress, leave=False)
     for i in bar:
         commander = _Schedule(setpoints[i], throttle, round(1e6 / cfg.rate_hz))
-        recorder = TraceRecorder(rate[i], pwm[i])
+        recorder = TraceRecorder(rate[i], pwm[i], twin.clean_gyro)
         first = twin.reset(int(noise_seeds[i]), start)
+        recorder.start()
         loop = FlightLoop(InProcessLink(twin), first, controllers, commander, LockstepClock(), cfg.rate_hz,
                           [recorder], fallback=FALLBACK if neural else None)
         for k in range(ticks):

@@ -164,6 +164,11 @@ class Twin:
             gyro = fx.gyro_delayed(gyro, reset=reset)
         return SensorFrame(self._t_us, gyro, accel, omega)
 
+    def clean_gyro(self) -> np.ndarray:
+        """The gyro's reading now without vibration, noise or delay: the body rate the metrics
+        score (what the vehicle did, not what its sensor said); never the controller's input."""
+        return self._sensordata[self._imu][0:3] * FLU_FROM_FRD
+
     def truth(self) -> Truth:
         d = self.data
         if self.rig == "rig":

@@ -6,9 +6,8 @@ deterministic policy, with its observation normalisation, on `BatchedRateEnv` (t
 twin arithmetic, bit for bit) and builds the same `Traces`, so `compute_metrics` scores
 it exactly as `fcemu eval` would. Copy i flies the command `episodic_commands(seed + i, 1)`,
 so the PID reference is `run_controller(pid, EvalConfig(episodes=1, seed=seed + i))`. Both
-fly the training airframe as it is, without randomisation; the trace holds the gyro's
-reading, as the firmware loop records it (on an airframe with gyro noise the two draw
-different noise).
+fly the training airframe as it is, without randomisation; the trace holds the body rate
+(the gyro's reading without vibration, noise or delay), as `fcemu eval` records it.
 
 `bar_verdict` judges the policy against the best PID preset by the shipped policy's criteria;
 `selection_key` ranks in-training evaluations for the exported checkpoint.
@@ -86,7 +85,7 @@ class BatchedEvaluator:
             obs, _, _, _, info = env.step(np.clip(act(obs), -1.0, 1.0))
             pwm[:, k] = info["pwm"]
             if k + 1 < ticks:
-                rate[:, k + 1] = info["gyro"]
+                rate[:, k + 1] = info["rate"]
         t = np.arange(ticks) * env.config.dt
         return Traces(t, setpoint, rate, pwm, controller=name, seed=self.seed, task="episodic")
 
