@@ -3,6 +3,12 @@
 Both fly the evaluator's seeded episodic commands (`sim_bridge.tasks.episodic_commands`),
 quantised to the µs of the stick channels Betaflight receives, from rest, at the same collective,
 on the same twin; both are scored by `evaluation.metrics.compute_metrics`.
+
+The closed-loop metrics can agree by accident (one difference hiding another through the
+mixer's saturation), so the report also replays the controller open loop: fcemu's preset is fed
+Betaflight's own recorded gyro and commands tick by tick, and its per-axis motor mix is compared
+with Betaflight's answers (`replay_residual`). Equal controllers give a residual at the level of
+Betaflight's 1 µs output truncation and its 8 kHz filters on the held 1 kHz gyro.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from evaluation.runner import TraceRecorder
 from firmware.controller import RateSetpoint
 from firmware.controllers import load_controller
 from firmware.loop import Command, FlightLoop
+from firmware.mixer import BETAFLIGHT_QUAD_X
 from firmware.sensors import SensorFrame
 from firmware.timing import LockstepClock
 from sim_bridge.airframe import load_airframe
@@ -32,6 +39,7 @@ from sitl.betaflight_process import BetaflightError
 from sitl.traces import Traces, save_traces
 
 FCEMU_PRESET = "pid:betaflight"
+_AT_REST, _NO_ROTORS = np.array([0.0, 0.0, -9.80665]), np.zeros(4)
 TOLERANCE = 0.15
 COMPARED = ("rise_ms", "peak_pct", "error")
 
@@ -68,6 +76,42 @@ def fly_betaflight(commands: np.ndarray, throttle_ch: int, ticks: int, run_dir: 
         traces = flight.fly_steps(commands, throttle_ch, ticks / 1000.0, on_episode=lambda _: bar.update())
     bar.close()
     return traces
+
+
+def axis_mix(pwm: np.ndarray) -> np.ndarray:
+    """Per-axis motor mix (..., 4) µs → (..., 3) µs: each axis' share of the four outputs, FRD."""
+    return np.asarray(pwm) @ np.asarray(BETAFLIGHT_QUAD_X) / 4.0
+
+
+def first_answer_tick(pwm: np.ndarray, idle_us: float) -> int:
+    """The first tick at which an episode's motors leave idle: Betaflight answers the first FDM
+    packet of a step before its RX task has read the RC packet sent with it."""
+    moving = np.flatnonzero(pwm.max(axis=1) > idle_us + 0.5)
+    return int(moving[0]) if moving.size else 0
+
+
+def replay_residual(bf: Traces, spec: str, throttle: float, idle_us: float) -> dict[str, Any]:
+    """Open loop: `spec` gets Betaflight's gyro and command each tick (the command from the tick
+    Betaflight first answered it); the rms difference of the per-axis motor mix (µs) from
+    Betaflight's, pooled over all episodes and as the median of the episodes' rms."""
+    controller = load_controller(spec)
+    per_episode, pooled = [], []
+    for i in range(bf.n_episodes):
+        start = first_answer_tick(bf.pwm[i], idle_us)
+        controller.reset()
+        out = np.zeros_like(bf.pwm[i])
+        for k in range(len(bf.t)):
+            rates = bf.setpoint[i, k] if k >= start else np.zeros(3)
+            gyro = np.asarray(bf.rate[i, k], dtype=float)
+            frame = SensorFrame(round(bf.t[k] * 1e6), gyro, _AT_REST, _NO_ROTORS)
+            out[k] = controller.update(RateSetpoint(rates, throttle), frame, bf.dt)
+        diff = (axis_mix(bf.pwm[i]) - axis_mix(out))[start:]
+        pooled.append(diff)
+        per_episode.append(np.sqrt(np.mean(diff ** 2, axis=0)))
+    rms = np.sqrt(np.mean(np.concatenate(pooled) ** 2, axis=0))
+    median = np.median(per_episode, axis=0)
+    return {"rms_us": dict(zip(AXES, np.round(rms, 2).tolist(), strict=True)),
+            "median_episode_rms_us": dict(zip(AXES, np.round(median, 2).tolist(), strict=True))}
 
 
 def comparison(bf: EvalMetrics, fc: EvalMetrics) -> dict[str, dict[str, Any]]:
@@ -119,6 +163,12 @@ def markdown(result: dict[str, Any], command: str) -> str:
         for axis, c in axes.items():
             lines.append(f"| {metric} | {axis} | {c['betaflight']} | {c['fcemu']} | {c['rel_diff']:.1%} | "
                          f"{'yes' if c['within'] else 'no'} |")
+    r = result["replay"]
+    lines += ["", "Open loop: fcemu's preset fed Betaflight's own gyro and commands, tick by tick; rms "
+              "difference of the per-axis motor mix from Betaflight's answers (µs; 1.0 of demand is 945 µs):",
+              "", "| | roll | pitch | yaw |", "|---|---|---|---|",
+              "| pooled | " + " | ".join(str(r["rms_us"][a]) for a in AXES) + " |",
+              "| median episode | " + " | ".join(str(r["median_episode_rms_us"][a]) for a in AXES) + " |"]
     p = result["packets"]
     lines += ["", f"Packets: {p['sent']} FDM sent, {p['received']} motor answers, {p['late']} late "
               f"(sim time slowed for them), {p['lost']} lost.", "",
@@ -163,6 +213,8 @@ def _run(args) -> int:
                   "packets": bf.extra["packets"]}
         summary = {"episodes": args.episodes, "seed": args.seed, **result,
                    "comparison": comparison(bf_metrics, fc_metrics),
+                   "replay": replay_residual(bf, FCEMU_PRESET, rc.fcemu_throttle(throttle_ch),
+                                             1000.0 + 1000.0 * rc.motor_idle),
                    "setup": {"speed": args.speed, "rate_dps": args.rate_dps, "throttle_channel": throttle_ch,
                              "fcemu_throttle": rc.fcemu_throttle(throttle_ch), "preset": FCEMU_PRESET,
                              "betaflight_cli": bf.extra["settings"],

@@ -197,17 +197,22 @@ class BetaflightFlight:
         raise BetaflightError(f"Betaflight refuses to arm: arming disabled by {' '.join(flags)} "
                               f"after {self.ready_timeout_s:g} s")
 
-    def arm(self, timeout_s: float = 1.0) -> None:
+    def arm(self, timeout_s: float = 1.0, attempts: int = 3) -> None:
+        """Arm switch high until the motors spin. On a loaded host an attempt can fail with no
+        flag left to show for it once the switch is low again, and the next one succeed: each
+        failed attempt is followed by 0.3 s with the switch low. The error names the flags read
+        while the switch was still high."""
         assert self.bridge is not None
         rc = [1500, 1500, 1000, 1500, ARM_CH_US]
-        for _ in range(round(timeout_s / self.bridge.dt)):
-            self.bridge.step(rc)
-            if min(self.bridge.outputs) > 0.5 * self.rc.motor_idle:
-                return
-            if self.bridge.silent_steps >= STALL_STEPS:
-                raise _Stalled
-        self.bridge.idle(self.centre, 0.3)
-        flags = self._flags()
+        for _ in range(attempts):
+            for _ in range(round(timeout_s / self.bridge.dt)):
+                self.bridge.step(rc)
+                if min(self.bridge.outputs) > 0.5 * self.rc.motor_idle:
+                    return
+                if self.bridge.silent_steps >= STALL_STEPS:
+                    raise _Stalled
+            flags = self._flags()  # read with the switch still high: the reason it was refused
+            self.bridge.idle(self.centre, 0.3)
         reason = " ".join(flags) if flags else "no flag set (it never saw the switch?)"
         raise BetaflightError(f"Betaflight refuses to arm: arming disabled by {reason}")
 

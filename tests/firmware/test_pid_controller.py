@@ -148,7 +148,8 @@ def test_betaflight_preset_is_betaflight_46_defaults_in_our_units():
     pid = load_preset("betaflight")["pid"]
     p_scale, i_scale, d_scale, tpa_d = 0.032029, 0.244381, 0.000529, 0.62  # pid.h; TPA at throttle 0.73
     assert pid["kp"] == pytest.approx([p_scale * 45, p_scale * 47, p_scale * 45])
-    assert pid["ki"] == pytest.approx([i_scale * 80, i_scale * 84, i_scale * 80])
+    yaw_ki_boost = 2.5  # pidInitConfig: yaw Ki x 2.5 unless use_integrated_yaw (off by default)
+    assert pid["ki"] == pytest.approx([i_scale * 80, i_scale * 84, i_scale * 80 * yaw_ki_boost])
     assert pid["kd"] == pytest.approx([d_scale * 30 * tpa_d, d_scale * 34 * tpa_d, 0.0])
     assert pid["iterm_limit"] == pytest.approx([0.4, 0.4, 0.32])  # 80 % of pidsum_limit 500 / 400
     curve = 0.73 * (1 - 0.73) * 0.5 + 0.73  # dynLpfCutoffFreq, expo 5
