@@ -94,12 +94,35 @@ class BatchedEvaluator:
 
 
 def sb3_actor(model, vecnormalize=None):
-    """A deterministic `act(obs)` for an SB3 model, normalising observations as in training."""
-    def act(obs: np.ndarray) -> np.ndarray:
+    """A deterministic `act(obs)` for an SB3 model, normalising observations as in training.
+
+    For an actor-critic policy (PPO, TRPO) the mean action comes straight from the actor
+    network: `predict` would also build the gSDE distribution, check its input and run
+    the critic's features on every 1 ms step. The result is `predict`'s, bit for bit."""
+    import torch
+    from stable_baselines3.common.policies import ActorCriticPolicy
+
+    policy = model.policy
+    if not isinstance(policy, ActorCriticPolicy):
+        def act(obs: np.ndarray) -> np.ndarray:
+            if vecnormalize is not None:
+                obs = vecnormalize.normalize_obs(obs)
+            return model.predict(obs, deterministic=True)[0]
+        return act
+
+    low, high = policy.action_space.low, policy.action_space.high
+
+    def act_mean(obs: np.ndarray) -> np.ndarray:
         if vecnormalize is not None:
             obs = vecnormalize.normalize_obs(obs)
-        return model.predict(obs, deterministic=True)[0]
-    return act
+        with torch.no_grad():
+            features = policy.extract_features(torch.as_tensor(obs), policy.pi_features_extractor)
+            mean = policy.action_net(policy.mlp_extractor.forward_actor(features))
+            if policy.squash_output:  # gSDE's tanh bijector, then predict's rescaling
+                return policy.unscale_action(torch.tanh(mean).numpy())
+        return np.clip(mean.numpy(), low, high)
+    policy.set_training_mode(False)
+    return act_mean
 
 
 ERROR_RATIO_BAR = 0.95  # Error sum ≤ this × the PID's
