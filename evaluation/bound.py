@@ -274,7 +274,13 @@ class CommandBound:
 
 
 class Floor:
-    """The rigorous bound for one command: cap, crude boxes, the other axes' Error, tight boxes, optimum."""
+    """The bound for one command, in five programmes and two box proofs.
+
+    The gyroscope-free optimum is the cap; reachability alone proves crude rate boxes for
+    every trajectory under it; three programmes over those bound the Error of each pair of
+    axes, which proves tighter boxes; the programme with McCormick's envelope over the tight
+    boxes gives the bound, or the cap if the envelope's optimum is not below it.
+    """
 
     def __init__(self, c: RigConstants, horizon: int = HORIZON) -> None:
         self.lp = ErrorBound(c, horizon)
@@ -347,6 +353,8 @@ def bound_command(args) -> int:
     from evaluation.metrics import AXES, compute_metrics
     from evaluation.runner import EvalConfig, run_controller
 
+    if args.episodes < 1 or args.horizon < 3 or args.gyro_passes < 0 or args.jobs < 0:
+        raise UserError("bound: --episodes must be ≥ 1, --horizon ≥ 3, --gyro-passes and --jobs ≥ 0")
     rig_constants(args.airframe)  # refuses an airframe the programme does not model, before any work
     progress = sys.stderr.isatty() and not args.json
     commands = episodic_commands(args.seed, args.episodes)

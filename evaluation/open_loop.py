@@ -49,8 +49,13 @@ def horizon_error(command: np.ndarray, rates: np.ndarray) -> float:
 
 
 def near_optimal_pwm(c: RigConstants, command: np.ndarray, horizon: int, passes: int = 12,
-                     airframe: str = "iris") -> tuple[np.ndarray, float]:
-    """PWM (horizon, 4) from sequential linear programming, and its flown Error over the horizon."""
+                     airframe: str = "iris", through: tuple[int, int, float, float] | None = None,
+                     ) -> tuple[np.ndarray, float]:
+    """PWM (horizon, 4) from sequential linear programming, and its flown Error over the horizon.
+
+    `through` = (axis, step k, rate v, side ±1) asks for side·Ω_axis(k) ≥ side·v on the way:
+    the least Error of a flight that passes beyond v at step k.
+    """
     K = horizon
     command = np.asarray(command, dtype=float)
     coeff = gyro_coefficients(c.inertia)
@@ -80,6 +85,12 @@ def near_optimal_pwm(c: RigConstants, command: np.ndarray, horizon: int, passes:
             cols += [o, s]
             vals += [np.full(K - 2, sign), -np.ones(K - 2)]
             ub += [sign * command[j]] * (K - 2)
+    if through is not None:
+        axis, step, rate, side = through
+        rows.append(np.array([len(ub)]))
+        cols.append(np.array([n_w + axis * K + step]))
+        vals.append(np.array([-float(side)]))
+        ub.append(-side * rate)
     A_ub = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                              shape=(len(ub), n))
     cost = np.zeros(n)

@@ -12,7 +12,7 @@ acceleration lay in the range the motors (thrust 0 … the fastest spin-up's) an
 gyroscopic products over B allow; that bounds how fast Ω_j could have climbed to v and,
 with the boxes that hold after the exit, how fast it can leave it. Summing each sample's
 least distance from the command under those limits gives the least Error of axis j
-(`_exit_thresholds`); the other axes cost at least `others[j]`. Where the two exceed the
+(`exit_error`); the other axes cost at least `others[j]`. Where the two exceed the
 cap for every v past a box edge, no trajectory under the cap crosses it: that edge holds.
 `_certify` starts from a box it checks this way and tightens it, each step valid given the
 last. Two rounds: a crude box from interval reachability alone (`crude`), then a tighter
@@ -21,6 +21,7 @@ one (`refine`) once the crude box has let a linear programme bound the other axe
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -175,17 +176,15 @@ class RateBoxes:
         return Boxes(lo, hi), crossable
 
 
-def _exit_thresholds(command: float, budget: float, lo: np.ndarray, hi: np.ndarray, rise: np.ndarray,
-                     after_lo: np.ndarray, after_hi: np.ndarray, fall: np.ndarray,
-                     n_err: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per step k0, a rate v* such that one axis first exiting upwards at k0 past v* costs > budget.
+def exit_error(command: float, lo: np.ndarray, hi: np.ndarray, rise: np.ndarray, after_lo: np.ndarray,
+               after_hi: np.ndarray, fall: np.ndarray, n_err: int) -> Callable[[np.ndarray], np.ndarray]:
+    """The least Error of one axis that leaves upwards at step k0 at rate v[k0], for every k0.
 
-    Before the exit the axis was in [lo, hi] (reachable inside the box) and rose at most
+    Before step k0 the axis was in [lo, hi] (reachable inside the box) and rose at most
     `rise[l]` (rad/s) in step l, so sample i < k0 was ≥ v − Σ_{l=i+1…k0} rise[l]; after it,
-    in [after_lo, after_hi], falling at most −fall[l] per step. The least Error of the axis
-    is the sum of each sample's least distance to the command; it grows with v above the
-    command, so bisection finds the edge. Where a rate just past `hi` would still cost
-    ≤ budget, v* is `hi` and that step is flagged open (the second array).
+    in [after_lo, after_hi], falling at most −fall[l] per step. Each sample costs at least
+    its least distance to the command; inf where no such trajectory exists. For v above
+    the command it grows with v.
     """
     K = len(lo)
     cum_rise = np.concatenate([[0.0], np.cumsum(rise)])
@@ -207,6 +206,19 @@ def _exit_thresholds(command: float, budget: float, lo: np.ndarray, hi: np.ndarr
         err += np.where(exit_counted, np.abs(v - command), 0.0)
         return np.where(impossible, np.inf, err + 2.0 * abs(command))
 
+    return cost
+
+
+def _exit_thresholds(command: float, budget: float, lo: np.ndarray, hi: np.ndarray, rise: np.ndarray,
+                     after_lo: np.ndarray, after_hi: np.ndarray, fall: np.ndarray,
+                     n_err: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per step k0, a rate v* past which a first exit upwards at k0 costs the axis > budget.
+
+    Bisection on `exit_error` from the command up to just past `hi`. Where a rate just past
+    `hi` would still cost ≤ budget, v* is `hi` and that step is flagged open (the second array).
+    """
+    cost = exit_error(command, lo, hi, rise, after_lo, after_hi, fall, n_err)
+    K = len(lo)
     top = np.minimum(hi, HUGE)
     past = top + EDGE
     open_top = cost(past) <= budget

@@ -111,12 +111,12 @@ def test_cli_flies_pid_and_the_policy_against_the_bound_and_neither_goes_below()
         assert flown["below_bound"] == 0 and flown["times_bound"] > 1.0, flown
 
 
-def test_an_airframe_with_effects_on_is_refused():
+def test_an_airframe_with_effects_on_and_bad_arguments_are_refused():
     with pytest.raises(UserError, match=r"nominal twin only.*rate damping"):
         rig_constants("iris_realistic")
-    run = subprocess.run([sys.executable, "-m", "fcemu", "bound", "--airframe", "iris_realistic"],
-                         capture_output=True, text=True, timeout=120, check=False)
-    assert run.returncode == 2
-    assert run.stderr.startswith("fcemu: error: the bound models the nominal twin only") and not run.stdout
-    assert len(run.stderr.strip().splitlines()) == 1
-
+    for args, message in ((["--airframe", "iris_realistic"], "the bound models the nominal twin only"),
+                          (["--horizon", "2"], "bound: --episodes must be")):
+        run = subprocess.run([sys.executable, "-m", "fcemu", "bound", *args],
+                             capture_output=True, text=True, timeout=120, check=False)
+        assert run.returncode == 2 and not run.stdout
+        assert run.stderr.startswith(f"fcemu: error: {message}") and len(run.stderr.strip().splitlines()) == 1

@@ -7,7 +7,7 @@ import pytest
 
 from evaluation.bound import Floor, rig_constants
 from evaluation.open_loop import fly, horizon_error, near_optimal_pwm
-from evaluation.rate_boxes import Boxes, gyro_coefficients, product_range
+from evaluation.rate_boxes import Boxes, exit_error, gyro_coefficients, product_range
 from evaluation.runner import EvalConfig, run_controller
 from sim_bridge.tasks import episodic_commands
 
@@ -77,3 +77,25 @@ def test_a_start_a_trajectory_under_the_cap_can_leave_is_not_taken(floor):
     narrow = Boxes(np.maximum(rb.reach.lo, -1.0), np.minimum(rb.reach.hi, 1.0))  # the command is ±3…5 rad/s
     assert rb._certify(command, cap, narrow, forced.sum() - forced, rb.reach, rb.reach_accel) is None
     assert rb.crude(command, cap) is not None
+
+
+@pytest.mark.parametrize(("axis", "step", "rate", "side"), [(0, 60, 0.0, 1), (2, 100, 0.3, -1)])
+def test_exit_error_is_below_what_a_flight_through_that_rate_scores(floor, axis, step, rate, side):
+    """A planned flight forced past `rate` at `step` (roll back up to 0 at 60 ms against a −5.2
+    command; yaw held under 0.3 at 100 ms against +3.1): the axis's Error it flies is at least
+    `exit_error`'s, computed over the reachable boxes that hold every flight, and not far above."""
+    c, rb = floor.lp.c, floor.boxes
+    command = episodic_commands(7, INDEX + 1)[INDEX]
+    pwm, _ = near_optimal_pwm(c, command, K, through=(axis, step, rate, side))
+    rates = fly(pwm)
+    flown = np.abs(command[axis] - rates[:, axis]).sum()
+    v = np.full(K, side * rates[step + 2, axis])  # sample k + 2 is Ω(k)
+    reach, (a_lo, a_hi) = rb.reach, rb.reach_accel
+    lo, hi, up, down = reach.lo[:, axis], reach.hi[:, axis], a_hi[:, axis] * c.dt, a_lo[:, axis] * c.dt
+    if side > 0:
+        cost = exit_error(command[axis], lo, hi, up, lo, hi, down, rb.n_err)
+    else:
+        cost = exit_error(-command[axis], -hi, -lo, -down, -hi, -lo, -up, rb.n_err)
+    least = cost(v)[step]
+    assert least <= flown
+    assert least > 0.5 * flown
