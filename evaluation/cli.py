@@ -37,12 +37,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def register_bound(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bound", help="lower bound on the Error any controller can reach (LP per command)")
+    p = sub.add_parser("bound", help="a lower bound on the Error any controller can reach on the nominal "
+                                     "twin (linear programmes per command)")
     p.add_argument("--episodes", type=int, default=200)
     p.add_argument("--seed", type=int, default=0, help="the evaluator's command seed (as fcemu eval)")
     p.add_argument("--horizon", type=int, default=400, help="steps optimised; later error counts as 0")
+    p.add_argument("--airframe", default="iris",
+                   help="airframe (as fcemu eval); one with any effect on (e.g. iris_realistic) is refused: "
+                        "the programme does not model them")
     p.add_argument("--gyro-passes", type=int, default=0,
-                   help="re-solve with the previous solution's gyroscopic term (an estimate, not a bound)")
+                   help="also re-solve with the previous solution's gyroscopic term "
+                        "(an estimate, not a bound)")
     p.add_argument("--jobs", type=int, default=0, help="worker processes (default: one per CPU)")
     p.add_argument("--controller", action="append", default=None,
                    help="also fly pid, pid:<preset> or FILE.onnx on the same commands and compare")
