@@ -30,7 +30,7 @@ import numpy as np
 
 from firmware.action import ACTION_MAPPINGS, PWM_MIN, PWM_SPAN, action_to_pwm
 from firmware.observation import FIELDS, ObservationHistory, ObservationSpec, observe_step
-from sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
+from sim_bridge.airframe import Airframe, load_airframe
 from sim_bridge.plant import SensorNoise
 from sim_bridge.randomization import Randomization, load_randomization
 from sim_bridge.reward import UNWEIGHTED, RateReward
@@ -281,12 +281,10 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _set_twin(self, airframe: Airframe) -> None:
         self._twin = Twin(airframe, "rig", self.config.episode_noise(airframe), self.config.dt)
-        adr = self._twin.model.sensor("gyro").adr[0]
-        self._gyro_clean = self._twin.data.sensordata[adr:adr + 3]
 
     def _rate(self, gyro: np.ndarray) -> np.ndarray:
-        """The rate the reward judges: the gyro's reading without noise or bias."""
-        return self._gyro_clean * FLU_FROM_FRD if self._noisy else gyro
+        """The rate the reward judges: the gyro's reading without vibration, noise or delay."""
+        return self._twin.clean_gyro() if self._noisy else gyro
 
 
 gym.register("fcemu/RateEpisodic-v0", entry_point="sim_bridge.env:RateControlEnv",

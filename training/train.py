@@ -122,7 +122,7 @@ class PidRaceCallback(BaseCallback):
         self.logger.record("eval/error_sum", verdict["policy_error_sum"])
         self.logger.record("eval/smoothness_ratio_vs_pid", verdict["smoothness_ratio"])
         self.logger.record("eval/meets_bar", float(verdict["meets_bar"]))
-        key = quick_eval.selection_key(verdict)
+        key = tuple(verdict["selection_key"])
         if key < self._best_key:
             self._best_key = key
             self.best = self.save_checkpoint()
