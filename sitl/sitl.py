@@ -8,6 +8,7 @@ and the MAVLink process (firmware/mavlink) carries ground stations' requests to 
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -261,8 +262,17 @@ def claim_cpu(helper_pids: Sequence[int], own_core: bool) -> Callable[[], None]:
     return prioritize_loop()
 
 
+def stop_on_sigint() -> None:
+    """Ctrl-C or SIGINT ends the flight with its summary and the MAVLink shutdown, also when
+    started as a background job of a non-interactive shell: such a job inherits SIGINT
+    ignored, and Python then installs no KeyboardInterrupt handler of its own."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def sitl_command(args) -> int:
     from firmware.controllers import default_controller
+
+    stop_on_sigint()
 
     controller = args.controller or default_controller()
     speed = parse_speed(args.speed)

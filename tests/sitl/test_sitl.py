@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import firmware.controllers
@@ -30,3 +34,22 @@ def test_instance_zero_owns_a_core_and_more_only_with_cpus_to_spare(monkeypatch)
     assert [sitl.owns_a_core(n) for n in range(3)] == [True, False, False]
     monkeypatch.setattr(os, "sched_getaffinity", lambda _pid: set(range(8)))
     assert [sitl.owns_a_core(n) for n in range(5)] == [True, True, True, True, False]
+
+
+def test_sigint_stops_the_flight_with_its_summary_also_when_inherited_ignored() -> None:
+    """A background job of a non-interactive shell starts with SIGINT ignored; `fcemu sitl` still
+    stops on it and prints its summary."""
+    command = [sys.executable, "-m", "fcemu", "sitl", "--no-mavlink", "--quiet", "--duration", "60"]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    try:
+        first = proc.stderr.readline()  # printed once the controller is loaded, as the loop starts
+        assert "flying" in first, first
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, first + err
+    assert "misses" in out
