@@ -189,7 +189,10 @@ class BetaflightFlight:
                 if self.bridge.silent_steps >= STALL_STEPS and waited >= 1.0:
                     return False
             waited += 0.25
-            flags = self._flags()
+            try:
+                flags = self._flags()
+            except BetaflightError:  # its TCP listener was lost at boot (see BetaflightSitl.cli)
+                return False
             if not flags:
                 return True
             if "BOOTGRACE" in flags and waited >= 2.0:

@@ -11,8 +11,10 @@ again and reads the saved eeprom.
 from __future__ import annotations
 
 import contextlib
+import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import time
@@ -53,7 +55,6 @@ def _die_with_parent() -> None:
     """In the child: SIGTERM when the parent dies, so no SITL outlives a killed fcemu (Linux)."""
     with contextlib.suppress(OSError, AttributeError):
         import ctypes
-        import signal
 
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
@@ -67,8 +68,9 @@ def port_in_use(port: int, host: str = "127.0.0.1") -> bool:
 class BetaflightCli:
     """A CLI session over TCP: `command("get p_roll")` returns what Betaflight printed."""
 
-    def __init__(self, host: str = "127.0.0.1", port: int = CLI_PORT, timeout_s: float = 5.0) -> None:
-        end = time.monotonic() + 3 * timeout_s
+    def __init__(self, host: str = "127.0.0.1", port: int = CLI_PORT, timeout_s: float = 5.0,
+                 connect_s: float = 15.0) -> None:
+        end = time.monotonic() + connect_s
         self.timeout_s = 2.0
         while True:  # the SITL's TCP server may drop or ignore a connection made while it boots
             try:
@@ -261,7 +263,7 @@ class BetaflightSitl:
         replies. Starts the process first if it is not running."""
         if self.proc is None or self.proc.poll() is not None:
             self.start()
-        cli = BetaflightCli(self.host, CLI_PORT)
+        cli = self.cli()
         try:
             replies = [cli.command(c) for c in commands]
             cli.send_and_close("save")
@@ -271,14 +273,28 @@ class BetaflightSitl:
         self.start()
         return replies
 
-    def cli(self) -> BetaflightCli:
-        return BetaflightCli(self.host, CLI_PORT)
+    def cli(self, attempts: int = 3) -> BetaflightCli:
+        """A CLI session, restarting a SITL that never answers. At boot the SITL's main thread
+        opens the TCP listener while its TCP thread already runs dyad's event loop (dyad is not
+        thread-safe); now and then the listener is lost: the kernel accepts the connection, no
+        one reads it (seen in CI: no "New connection on UART1" in sitl.log, no banner)."""
+        for attempt in range(attempts):
+            if attempt or self.proc is None or self.proc.poll() is not None:
+                self.stop()
+                self.start()
+            try:
+                return BetaflightCli(self.host, CLI_PORT, connect_s=6.0)
+            except BetaflightError as exc:
+                error = exc
+        raise BetaflightError(f"{error} after {attempts} starts; see {self.log_path}")
 
     def stop(self) -> None:
         proc = self.proc
         if proc is None or proc.poll() is not None:
             return
         proc.terminate()
+        with contextlib.suppress(OSError):
+            os.kill(proc.pid, signal.SIGCONT)  # a stopped process takes SIGTERM only when resumed
         try:
             proc.wait(3.0)
         except subprocess.TimeoutExpired:

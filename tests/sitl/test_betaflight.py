@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import sys
 
 import numpy as np
@@ -11,7 +13,7 @@ import pytest
 from fcemu.cli import main
 from sim_bridge.twin import Twin
 from sitl.betaflight import BASE_SETTINGS, BetaflightFlight, RcMap
-from sitl.betaflight_process import BetaflightError, port_in_use, sitl_binary
+from sitl.betaflight_process import BetaflightError, BetaflightSitl, port_in_use, sitl_binary
 
 try:
     sitl_binary()
@@ -50,6 +52,28 @@ def test_betaflight_arms_and_tracks_a_roll_step_on_the_rig(tmp_path):
     assert reached.size and reached[0] < 150, "roll rate did not reach 90 % of the step within 150 ms"
     assert np.abs(rate[-100:, 0] - step[0]).mean() < 0.1 * step[0]
     assert np.abs(rate[-100:, 1:]).max() < 0.3  # the other axes stay near zero
+
+
+def test_a_sitl_whose_cli_never_answers_is_restarted(tmp_path, monkeypatch):
+    # The first process is frozen once its port listens: the kernel accepts the connection and
+    # nothing answers, as when the SITL loses its TCP listener at boot (seen in CI).
+    sitl = BetaflightSitl(tmp_path)
+    start = BetaflightSitl.start
+
+    def start_frozen_once(self: BetaflightSitl) -> None:
+        start(self)
+        if self.starts == 1:
+            os.kill(self.proc.pid, signal.SIGSTOP)
+
+    monkeypatch.setattr(BetaflightSitl, "start", start_frozen_once)
+    sitl.fresh_eeprom()
+    try:
+        cli = sitl.cli()
+        assert "p_roll" in cli.command("get p_roll")
+        cli.close()
+        assert sitl.starts == 2
+    finally:
+        sitl.stop()
 
 
 def test_refusal_to_arm_names_betaflights_reason(tmp_path):
