@@ -274,10 +274,12 @@ class BetaflightSitl:
         return replies
 
     def cli(self, attempts: int = 3) -> BetaflightCli:
-        """A CLI session, restarting a SITL that never answers. At boot the SITL's main thread
-        opens the TCP listener while its TCP thread already runs dyad's event loop (dyad is not
-        thread-safe); now and then the listener is lost: the kernel accepts the connection, no
-        one reads it (seen in CI: no "New connection on UART1" in sitl.log, no banner)."""
+        """A CLI session, restarting a SITL that never answers. A race in Betaflight 4.6's SITL:
+        its main thread creates the UART1 listener stream (dyad_newStream, state CLOSED until
+        dyad_listenEx) while its TCP thread already runs dyad_update, whose
+        destroyClosedStreams() can free it in between. The socket still listens, so the kernel
+        accepts our connection, but no one ever reads it (seen in CI: no "New connection on
+        UART1" in sitl.log, no banner)."""
         for attempt in range(attempts):
             if attempt or self.proc is None or self.proc.poll() is not None:
                 self.stop()
