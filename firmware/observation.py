@@ -26,6 +26,7 @@ from operator import itemgetter, mul
 import numpy as np
 
 OBS_VERSION = 1
+DEFAULT_LEAK = 0.995  # λ per step: τ = 200 steps (0.2 s at 1 kHz)
 FIELDS = ("rate_error", "rotor_speed")  # the default; the shipped policy's spec
 INTEGRAL = "rate_error_integral"
 # The signals a field can read, as columns of one source vector: the rate error
@@ -62,7 +63,7 @@ class ObservationSpec:
     rotor_speed_scale: float = 1.0 / 1100.0  # rad/s -> 0..1 at the Iris' max rotor speed
     fields: tuple[str, ...] = FIELDS
     version: int = OBS_VERSION
-    integral_leak: float = 0.995  # λ per step: τ = 200 steps (0.2 s at 1 kHz); only with INTEGRAL
+    integral_leak: float = DEFAULT_LEAK  # only with INTEGRAL
 
     def __post_init__(self) -> None:
         if self.memory < 1:

@@ -29,7 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from firmware.action import ACTION_MAPPINGS, PWM_MIN, PWM_SPAN, action_to_pwm
-from firmware.observation import FIELDS, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import DEFAULT_LEAK, FIELDS, ObservationHistory, ObservationSpec, observe_step
 from sim_bridge.airframe import Airframe, load_airframe
 from sim_bridge.plant import SensorNoise
 from sim_bridge.randomization import Randomization, load_randomization
@@ -71,6 +71,7 @@ class EnvConfig:
     obs_fields: tuple[str, ...] = FIELDS  # firmware.observation fields, e.g. + rate_error_integral
     reward: str = "paper"  # sim_bridge.reward.REWARDS
     axis_weights: tuple[float, float, float] = UNWEIGHTED  # roll, pitch, yaw error; unclipped only
+    integral_leak: float = DEFAULT_LEAK  # λ of rate_error_integral, when it is a field
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -111,7 +112,7 @@ class EnvConfig:
 
     @property
     def observation_spec(self) -> ObservationSpec:
-        return ObservationSpec(memory=self.memory, fields=tuple(self.obs_fields))
+        return ObservationSpec(memory=self.memory, fields=tuple(self.obs_fields), integral_leak=self.integral_leak)
 
     @property
     def noisy(self) -> bool:
@@ -229,10 +230,12 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
                  omega_max: float = OMEGA_MAX, action_rate_penalty: float = 0.0,
                  airframe: Airframe | str = "iris", dt: float = 0.001,
                  render_mode: str | None = None, obs_fields: tuple[str, ...] = FIELDS,
-                 reward: str = "paper", axis_weights: tuple[float, float, float] = UNWEIGHTED) -> None:
+                 reward: str = "paper", axis_weights: tuple[float, float, float] = UNWEIGHTED,
+                 integral_leak: float = DEFAULT_LEAK) -> None:
         self.config = EnvConfig(task, memory, action_mapping, throttle, episode_s, noise, randomize,
                                 omega_max, action_rate_penalty, airframe, dt, obs_fields=tuple(obs_fields),
-                                reward=reward, axis_weights=tuple(axis_weights))  # type: ignore[arg-type]
+                                reward=reward, axis_weights=tuple(axis_weights),  # type: ignore[arg-type]
+                                integral_leak=integral_leak)
         self.obs_spec = self.config.observation_spec
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)

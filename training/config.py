@@ -75,6 +75,8 @@ class TrainConfig:
     memory: int = option(1, "observation history length m")
     integral: bool = option(False, "add a leaky integral of the rate error to the observation "
                                    "(rate_error_integral)")
+    integral_leak: float = option(0.995, "the integral's λ per step (time constant 1/(1 − λ) steps); "
+                                         "λ → 1 approaches a true integrator")
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")
     envs: int | None = option(None, "parallel twins (default: per algorithm)")
@@ -122,6 +124,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algorithm {self.algo!r}; choose one of {tuple(ALGOS)}")
+        if not 0.0 <= self.integral_leak < 1.0:
+            raise ValueError(f"--integral-leak must be in [0, 1), got {self.integral_leak}")
         if self.reward == "paper" and tuple(self.axis_weights) != (1.0, 1.0, 1.0):
             raise ValueError("axis weights need --reward unclipped")
         if self.reward not in REWARDS:
@@ -174,6 +178,7 @@ class TrainConfig:
 
     def env_kwargs(self) -> dict[str, Any]:
         return {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields,
+                **({"integral_leak": self.integral_leak} if self.integral else {}),
                 "action_mapping": self.action_mapping, "throttle": self.throttle,
                 "reward": self.reward, "axis_weights": tuple(self.axis_weights),
                 "action_rate_penalty": self.action_rate_penalty,

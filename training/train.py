@@ -169,7 +169,7 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
 def _spec(cfg: TrainConfig):
     from firmware.observation import ObservationSpec
 
-    return ObservationSpec(memory=cfg.memory, fields=cfg.obs_fields)
+    return ObservationSpec(memory=cfg.memory, fields=cfg.obs_fields, integral_leak=cfg.integral_leak)
 
 
 def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, Any]:

@@ -22,10 +22,10 @@ pytestmark = pytest.mark.slow
 
 
 def _tiny_run(root: Path, algo: str, memory: int, steps: int, hp: dict | None = None,
-              integral: bool = False) -> Path:
+              integral: bool = False, **options) -> Path:
     out = root / (algo + ("_integral" if integral else ""))
     cfg = TrainConfig(algo=algo, steps=steps, seed=7, out=str(out), memory=memory, envs=4, integral=integral,
-                      checkpoint_every=steps // 2, eval_episodes=0, progress=False, hp=hp or {})
+                      **options, checkpoint_every=steps // 2, eval_episodes=0, progress=False, hp=hp or {})
     train(cfg)
     return out
 
@@ -45,11 +45,14 @@ def runs(tmp_path_factory) -> dict[str, Path]:
 
 
 def test_integral_observation_exports_and_flies(tmp_path):
-    run = _tiny_run(tmp_path, "ppo", 1, 1024, {"n_steps": 64, "batch_size": 64}, integral=True)
+    run = _tiny_run(tmp_path, "ppo", 1, 1024, {"n_steps": 64, "batch_size": 64}, integral=True,
+                    integral_leak=0.9995)
     info = export_policy(run, tmp_path / "p.onnx", parity_samples=10_000)
     assert info["parity_max_abs_diff"] <= 1e-5
     spec = ObservationSpec.from_json(read_metadata(tmp_path / "p.onnx")["observation"])
     assert spec.fields[-1] == "rate_error_integral" and spec.size == 10
+    assert spec.integral_leak == 0.9995  # the leak trained with is the one the firmware flies
+    assert json.loads((run / "config.json").read_text())["env"]["integral_leak"] == 0.9995
     ctrl = NeuralRateController(tmp_path / "p.onnx")
     assert ctrl.spec == spec
 

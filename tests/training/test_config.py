@@ -54,6 +54,9 @@ def test_the_command_line_builds_the_config():
     assert cfg.obs_fields == ("rate_error", "rotor_speed") and "integral" not in argv
     cfg = from_args(build_parser().parse_args([*argv.split(), "--integral", "--throttle", "0.7"]))
     assert cfg.obs_fields[-1] == "rate_error_integral" and cfg.env_kwargs()["obs_fields"] == cfg.obs_fields
+    assert cfg.env_kwargs()["integral_leak"] == 0.995
+    with pytest.raises(ValueError, match="integral-leak"):
+        from_args(build_parser().parse_args([*argv.split(), "--integral", "--integral-leak", "1.0"]))
     assert cfg.throttle == 0.7
     with pytest.raises(ValueError, match="squash"):
         from_args(build_parser().parse_args([*argv.split(), "--squash"]))  # SAC squashes already
