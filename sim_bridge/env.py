@@ -112,7 +112,8 @@ class EnvConfig:
 
     @property
     def observation_spec(self) -> ObservationSpec:
-        return ObservationSpec(memory=self.memory, fields=tuple(self.obs_fields), integral_leak=self.integral_leak)
+        return ObservationSpec(memory=self.memory, fields=tuple(self.obs_fields),
+                               integral_leak=self.integral_leak)
 
     @property
     def noisy(self) -> bool:
