@@ -22,7 +22,7 @@ def run(tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("train") / "smoke"
     cfg = TrainConfig(algo="ppo", steps=4096, seed=3, out=str(out), envs=8, checkpoint_every=2048,
                       eval_every=2048, eval_commands=4, eval_episodes=3, action_rate_penalty=0.1,
-                      progress=False, hp={"n_steps": 128, "batch_size": 256})
+                      hp={"n_steps": 128, "batch_size": 256})  # with the default progress bar (needs rich)
     return out, train(cfg)
 
 
