@@ -156,11 +156,14 @@ def _race_reporting_to_tune(cfg: TrainConfig):
 
 
 def trial_metrics(history: list[dict[str, Any]], best_path: Path | None) -> dict[str, Any]:
-    """What a trial reports: the last evaluation, and the best so far (the one exported)."""
-    best = min(history, key=lambda h: h["error_ratio"])
+    """What a trial reports: the last evaluation, and the best so far: the one the race
+    exports (`quick_eval.selection_key`: meeting issue 10's bar first, then the Error ratio
+    with a penalty for roughness beyond it), so a row's figures are its exported policy's."""
+    best = min(history, key=lambda h: tuple(h["selection_key"]))
     return {"error_ratio": history[-1]["error_ratio"], METRIC: best["error_ratio"],
             "best_steps": best["steps"], "success_pct": list(best["success_pct"].values()),
-            "smoothness": best["smoothness"], "steps": history[-1]["steps"],
+            "smoothness": best["smoothness"], "meets_bar": bool(best["meets_bar"]),
+            "selection_key": list(best["selection_key"]), "steps": history[-1]["steps"],
             "wall_s": history[-1]["wall_s"], "best_checkpoint": str(best_path) if best_path else None,
             "finished": False}
 
@@ -261,7 +264,7 @@ def fit(tuner) -> tuple[Any, bool]:
 
 # ── 4. Results: a row per trial, the table, the best policy flown in the firmware ─────
 COLUMNS = ("trial", "seed", "settings", "status", "best_error_ratio", "best_steps", "success_pct",
-           "smoothness", "steps", "wall_s")
+           "smoothness", "meets_bar", "steps", "wall_s")
 
 
 def trial_rows(results) -> list[dict[str, Any]]:
@@ -278,6 +281,7 @@ def trial_rows(results) -> list[dict[str, Any]]:
                      "settings": r.config.get("settings", {}), "status": status,
                      "best_error_ratio": m.get(METRIC), "best_steps": m.get("best_steps"),
                      "success_pct": m.get("success_pct"), "smoothness": m.get("smoothness"),
+                     "meets_bar": m.get("meets_bar"), "selection_key": m.get("selection_key"),
                      "steps": m.get("steps"),
                      "wall_s": None if m.get("wall_s") is None else round(m["wall_s"], 1),
                      "best_checkpoint": m.get("best_checkpoint")})
@@ -291,6 +295,8 @@ def _cell(key: str, value: Any) -> str:
         return " ".join(f"{k}={v}" for k, v in value.items()) or "(recipe)"
     if key == "success_pct":
         return "/".join(f"{v:.1f}" for v in value)
+    if isinstance(value, bool):
+        return "yes" if value else "no"
     if isinstance(value, float):
         return f"{value:.3f}" if key == "best_error_ratio" else f"{value:.1f}"
     return str(value)
@@ -302,14 +308,15 @@ def write_tables(rows: list[dict[str, Any]], out: Path) -> None:
         writer.writerow(COLUMNS)
         writer.writerows([[_cell(k, row[k]) for k in COLUMNS] for row in rows])
     head = ("trial", "seed", "settings", "status", "best Error ratio vs PID", "at step",
-            "Success % r/p/y", "smoothness µs/step", "steps", "wall s")
+            "Success % r/p/y", "smoothness µs/step", "meets issue 10's bar", "steps", "wall s")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(_cell(k, row[k]) for k in COLUMNS) + " |" for row in rows]
     (out / "results.md").write_text("\n".join(lines) + "\n")
 
 
 def export_best(rows: list[dict[str, Any]], spec: SweepSpec, out: Path, episodes: int) -> dict[str, Any]:
-    """The lowest best-ratio trial's best checkpoint → OUT/best/policy.onnx, flown against the PID."""
+    """The best trial's exported checkpoint → OUT/best/policy.onnx, flown against the PID; trials
+    rank as the race ranks evaluations (`quick_eval.selection_key`)."""
     from export.onnx_export import export_policy
     from training.train import evaluate_run
 
@@ -317,7 +324,7 @@ def export_best(rows: list[dict[str, Any]], spec: SweepSpec, out: Path, episodes
     if not ranked:
         raise SweepError("no trial reached an in-training evaluation; nothing to export "
                          f"(the trials' errors: {out / 'ray' / EXPERIMENT})")
-    best = min(ranked, key=lambda r: r["best_error_ratio"])
+    best = min(ranked, key=lambda r: tuple(r["selection_key"] or (1, r["best_error_ratio"])))
     (out / "best").mkdir(parents=True, exist_ok=True)
     export = export_policy(best["best_checkpoint"], out / "best" / "policy.onnx")
     result: dict[str, Any] = {**best, "policy": str(out / "best" / "policy.onnx"), "export": export}

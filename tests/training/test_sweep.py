@@ -88,7 +88,9 @@ def test_one_json_object_with_a_row_per_trial(sweep):
         assert config["seed"] == t["seed"] and config["hyperparameters"]["batch_size"] == 256
         evals = json.loads((run / "summary.json").read_text())["in_training_evals"]
         assert [e["steps"] for e in evals] == [1024, 2048]
-        assert t["best_error_ratio"] == pytest.approx(min(e["error_ratio"] for e in evals))
+        exported = min(evals, key=lambda e: tuple(e["selection_key"]))  # the race's pick, not the min ratio
+        assert t["best_error_ratio"] == pytest.approx(exported["error_ratio"])
+        assert t["best_steps"] == exported["steps"] and t["meets_bar"] == exported["meets_bar"]
     assert "best ratio" in stderr  # Tune's live table
 
 
@@ -106,7 +108,7 @@ def test_tables_hold_every_trial(sweep):
 def test_the_best_trial_is_exported_and_flown(sweep):
     out, payload, _ = sweep
     best = payload["best"]
-    assert best["best_error_ratio"] == min(t["best_error_ratio"] for t in payload["trials"])
+    assert best["selection_key"] == min(t["selection_key"] for t in payload["trials"])
     assert best["export"]["parity_ok"] and Path(best["policy"]) == out / "best" / "policy.onnx"
     meta = NeuralRateController(out / "best" / "policy.onnx").metadata
     assert meta["seed"] == str(best["seed"]) and meta["training_steps"] == str(best["best_steps"])
