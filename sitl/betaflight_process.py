@@ -260,9 +260,7 @@ class BetaflightSitl:
 
     def configure(self, commands: Sequence[str]) -> list[str]:
         """Apply CLI commands, save (the SITL reboots into them) and start it again; returns the
-        replies. Starts the process first if it is not running."""
-        if self.proc is None or self.proc.poll() is not None:
-            self.start()
+        replies. Starts the process first if it is not running (`cli` does)."""
         cli = self.cli()
         try:
             replies = [cli.command(c) for c in commands]

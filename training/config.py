@@ -18,6 +18,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
+from firmware.observation import DEFAULT_LEAK
 from sim_bridge.reward import REWARDS
 
 # ── Defaults per algorithm ─────────────────────────────────────────────────────────────
@@ -75,7 +76,7 @@ class TrainConfig:
     memory: int = option(1, "observation history length m")
     integral: bool = option(False, "add a leaky integral of the rate error to the observation "
                                    "(rate_error_integral)")
-    integral_leak: float = option(0.995, "the integral's λ per step (time constant 1/(1 − λ) steps); "
+    integral_leak: float = option(DEFAULT_LEAK, "the integral's λ per step (time constant 1/(1 − λ) steps); "
                                          "λ → 1 approaches a true integrator")
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")
