@@ -125,6 +125,7 @@ class BetaflightFlight:
         self.speed = speed
         self.retries = retries
         self.restarts = 0
+        self.episode_packets: dict[str, int] = {}  # the last accepted episode's, as PacketStats.to_json
         self.run_dir = Path(run_dir)
         self.twin = twin
         self.rc = rc or RcMap()
@@ -250,15 +251,16 @@ class BetaflightFlight:
             if attempt:
                 self.restart()
             stats = self.bridge.stats
-            late0, lost0 = stats.late, stats.lost
+            before = stats.to_json()
             try:
                 self._fly(rates_frd, throttle_ch, ticks, rate, pwm)
             except _Stalled:
                 why = "it stopped answering"
                 continue
-            lost = stats.lost - lost0
+            self.episode_packets = {k: v - before[k] for k, v in stats.to_json().items()}
+            lost = self.episode_packets["lost"]
             if lost <= MAX_LOST_PER_EPISODE and pwm.min() > 1000.0:
-                return stats.late - late0
+                return self.episode_packets["late"]
             why = f"{lost} answers lost" if lost > MAX_LOST_PER_EPISODE else "it disarmed mid-episode"
         raise BetaflightError(f"Betaflight SITL failed an episode {self.retries + 1} times (last: {why}); "
                               f"see {self.sitl.log_path}")
