@@ -148,6 +148,16 @@ class BatchedRateEnv(VectorEnv):
         self._pool.close()
 
     @property
+    def current_setpoint(self) -> np.ndarray:
+        """Each copy's setpoint (n, 3) for the observation it last returned."""
+        return self._sched[self._rows, self._t]
+
+    @property
+    def current_throttle(self) -> np.ndarray:
+        """Each copy's collective this episode (n,)."""
+        return self._throttle.copy()
+
+    @property
     def episode_factors(self) -> list[dict[str, float]]:
         """Each copy's airframe scale factors for its current episode."""
         return [dict(f) for f in self._factors]

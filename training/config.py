@@ -116,6 +116,10 @@ class TrainConfig:
               "noise, damping, battery) from ranges, a shipped name (iris: "
               "sim_bridge/airframes/iris.randomization.json) or a file; default: the nominal airframe",
         metavar="NAME|FILE")
+    warm_start: str | None = option(
+        None, "before RL, fit the actor to a PID preset's outputs on the training flights (behaviour cloning "
+              "with DAgger rounds) and the critic to their returns (training.warm_start): pid, pid:paper",
+        metavar="PRESET")
     caps_temporal: float = option(0.0, "PPO: CAPS temporal smoothness weight λ_T, ‖π(s_t) − π(s_t+1)‖ "
                                         "(training.caps)")
     caps_spatial: float = option(0.0, "PPO: CAPS spatial smoothness weight λ_S, ‖π(s) − π(s̃)‖, "
@@ -140,6 +144,12 @@ class TrainConfig:
         self.axis_weights = tuple(self.axis_weights)
         if self.out is None:
             self.out = f"runs/{self.algo}"
+        if self.warm_start is not None:
+            if self.algo not in ("ppo", "trpo"):
+                raise ValueError(f"--warm-start is for PPO and TRPO (actor-critic), not {self.algo.upper()}")
+            from training.warm_start_teacher import check_teacher
+
+            check_teacher(self.warm_start)
         if self.caps and self.algo != "ppo":
             raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
         if self.randomize is not None:

@@ -105,13 +105,14 @@ class PidRaceCallback(BaseCallback):
         self.best: Path | None = None
         self._best_key: tuple[int, float] = (2, np.inf)
         self._next = every
-        self._t0 = time.perf_counter()
+        self._t0: float | None = None  # set by `train` before a warm start, else when learning starts
         self.evaluator = quick_eval.BatchedEvaluator(cfg.eval_commands, cfg.eval_seed, cfg.memory,
                                                      cfg.action_mapping, cfg.obs_fields, cfg.airframe)
         self.pids = quick_eval.pid_references(PID_PRESETS, cfg.eval_commands, cfg.eval_seed, cfg.airframe)
 
     def _on_training_start(self) -> None:
-        self._t0 = time.perf_counter()
+        if self._t0 is None:
+            self._t0 = time.perf_counter()
 
     def _on_step(self) -> bool:
         if self.num_timesteps < self._next:
@@ -194,13 +195,25 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
         callbacks.append(race)
 
     t0 = time.perf_counter()
+    if race is not None:
+        race._t0 = t0  # the race's clock includes the warm start
+    warm = None
+    if cfg.warm_start:
+        from training.warm_start import WarmStart
+
+        warm = WarmStart(preset=cfg.warm_start).run(model, venv)
+        warm["wall_s"] = round(time.perf_counter() - t0, 1)
+        print(f"[warm start] {warm['env_steps']} env steps, {warm['wall_s']:.0f} s: "
+              + ", ".join(f"actor mse {h['actor_mse']:.4f}" for h in warm["history"])
+              + f", critic mse {warm['critic_mse']:.4f}", file=sys.stderr)
     model.learn(cfg.steps, callback=CallbackList(callbacks), progress_bar=cfg.progress, tb_log_name="run")
     train_s = time.perf_counter() - t0
+    learn_s = train_s - (warm["wall_s"] if warm else 0.0)
 
     model.save(out / "model.zip")
     venv.save(str(out / "vecnormalize.pkl"))
     config.update(trained_steps=int(model.num_timesteps), train_wall_s=round(train_s, 1),
-                  steps_per_s=round(model.num_timesteps / train_s, 1))
+                  steps_per_s=round(model.num_timesteps / learn_s, 1))
     (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
     venv.close()
 
@@ -211,6 +224,8 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
     summary: dict[str, Any] = {"run": str(out), "algo": cfg.algo, "steps": int(model.num_timesteps),
                                "train_wall_s": round(train_s, 1), "steps_per_s": config["steps_per_s"],
                                "exported": str(source), "export": export}
+    if warm is not None:
+        summary["warm_start"] = warm
     if race is not None:
         summary["in_training_evals"] = race.history
     if cfg.eval_episodes:

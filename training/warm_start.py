@@ -1,0 +1,156 @@
+"""Warm start: a PID teaches the network before reinforcement learning takes over.
+
+PPO from a random network spends most of its steps learning to fly at all. Here the
+tuned PID (a firmware preset, `PIDRateController`) flies the training environments; its
+motor outputs, turned into the policy's action (`pid_action`, the inverse of the
+``throttle`` mapping), are the labels. The actor's mean is fitted to them (behaviour
+cloning, with DAgger rounds: later rounds fly the network and the PID labels the states
+the network visits), and the critic to the discounted returns of those flights, so PPO's
+first advantages are not noise. The PID sees what the policy sees: the setpoint and the
+measured gyro (decoded from the observation's rate error), with noise, delay and the
+episode's randomised airframe.
+
+The environment steps spent here are reported (`WarmStart.env_steps`); they are not in
+the algorithm's step count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from training.warm_start_teacher import PidTeacher, teacher_inputs
+
+TANH_LIMIT = 0.995  # squashed policies: labels clipped inside tanh's range before atanh
+
+
+@dataclass
+class WarmStart:
+    rounds: int = 3  # the first flies the PID, the others the network (DAgger)
+    steps_per_round: int = 1500  # per environment copy
+    epochs: int = 8
+    batch_size: int = 4096
+    learning_rate: float = 1e-3
+    preset: str = "pid"
+    # Exploration after the fit: gSDE's default (−1) is sized for a random network; on a
+    # network that already flies, noise that large wipes out the fit within 0.25 M steps.
+    log_std: float = -3.0
+    env_steps: int = 0
+    history: list | None = None
+
+    def run(self, model, venv) -> dict:
+        """Fit `model`'s actor and critic in place; `venv` is the training VecNormalize (its
+        statistics are updated by these flights, as training would)."""
+        batch = venv.unwrapped.batch
+        teacher = PidTeacher(self.preset, venv.num_envs, batch.config.dt)
+        policy = model.policy
+        obs_x: list[np.ndarray] = []
+        act_y: list[np.ndarray] = []
+        rets: list[np.ndarray] = []
+        ret_x: list[np.ndarray] = []
+        self.history = []
+        for r in range(self.rounds):
+            raw, labels, rewards, dones = self._fly(venv, batch, teacher, model if r else None)
+            obs_x.append(raw.reshape(-1, raw.shape[-1]))
+            act_y.append(labels.reshape(-1, 4))
+            g = model.gamma
+            ret, keep = _discounted(_normalised(venv, rewards), dones, g)
+            ret_x.append(raw[keep].reshape(-1, raw.shape[-1]))
+            rets.append(ret[keep].reshape(-1))
+            x, y = np.concatenate(obs_x), np.concatenate(act_y)
+            loss = self._fit_actor(policy, venv, x, y)
+            self.history.append({"round": r, "samples": len(x), "actor_mse": loss,
+                                 "teacher_reward_mean": float(rewards.mean())})
+        vloss_before, vloss = self._fit_critic(policy, venv, np.concatenate(ret_x), np.concatenate(rets))
+        with torch.no_grad():
+            policy.log_std.fill_(self.log_std)
+        return {"rounds": self.rounds, "env_steps": self.env_steps, "history": self.history,
+                "critic_mse_before": vloss_before, "critic_mse": vloss, "preset": self.preset,
+                "log_std": self.log_std}
+
+    def _fly(self, venv, batch, teacher: PidTeacher, model):
+        """One round: `steps_per_round` steps of every copy; the raw observations, the PID's
+        labels, the raw rewards and the episode ends."""
+        n = venv.num_envs
+        obs = venv.reset()
+        teacher.reset(np.ones(n, dtype=bool))
+        raw_all = np.empty((self.steps_per_round, n, obs.shape[-1]), dtype=np.float32)
+        labels = np.empty((self.steps_per_round, n, 4))
+        rewards = np.empty((self.steps_per_round, n))
+        dones = np.empty((self.steps_per_round, n), dtype=bool)
+        for k in range(self.steps_per_round):
+            raw = venv.get_original_obs()
+            label = teacher.act(*teacher_inputs(batch, raw))
+            if model is None:
+                action = label
+            else:
+                with torch.no_grad():
+                    action = model.policy._predict(torch.as_tensor(obs), deterministic=True).numpy()
+                if model.policy.squash_output:
+                    action = model.policy.unscale_action(action)
+            raw_all[k], labels[k] = raw, label
+            obs, _, done, _ = venv.step(np.clip(action, -1.0, 1.0).astype(np.float32))
+            rewards[k] = venv.get_original_reward()
+            dones[k] = done
+            teacher.reset(done)
+        self.env_steps += self.steps_per_round * n
+        return raw_all, labels, rewards, dones
+
+    def _fit_actor(self, policy, venv, raw: np.ndarray, labels: np.ndarray) -> float:
+        x = torch.as_tensor(venv.normalize_obs(raw), dtype=torch.float32)
+        y = torch.as_tensor(labels, dtype=torch.float32)
+        if policy.squash_output:
+            y = torch.atanh(y.clamp(-TANH_LIMIT, TANH_LIMIT))
+        params = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters()]
+        return _regress(lambda xb: policy.action_net(policy.mlp_extractor.forward_actor(
+            policy.extract_features(xb, policy.pi_features_extractor))), params, x, y,
+            self.epochs, self.batch_size, self.learning_rate)
+
+    def _fit_critic(self, policy, venv, raw: np.ndarray, returns: np.ndarray) -> tuple[float, float]:
+        x = torch.as_tensor(venv.normalize_obs(raw), dtype=torch.float32)
+        y = torch.as_tensor(returns, dtype=torch.float32)[:, None]
+        params = [*policy.mlp_extractor.value_net.parameters(), *policy.value_net.parameters()]
+        return _regress(lambda xb: policy.value_net(policy.mlp_extractor.forward_critic(
+            policy.extract_features(xb, policy.vf_features_extractor))), params, x, y,
+            self.epochs, self.batch_size, self.learning_rate, before=True)
+
+
+def _normalised(venv, rewards: np.ndarray) -> np.ndarray:
+    """Rewards scaled as training scales them, by the statistics at the end of the flights."""
+    return venv.normalize_reward(rewards) if venv.norm_reward else rewards
+
+
+def _discounted(rewards: np.ndarray, dones: np.ndarray, gamma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Returns-to-go per copy (episode ends cut them), and which steps have enough future
+    behind them (5 horizons: γ^(5/(1−γ)) < 1 %) to be a fair target."""
+    ret = np.zeros_like(rewards)
+    run = np.zeros(rewards.shape[1])
+    for k in range(len(rewards) - 1, -1, -1):
+        run = rewards[k] + gamma * run * ~dones[k]
+        ret[k] = run
+    tail = min(len(rewards) - 1, int(5 / max(1e-6, 1.0 - gamma)))
+    keep = np.zeros(rewards.shape, dtype=bool)
+    keep[: len(rewards) - tail] = True
+    return ret, keep
+
+
+def _regress(fn, params, x: torch.Tensor, y: torch.Tensor, epochs: int, batch: int, lr: float,
+             before: bool = False):
+    """Adam on the mean squared error of fn(x) against y; the final error (and with
+    `before`, the error before fitting too)."""
+    with torch.no_grad():
+        start = float(torch.nn.functional.mse_loss(fn(x), y))
+    opt = torch.optim.Adam(params, lr=lr)
+    gen = torch.Generator().manual_seed(0)
+    loss = torch.tensor(float("nan"))
+    for _ in range(epochs):
+        for idx in torch.randperm(len(x), generator=gen).split(batch):
+            loss = torch.nn.functional.mse_loss(fn(x[idx]), y[idx])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    with torch.no_grad():
+        end = float(torch.nn.functional.mse_loss(fn(x), y))
+    return (start, end) if before else end
