@@ -154,3 +154,4 @@ def _regress(fn, params, x: torch.Tensor, y: torch.Tensor, epochs: int, batch: i
     with torch.no_grad():
         end = float(torch.nn.functional.mse_loss(fn(x), y))
     return (start, end) if before else end
+

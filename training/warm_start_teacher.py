@@ -8,10 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from firmware.controller import RateSetpoint
 from firmware.controllers import load_controller
 from firmware.pid_controller import PIDRateController
-from firmware.sensors import SensorFrame
 
 PWM_MIN, PWM_SPAN = 1000.0, 1000.0
 
@@ -36,18 +34,20 @@ class PidTeacher:
     def __init__(self, spec: str, n: int, dt: float) -> None:
         check_teacher(spec)
         self.ctrls: list[PIDRateController] = [load_controller(spec) for _ in range(n)]  # type: ignore[misc]
-        self.dt = dt
-        self._zeros3, self._zeros4 = np.zeros(3), np.zeros(4)
+        for c in self.ctrls:
+            c.pid.set_dt(dt)
 
     def reset(self, rows: np.ndarray) -> None:
         for i in np.flatnonzero(rows):
             self.ctrls[i].reset()
 
     def act(self, setpoint: np.ndarray, gyro: np.ndarray, throttle: np.ndarray) -> np.ndarray:
-        pwm = np.stack([c.update(RateSetpoint(setpoint[i], float(throttle[i])),
-                                 SensorFrame(0, gyro[i], self._zeros3, self._zeros4), self.dt)
-                        for i, c in enumerate(self.ctrls)])
-        return pid_action(pwm)
+        # The controller's RatePID and QuadXMixer on plain floats: what `update` does at a
+        # fixed period (the twin's), without a numpy round trip per copy.
+        sp, gy, th = setpoint.tolist(), gyro.tolist(), throttle.tolist()
+        pwm = [c.mixer.mix(c.pid.update(sp[i], gy[i], c.mixer.mix_range), th[i])
+               for i, c in enumerate(self.ctrls)]
+        return pid_action(np.array(pwm))
 
 
 def teacher_inputs(batch, raw_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
