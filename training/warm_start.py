@@ -23,8 +23,6 @@ import torch
 
 from training.warm_start_teacher import PidTeacher, teacher_inputs
 
-TANH_LIMIT = 0.995  # squashed policies: labels clipped inside tanh's range before atanh
-
 
 @dataclass
 class WarmStart:
@@ -101,11 +99,10 @@ class WarmStart:
     def _fit_actor(self, policy, venv, raw: np.ndarray, labels: np.ndarray) -> float:
         x = torch.as_tensor(venv.normalize_obs(raw), dtype=torch.float32)
         y = torch.as_tensor(labels, dtype=torch.float32)
-        if policy.squash_output:
-            y = torch.atanh(y.clamp(-TANH_LIMIT, TANH_LIMIT))
+        squash = torch.tanh if policy.squash_output else torch.nn.Identity()  # the error in action units
         params = [*policy.mlp_extractor.policy_net.parameters(), *policy.action_net.parameters()]
-        return _regress(lambda xb: policy.action_net(policy.mlp_extractor.forward_actor(
-            policy.extract_features(xb, policy.pi_features_extractor))), params, x, y,
+        return _regress(lambda xb: squash(policy.action_net(policy.mlp_extractor.forward_actor(
+            policy.extract_features(xb, policy.pi_features_extractor)))), params, x, y,
             self.epochs, self.batch_size, self.learning_rate)
 
     def _fit_critic(self, policy, venv, raw: np.ndarray, returns: np.ndarray) -> tuple[float, float]:
@@ -154,4 +151,3 @@ def _regress(fn, params, x: torch.Tensor, y: torch.Tensor, epochs: int, batch: i
     with torch.no_grad():
         end = float(torch.nn.functional.mse_loss(fn(x), y))
     return (start, end) if before else end
-
