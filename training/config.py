@@ -131,6 +131,8 @@ class TrainConfig:
             raise ValueError(f"unknown algorithm {self.algo!r}; choose one of {tuple(ALGOS)}")
         if not 0.0 <= self.integral_leak < 1.0:
             raise ValueError(f"--integral-leak must be in [0, 1), got {self.integral_leak}")
+        if self.integral_leak != DEFAULT_LEAK and not self.integral:
+            raise ValueError("--integral-leak sets the integral's leak: it needs --integral")
         if self.reward == "paper" and tuple(self.axis_weights) != (1.0, 1.0, 1.0):
             raise ValueError("axis weights need --reward unclipped")
         if self.reward not in REWARDS:

@@ -155,7 +155,7 @@ class PidRaceCallback(BaseCallback):
 # ── 6. The run ────────────────────────────────────────────────────────────────────────
 def run_config(cfg: TrainConfig) -> dict[str, Any]:
     algo_hp = cfg.hyper
-    return {"algo": cfg.algo, "observation": json.loads(_spec(cfg).to_json()),
+    return {"algo": cfg.algo, "observation": json.loads(_observation_spec(cfg).to_json()),
             "action_mapping": cfg.action_mapping, "throttle": cfg.throttle, "loop_rate_hz": 1000.0,
             "seed": cfg.seed, "trained_steps": 0, "fcemu_version": __version__,
             "env": cfg.env_kwargs(), "reward": cfg.reward, "axis_weights": list(cfg.axis_weights),
@@ -167,10 +167,11 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
                if cfg.caps else {})}
 
 
-def _spec(cfg: TrainConfig):
-    from firmware.observation import ObservationSpec
+def _observation_spec(cfg: TrainConfig):
+    """The spec the training env observes with (what the exported model's metadata carries)."""
+    from sim_bridge.env import EnvConfig
 
-    return ObservationSpec(memory=cfg.memory, fields=cfg.obs_fields, integral_leak=cfg.integral_leak)
+    return EnvConfig(**cfg.env_kwargs()).observation_spec
 
 
 def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, Any]:

@@ -57,6 +57,8 @@ def test_the_command_line_builds_the_config():
     assert cfg.env_kwargs()["integral_leak"] == 0.995
     with pytest.raises(ValueError, match="integral-leak"):
         from_args(build_parser().parse_args([*argv.split(), "--integral", "--integral-leak", "1.0"]))
+    with pytest.raises(ValueError, match="needs --integral"):  # would be ignored: no integral to leak
+        from_args(build_parser().parse_args([*argv.split(), "--integral-leak", "0.9995"]))
     assert cfg.throttle == 0.7
     with pytest.raises(ValueError, match="squash"):
         from_args(build_parser().parse_args([*argv.split(), "--squash"]))  # SAC squashes already
