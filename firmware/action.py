@@ -78,6 +78,19 @@ def throttle_pwm(action: np.ndarray, throttle: np.ndarray | float,
     return np.stack(pwm, axis=-1)
 
 
+def pwm_to_action(mapping: str, pwm: np.ndarray) -> np.ndarray:
+    """The action whose mapping gives `pwm` (..., 4) where one does, else the nearest in
+    [-1, 1]: for a controller's output as a policy's label. ``throttle``: a = (u − ū)/gain
+    with zero mean (the mapping ignores a's mean; the collective comes from the outer
+    loop), exact while the mix fits the output range; ``gymfc``: a = 2u − 1."""
+    u = (np.asarray(pwm, dtype=np.float64) - PWM_MIN) / PWM_SPAN
+    if mapping == "gymfc":
+        return np.clip(2.0 * u - 1.0, -1.0, 1.0)
+    if mapping == "throttle":
+        return np.clip((u - u.mean(axis=-1, keepdims=True)) / DIFFERENTIAL_GAIN, -1.0, 1.0)
+    raise ValueError(f"unknown action mapping {mapping!r}; known: {ACTION_MAPPINGS}")
+
+
 def action_to_pwm(mapping: str, action: np.ndarray, throttle: np.ndarray | float = 0.0) -> np.ndarray:
     if mapping == "gymfc":
         return gymfc_pwm(action)

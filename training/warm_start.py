@@ -2,8 +2,8 @@
 
 PPO from a random network spends most of its steps learning to fly at all. Here the
 tuned PID (a firmware preset, `PIDRateController`) flies the training environments; its
-motor outputs, turned into the policy's action (`pid_action`, the inverse of the
-``throttle`` mapping), are the labels. The actor's mean is fitted to them (behaviour
+motor outputs, turned into the policy's action (`firmware.action.pwm_to_action`, the
+inverse of the action mapping), are the labels. The actor's mean is fitted to them (behaviour
 cloning, with DAgger rounds: later rounds fly the network and the PID labels the states
 the network visits), and the critic to the discounted returns of those flights, so PPO's
 first advantages are not noise. The PID sees what the policy sees: the setpoint and the
@@ -42,7 +42,7 @@ class WarmStart:
         """Fit `model`'s actor and critic in place; `venv` is the training VecNormalize (its
         statistics are updated by these flights, as training would)."""
         batch = venv.unwrapped.batch
-        teacher = PidTeacher(self.preset, venv.num_envs, batch.config.dt)
+        teacher = PidTeacher(self.preset, venv.num_envs, batch.config.dt, batch.config.action_mapping)
         policy = model.policy
         obs_x: list[np.ndarray] = []
         act_y: list[np.ndarray] = []
@@ -53,8 +53,7 @@ class WarmStart:
             raw, labels, rewards, dones = self._fly(venv, batch, teacher, model if r else None)
             obs_x.append(raw.reshape(-1, raw.shape[-1]))
             act_y.append(labels.reshape(-1, 4))
-            g = model.gamma
-            ret, keep = _discounted(_normalised(venv, rewards), dones, g)
+            ret, keep = _discounted(_normalised(venv, rewards), dones, model.gamma)
             ret_x.append(raw[keep].reshape(-1, raw.shape[-1]))
             rets.append(ret[keep].reshape(-1))
             x, y = np.concatenate(obs_x), np.concatenate(act_y)

@@ -8,10 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from firmware.action import pwm_to_action
 from firmware.controllers import load_controller
 from firmware.pid_controller import PIDRateController
-
-PWM_MIN, PWM_SPAN = 1000.0, 1000.0
 
 
 def check_teacher(spec: str) -> None:
@@ -21,21 +20,21 @@ def check_teacher(spec: str) -> None:
     load_controller(spec)  # ControllerSpecError (a ValueError) for an unknown preset
 
 
-def pid_action(pwm: np.ndarray) -> np.ndarray:
-    """The ``throttle`` mapping's action that reproduces a mixer's PWM: u = t + ½(a − ā), so
-    a = 2(u − ū), zero-mean (the mapping ignores a's mean), clipped to [-1, 1]."""
-    u = (np.asarray(pwm, dtype=np.float64) - PWM_MIN) / PWM_SPAN
-    return np.clip(2.0 * (u - u.mean(axis=-1, keepdims=True)), -1.0, 1.0)
+def _pid(spec: str, dt: float) -> PIDRateController:
+    ctrl = load_controller(spec)
+    assert isinstance(ctrl, PIDRateController)  # check_teacher admits PID specs only
+    ctrl.pid.set_dt(dt)
+    return ctrl
 
 
 class PidTeacher:
-    """One PID per environment copy, fed each copy's setpoint and measured gyro."""
+    """One PID per environment copy, fed each copy's setpoint and measured gyro; its PWM
+    is labelled as the policy's action under `action_mapping`."""
 
-    def __init__(self, spec: str, n: int, dt: float) -> None:
+    def __init__(self, spec: str, n: int, dt: float, action_mapping: str = "throttle") -> None:
         check_teacher(spec)
-        self.ctrls: list[PIDRateController] = [load_controller(spec) for _ in range(n)]  # type: ignore[misc]
-        for c in self.ctrls:
-            c.pid.set_dt(dt)
+        self.ctrls = [_pid(spec, dt) for _ in range(n)]
+        self.action_mapping = action_mapping
 
     def reset(self, rows: np.ndarray) -> None:
         for i in np.flatnonzero(rows):
@@ -47,7 +46,7 @@ class PidTeacher:
         sp, gy, th = setpoint.tolist(), gyro.tolist(), throttle.tolist()
         pwm = [c.mixer.mix(c.pid.update(sp[i], gy[i], c.mixer.mix_range), th[i])
                for i, c in enumerate(self.ctrls)]
-        return pid_action(np.array(pwm))
+        return pwm_to_action(self.action_mapping, np.array(pwm))
 
 
 def teacher_inputs(batch, raw_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -55,6 +54,6 @@ def teacher_inputs(batch, raw_obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     for the observation `raw_obs` it just returned: the gyro is decoded from the newest
     step's rate error, so the teacher reads the same noisy, delayed gyro the policy does."""
     setpoint = batch.current_setpoint
-    cols = batch.obs_spec.layout[0][0]
+    cols = next(c for c, d, _ in batch.obs_spec.layout if d.source == "rate_error" and not d.integrated)
     gyro = setpoint - raw_obs[:, cols].astype(np.float64) / batch.obs_spec.rate_scale
     return setpoint, gyro, batch.current_throttle

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from firmware.action import action_to_pwm, gymfc_pwm, throttle_pwm
+from firmware.action import action_to_pwm, gymfc_pwm, pwm_to_action, throttle_pwm
 
 
 def test_gymfc_mapping_is_the_papers():
@@ -60,3 +60,17 @@ def test_single_vehicle_path_is_bit_identical_to_the_batched_one():
 def test_unknown_mapping_is_refused():
     with pytest.raises(ValueError, match="unknown action mapping"):
         action_to_pwm("rpm", np.zeros(4))
+
+
+def test_pwm_to_action_inverts_each_mapping():
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0.4, 0.8, 50)
+    diff = rng.uniform(-0.15, 0.15, (50, 4))
+    diff -= diff.mean(axis=1, keepdims=True)
+    pwm = 1000.0 + 1000.0 * (t[:, None] + diff)  # a mix that fits the output range
+    np.testing.assert_allclose(throttle_pwm(pwm_to_action("throttle", pwm), t), pwm, atol=1e-9)
+    np.testing.assert_allclose(gymfc_pwm(pwm_to_action("gymfc", pwm)), pwm, atol=1e-9)
+    wide = np.array([1000.0, 2000.0, 1000.0, 2000.0])  # no action gives it: the nearest one in range
+    assert np.abs(pwm_to_action("throttle", wide)).max() == 1.0
+    with pytest.raises(ValueError, match="unknown action mapping"):
+        pwm_to_action("bogus", pwm)
