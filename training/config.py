@@ -44,6 +44,9 @@ ALGOS: dict[str, dict[str, Any]] = {
     "td3": {"envs": 8, "norm_reward": False, "hp": _OFF_POLICY},
     "sac": {"envs": 8, "norm_reward": False, "hp": {**_OFF_POLICY, "ent_coef": "auto", "use_sde": True}},
 }
+SELECT = ("bar", "error")  # how `--export best` ranks evaluations (quick_eval.selection_key)
+
+
 def parse_hp(items: list[str] | dict[str, Any] | None) -> dict[str, Any]:
     """`key=value` pairs; values are Python literals (numbers, lists, dicts), else strings."""
     if isinstance(items, dict):
@@ -107,6 +110,9 @@ class TrainConfig:
     eval_seed: int = option(1, "seed of the evaluation commands")
     export: str = option("best", "best: the in-training evaluation's best (needs --eval-every); "
                                  "final: the last model", choices=("best", "final"))
+    select: str = option("bar", "what `best` means: bar (meeting the shipped policy's bar first, then "
+                                "the Error ratio, penalised for motor roughness beyond the bar's 1.5 × "
+                                "the PID's) or error (the lowest Error ratio, however rough)", choices=SELECT)
     threads: int = option(1, "torch threads")
     progress: bool = option(True, "progress bar")
     airframe: str = option("iris", "airframe to train on: sim_bridge/airframes/NAME.json "
@@ -135,6 +141,8 @@ class TrainConfig:
             raise ValueError("--integral-leak sets the integral's leak: it needs --integral")
         if self.reward == "paper" and tuple(self.axis_weights) != (1.0, 1.0, 1.0):
             raise ValueError("axis weights need --reward unclipped")
+        if self.select not in SELECT:
+            raise ValueError(f"unknown selection {self.select!r}; choose one of {SELECT}")
         if self.reward not in REWARDS:
             raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
         if self.squash and self.algo not in ("ppo", "trpo"):

@@ -24,6 +24,7 @@ from evaluation.runner import EvalConfig, run_controller
 from firmware.observation import FIELDS
 from sim_bridge.vec_env import BatchedRateEnv
 from sitl.traces import Traces
+from training.config import SELECT
 
 
 def error_sum(metrics: EvalMetrics) -> float:
@@ -164,13 +165,18 @@ def bar_verdict(policy: EvalMetrics, pids: dict[str, EvalMetrics], error_ratio: 
             "checks": checks, "meets_bar": all(checks.values())}
 
 
-def selection_key(verdict: dict) -> tuple[int, float]:
+def selection_key(verdict: dict, select: str = "bar") -> tuple[int, float]:
     """Rank of an evaluation for the exported checkpoint (`--export best`); lower is better.
 
-    One meeting every criterion beats one that does not; among those meeting, the lowest
-    Error wins; among the others, the lowest Error ratio × max(1, smoothness ratio / bar),
-    i.e. the Error ratio with a penalty for output roughness beyond the bar.
+    `select` "bar": one meeting every criterion beats one that does not; among those
+    meeting, the lowest Error wins; among the others, the lowest Error ratio ×
+    max(1, smoothness ratio / bar), i.e. the Error ratio with a penalty for output
+    roughness beyond the bar. "error": the lowest Error ratio, however rough.
     """
+    if select == "error":
+        return 0, verdict["error_ratio"]
+    if select != "bar":
+        raise ValueError(f"unknown selection {select!r}; choose one of {SELECT}")
     if verdict["meets_bar"]:
         return 0, verdict["error_ratio"]
     rough = verdict["smoothness_ratio"] / verdict["smoothness_bar"]

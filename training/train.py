@@ -93,8 +93,9 @@ class PidRaceCallback(BaseCallback):
     Both fly `cfg.airframe` as it is (no randomisation: the race is on the nominal
     airframe). Records each evaluation (steps, wall time, the bar's verdict,
     `quick_eval.bar_verdict`) and saves the best policy so far as a checkpoint, `best`
-    holding its path: best by `quick_eval.selection_key` (one meeting the bar beats one
-    that does not; then lowest Error, rough outputs penalised). With `stop_at_bar`, ends
+    holding its path: best by `quick_eval.selection_key` with `cfg.select` (by default one
+    meeting the bar beats one that does not, then the lowest Error, rough outputs
+    penalised; or the lowest Error). With `stop_at_bar`, ends
     training once the bar is met.
     """
 
@@ -145,7 +146,7 @@ class PidRaceCallback(BaseCallback):
         metrics = compute_metrics(traces)
         verdict = quick_eval.bar_verdict(metrics, self.pids)
         verdict.update(steps=self.num_timesteps, wall_s=time.perf_counter() - self._t0,
-                       selection_key=list(quick_eval.selection_key(verdict)))
+                       selection_key=list(quick_eval.selection_key(verdict, self.cfg.select)))
         self.history.append(verdict)
         print(f"[eval] {self.num_timesteps} steps {verdict['wall_s']:.0f} s: "
               f"{quick_eval.format_verdict(verdict)}", file=sys.stderr)
@@ -160,7 +161,7 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
             "seed": cfg.seed, "trained_steps": 0, "fcemu_version": __version__,
             "env": cfg.env_kwargs(), "reward": cfg.reward, "axis_weights": list(cfg.axis_weights),
             "n_envs": cfg.n_envs,
-            "norm_reward": cfg.normalise_reward,
+            "norm_reward": cfg.normalise_reward, "select": cfg.select,
             "hyperparameters": json.loads(json.dumps(algo_hp, default=repr)),
             "torch_threads": cfg.threads, "command": " ".join(sys.argv),
             **({"caps": {"temporal": cfg.caps_temporal, "spatial": cfg.caps_spatial, "sigma": cfg.caps_sigma}}

@@ -51,3 +51,7 @@ def test_the_exported_checkpoint_meets_the_bar_first_then_has_the_lowest_penalis
     assert key(smooth) == (1, 0.99) and key(rough) == (1, pytest.approx(1.8))
     assert key(smooth) < key(rough)
     assert not math.isnan(key(_verdict(0.9, float("nan"), False))[1])
+    assert key(rough, "error") < key(smooth, "error")  # --select error: the lowest Error, however rough
+    assert key(fails_better_error, "error") < key(meets_worse_error, "error")
+    with pytest.raises(ValueError, match="unknown selection"):
+        key(smooth, "smoothest")
