@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from training import quick_eval
 from training.warm_start_teacher import PidTeacher, teacher_inputs
 
 
@@ -50,7 +51,8 @@ class WarmStart:
         ret_x: list[np.ndarray] = []
         self.history = []
         for r in range(self.rounds):
-            raw, labels, rewards, dones = self._fly(venv, batch, teacher, model if r else None)
+            actor = quick_eval.sb3_actor(model) if r else None  # the network flies, the PID labels
+            raw, labels, rewards, dones = self._fly(venv, batch, teacher, actor)
             obs_x.append(raw.reshape(-1, raw.shape[-1]))
             act_y.append(labels.reshape(-1, 4))
             ret, keep = _discounted(_normalised(venv, rewards), dones, model.gamma)
@@ -67,9 +69,10 @@ class WarmStart:
                 "critic_mse_before": vloss_before, "critic_mse": vloss, "preset": self.preset,
                 "log_std": self.log_std}
 
-    def _fly(self, venv, batch, teacher: PidTeacher, model):
+    def _fly(self, venv, batch, teacher: PidTeacher, actor):
         """One round: `steps_per_round` steps of every copy; the raw observations, the PID's
-        labels, the raw rewards and the episode ends."""
+        labels, the raw rewards and the episode ends. `actor` (normalised obs → action)
+        flies, or the PID when it is None."""
         n = venv.num_envs
         obs = venv.reset()
         teacher.reset(np.ones(n, dtype=bool))
@@ -80,13 +83,7 @@ class WarmStart:
         for k in range(self.steps_per_round):
             raw = venv.get_original_obs()
             label = teacher.act(*teacher_inputs(batch, raw))
-            if model is None:
-                action = label
-            else:
-                with torch.no_grad():
-                    action = model.policy._predict(torch.as_tensor(obs), deterministic=True).numpy()
-                if model.policy.squash_output:
-                    action = model.policy.unscale_action(action)
+            action = label if actor is None else actor(obs)
             raw_all[k], labels[k] = raw, label
             obs, _, done, _ = venv.step(np.clip(action, -1.0, 1.0).astype(np.float32))
             rewards[k] = venv.get_original_reward()
