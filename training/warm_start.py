@@ -30,10 +30,6 @@ class WarmStart:
     rounds: int = 3  # the first flies the PID, the others the network (DAgger)
     steps_per_round: int = 1500  # per environment copy
     epochs: int = 8
-    # The critic needs a closer fit than the actor: with 8 epochs (MSE 0.013) PPO's first
-    # advantages pulled the fitted actor from ×1.01 to ×1.05 of the PID's Error; with 40
-    # (MSE 0.003), to ×1.03, and it beat the PID sooner.
-    critic_epochs: int = 40
     batch_size: int = 4096
     learning_rate: float = 1e-3
     preset: str = "pid"
@@ -111,7 +107,7 @@ class WarmStart:
         params = [*policy.mlp_extractor.value_net.parameters(), *policy.value_net.parameters()]
         return _regress(lambda xb: policy.value_net(policy.mlp_extractor.forward_critic(
             policy.extract_features(xb, policy.vf_features_extractor))), params, x, y,
-            self.critic_epochs, self.batch_size, self.learning_rate, before=True)
+            self.epochs, self.batch_size, self.learning_rate, before=True)
 
 
 def _normalised(venv, rewards: np.ndarray) -> np.ndarray:
