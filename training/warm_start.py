@@ -60,8 +60,8 @@ class WarmStart:
             rets.append(ret[keep].reshape(-1))
             x, y = np.concatenate(obs_x), np.concatenate(act_y)
             loss = self._fit_actor(policy, venv, x, y)
-            self.history.append({"round": r, "samples": len(x), "actor_mse": loss,
-                                 "teacher_reward_mean": float(rewards.mean())})
+            self.history.append({"round": r, "flown_by": "network" if r else "pid", "samples": len(x),
+                                 "actor_mse": loss, "reward_mean": float(rewards.mean())})
         vloss_before, vloss = self._fit_critic(policy, venv, np.concatenate(ret_x), np.concatenate(rets))
         with torch.no_grad():
             policy.log_std.fill_(self.log_std)
