@@ -52,12 +52,14 @@ def test_warm_start_fits_the_network_to_fly_near_the_pid(tmp_path: Path, squash:
 
 
 @pytest.mark.slow
-def test_train_with_a_warm_start_reports_it_and_its_time_counts_in_the_race(tmp_path: Path):
+@pytest.mark.parametrize("algo", ["ppo", "trpo"])
+def test_train_with_a_warm_start_reports_it_and_its_time_counts_in_the_race(tmp_path: Path, algo: str):
     from training.train import train
 
     out = tmp_path / "run"
-    cfg = TrainConfig(seed=0, out=str(out), envs=8, steps=4096, checkpoint_every=100_000, eval_every=2048,
-                      eval_commands=2, eval_episodes=0, warm_start="pid", select="error", progress=False,
+    cfg = TrainConfig(algo=algo, seed=0, out=str(out), envs=8, steps=4096, checkpoint_every=100_000,
+                      eval_every=2048, eval_commands=2, eval_episodes=0, warm_start="pid", select="error",
+                      progress=False,
                       hp={"n_steps": 128, "batch_size": 256})
     summary = train(cfg)
     warm = summary["warm_start"]
@@ -66,7 +68,7 @@ def test_train_with_a_warm_start_reports_it_and_its_time_counts_in_the_race(tmp_
     evals = summary["in_training_evals"]
     assert evals[0]["wall_s"] > warm["wall_s"]  # the race's clock ran through the warm start
     lowest = min(evals, key=lambda e: e["error_ratio"])  # --select error: however rough
-    assert summary["exported"] == str(out / "checkpoints" / f"ppo_{lowest['steps']}_steps.zip")
+    assert summary["exported"] == str(out / "checkpoints" / f"{algo}_{lowest['steps']}_steps.zip")
 
 
 def test_the_teacher_must_be_a_pid():
