@@ -10,7 +10,7 @@ first advantages are not noise. The PID sees what the policy sees: the setpoint 
 measured gyro (decoded from the observation's rate error), with noise, delay and the
 episode's randomised airframe.
 
-The environment steps spent here are reported (`WarmStart.env_steps`); they are not in
+The environment steps spent here are reported (`env_steps` in what `run` returns); they are not in
 the algorithm's step count.
 """
 
@@ -36,8 +36,6 @@ class WarmStart:
     # Exploration after the fit: gSDE's default (−1) is sized for a random network; on a
     # network that already flies, noise that large wipes out the fit within 0.25 M steps.
     log_std: float = -3.0
-    env_steps: int = 0
-    history: list | None = None
 
     def run(self, model, venv) -> dict:
         """Fit `model`'s actor and critic in place; `venv` is the training VecNormalize (its
@@ -49,7 +47,7 @@ class WarmStart:
         act_y: list[np.ndarray] = []
         rets: list[np.ndarray] = []
         ret_x: list[np.ndarray] = []
-        self.history = []
+        history: list[dict] = []
         for r in range(self.rounds):
             actor = quick_eval.sb3_actor(model) if r else None  # the network flies, the PID labels
             raw, labels, rewards, dones = self._fly(venv, batch, teacher, actor)
@@ -60,12 +58,13 @@ class WarmStart:
             rets.append(ret[keep].reshape(-1))
             x, y = np.concatenate(obs_x), np.concatenate(act_y)
             loss = self._fit_actor(policy, venv, x, y)
-            self.history.append({"round": r, "flown_by": "network" if r else "pid", "samples": len(x),
-                                 "actor_mse": loss, "reward_mean": float(rewards.mean())})
+            history.append({"round": r, "flown_by": "network" if r else "pid", "samples": len(x),
+                            "actor_mse": loss, "reward_mean": float(rewards.mean())})
         vloss_before, vloss = self._fit_critic(policy, venv, np.concatenate(ret_x), np.concatenate(rets))
         with torch.no_grad():
             policy.log_std.fill_(self.log_std)
-        return {"rounds": self.rounds, "env_steps": self.env_steps, "history": self.history,
+        return {"rounds": self.rounds, "env_steps": self.rounds * self.steps_per_round * venv.num_envs,
+                "history": history,
                 "critic_mse_before": vloss_before, "critic_mse": vloss, "preset": self.preset,
                 "log_std": self.log_std}
 
@@ -89,7 +88,6 @@ class WarmStart:
             rewards[k] = venv.get_original_reward()
             dones[k] = done
             teacher.reset(done)
-        self.env_steps += self.steps_per_round * n
         return raw_all, labels, rewards, dones
 
     def _fit_actor(self, policy, venv, raw: np.ndarray, labels: np.ndarray) -> float:
