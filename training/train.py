@@ -106,10 +106,14 @@ class PidRaceCallback(BaseCallback):
         self.best: Path | None = None
         self._best_key: tuple[int, float] = (2, np.inf)
         self._next = every
-        self._t0: float | None = None  # set by `train` before a warm start, else when learning starts
+        self._t0: float | None = None  # `start_clock`, else when learning starts
         self.evaluator = quick_eval.BatchedEvaluator(cfg.eval_commands, cfg.eval_seed, cfg.memory,
                                                      cfg.action_mapping, cfg.obs_fields, cfg.airframe)
         self.pids = quick_eval.pid_references(PID_PRESETS, cfg.eval_commands, cfg.eval_seed, cfg.airframe)
+
+    def start_clock(self, t0: float) -> None:
+        """Time the race from `t0` (before a warm start) rather than from when learning starts."""
+        self._t0 = t0
 
     def _on_training_start(self) -> None:
         if self._t0 is None:
@@ -198,7 +202,7 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
 
     t0 = time.perf_counter()
     if race is not None:
-        race._t0 = t0  # the race's clock includes the warm start
+        race.start_clock(t0)  # the race's clock includes the warm start
     warm = None
     if cfg.warm_start:
         from training.warm_start import WarmStart
