@@ -13,6 +13,7 @@ import argparse
 import ast
 import copy
 import dataclasses
+import os
 import types
 import typing
 from dataclasses import dataclass, field
@@ -45,6 +46,11 @@ ALGOS: dict[str, dict[str, Any]] = {
     "sac": {"envs": 8, "norm_reward": False, "hp": {**_OFF_POLICY, "ent_coef": "auto", "use_sde": True}},
 }
 SELECT = ("bar", "error")  # how `--export best` ranks evaluations (quick_eval.selection_key)
+
+
+def available_cpus() -> int:
+    """The CPUs this process may run on (its affinity: `taskset` or a container's limit)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def parse_hp(items: list[str] | dict[str, Any] | None) -> dict[str, Any]:
@@ -113,7 +119,7 @@ class TrainConfig:
     select: str = option("bar", "what `best` means: bar (meeting the shipped policy's bar first, then "
                                 "the Error ratio, penalised for motor roughness beyond the bar's 1.5 × "
                                 "the PID's) or error (the lowest Error ratio, however rough)", choices=SELECT)
-    threads: int = option(1, "torch threads")
+    threads: int = option(0, "torch threads (0: one per CPU this process may use)")
     progress: bool = option(True, "progress bar")
     airframe: str = option("iris", "airframe to train on: sim_bridge/airframes/NAME.json "
                                    "(e.g. iris_realistic, every effect on) or a path")
@@ -137,6 +143,9 @@ class TrainConfig:
             raise ValueError(f"unknown algorithm {self.algo!r}; choose one of {tuple(ALGOS)}")
         if not 0.0 <= self.integral_leak < 1.0:
             raise ValueError(f"--integral-leak must be in [0, 1), got {self.integral_leak}")
+        if self.threads < 0:
+            raise ValueError(f"--threads must be >= 0 (0: one per available CPU), got {self.threads}")
+        self.threads = self.threads or available_cpus()
         if self.integral_leak != DEFAULT_LEAK and not self.integral:
             raise ValueError("--integral-leak sets the integral's leak: it needs --integral")
         if self.reward == "paper" and tuple(self.axis_weights) != (1.0, 1.0, 1.0):

@@ -86,6 +86,18 @@ def test_validation():
     with pytest.raises(ValueError, match="key=value"):
         parse_hp(["gamma"])
     assert "squash_output" not in TrainConfig().hyper["policy_kwargs"]
+    with pytest.raises(ValueError, match="--threads"):
+        TrainConfig(threads=-1)
+
+
+def test_threads_default_to_the_cpus_this_process_may_use():
+    assert TrainConfig().threads == len(os.sched_getaffinity(0))
+    assert TrainConfig(threads=3).threads == 3
+    one_cpu = subprocess.run(
+        ["taskset", "-c", "0", sys.executable, "-c",
+         "from training.config import TrainConfig; print(TrainConfig().threads)"],
+        env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=60)
+    assert one_cpu.stdout.strip() == "1", one_cpu.stderr
 
 
 def _fcemu(*args: str) -> subprocess.CompletedProcess:
