@@ -45,6 +45,10 @@ ALGOS: dict[str, dict[str, Any]] = {
     "td3": {"envs": 8, "norm_reward": False, "hp": _OFF_POLICY},
     "sac": {"envs": 8, "norm_reward": False, "hp": {**_OFF_POLICY, "ent_coef": "auto", "use_sde": True}},
 }
+# After a warm start PPO refines a network that already flies: its advantages are mostly
+# noise, and five full epochs per rollout walk the fitted actor away from the PID's Error
+# before the signal accumulates. A KL limit (TRPO's target) stops an update's epochs early.
+WARM_START_TARGET_KL = 0.01
 SELECT = ("bar", "error")  # how `--export best` ranks evaluations (quick_eval.selection_key)
 
 
@@ -197,7 +201,8 @@ class TrainConfig:
 
     @property
     def hyper(self) -> dict[str, Any]:
-        hp = copy.deepcopy({**ALGOS[self.algo]["hp"], **self.hp})  # SB3 writes into policy_kwargs
+        warm = {"target_kl": WARM_START_TARGET_KL} if self.warm_start and self.algo == "ppo" else {}
+        hp = copy.deepcopy({**ALGOS[self.algo]["hp"], **warm, **self.hp})  # SB3 writes into policy_kwargs
         if self.squash:
             hp["policy_kwargs"] = {**hp.get("policy_kwargs", {}), "squash_output": True}
         return hp

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from fcemu.cli import build_parser
-from training.config import ALGOS, FIELDS, TrainConfig, from_args, parse_hp
+from training.config import ALGOS, FIELDS, WARM_START_TARGET_KL, TrainConfig, from_args, parse_hp
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -88,6 +88,14 @@ def test_validation():
     assert "squash_output" not in TrainConfig().hyper["policy_kwargs"]
     with pytest.raises(ValueError, match="--threads"):
         TrainConfig(threads=-1)
+
+
+def test_a_warm_started_ppo_run_limits_its_updates_by_kl_unless_told_otherwise():
+    assert "target_kl" not in TrainConfig().hyper
+    assert TrainConfig(warm_start="pid").hyper["target_kl"] == WARM_START_TARGET_KL
+    assert TrainConfig(warm_start="pid", hp={"target_kl": None}).hyper["target_kl"] is None
+    assert TrainConfig(warm_start="pid", hp={"target_kl": 0.05}).hyper["target_kl"] == 0.05
+    assert TrainConfig(algo="trpo", warm_start="pid").hyper["target_kl"] == 0.01  # TRPO's own trust region
 
 
 def test_threads_default_to_the_cpus_this_process_may_use():
