@@ -20,7 +20,7 @@ from firmware.mixer import QuadXMixer
 from firmware.pid import PIDGains, RatePID
 from firmware.sensors import SensorFrame
 
-PRESETS = ("pid_iris", "pid_paper", "pid_betaflight")
+PRESETS = ("pid_iris", "pid_paper", "pid_betaflight", "pid_iris_robust")
 DEFAULT_PRESET = "pid_iris"
 _RATE_CHANGE_TICKS = 8  # consecutive off-period ticks that mean a new loop rate, not jitter
 

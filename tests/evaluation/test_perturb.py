@@ -11,6 +11,7 @@ import pytest
 from evaluation.metrics import (
     AXES,
     METRIC_KEYS,
+    aggregate,
     compute_metrics,
     pool_episode_metrics,
     traces_episode_metrics,
@@ -133,3 +134,17 @@ def test_a_bad_ranges_file_is_a_user_error(fcemu, tmp_path):
     assert out.stderr.startswith("fcemu: error: ") and len(out.stderr.strip().splitlines()) == 1
     out = fcemu(*FAST[:-3], "--perturb", "-1")
     assert out.returncode == 2 and "--perturb must be >= 0" in out.stderr
+
+
+def test_the_robust_preset_holds_success_where_the_tuned_pid_rings():
+    """Airframe 15 of `--perturb 20 --perturb-seed 1`: 2 + 3 ticks of latency and a light roll
+    axis (inertia ×0.83). The tuned PID (fitted on a twin without latency) rings on roll;
+    `pid_iris_robust` (its roll and pitch P and I ×0.7) settles within the Success band."""
+    far = perturbed_airframes(load_randomization("iris"), 16, seed=1)[15]
+    assert (far.factors["esc_delay_ticks"], far.factors["gyro_delay_ticks"]) == (2, 3)
+    cfg = EvalConfig(episodes=12, seed=7)
+    roll = {}
+    for spec in ("pid", "pid:iris_robust"):
+        ep, unit = traces_episode_metrics(run_controller(spec, cfg, progress=False, airframe=far.airframe))
+        roll[spec] = aggregate(ep, unit=unit).stat("success_pct", "roll").mean
+    assert roll["pid"] < 50.0 and roll["pid:iris_robust"] > 90.0, roll

@@ -46,7 +46,8 @@ def fly_step(controller: PIDRateController, twin: Twin, rates: list[float],
     return out
 
 
-TUNED = ("pid_iris", "pid_paper")  # pid_betaflight models Betaflight's defaults; tests/sitl checks it
+# pid_betaflight models Betaflight's defaults; tests/sitl checks it
+TUNED = ("pid_iris", "pid_paper", "pid_iris_robust")
 
 
 @pytest.mark.parametrize("preset", TUNED)
