@@ -48,6 +48,8 @@ ALGOS: dict[str, dict[str, Any]] = {
 # After a warm start PPO refines a network that already flies: its advantages are mostly
 # noise, and five full epochs per rollout walk the fitted actor away from the PID's Error
 # before the signal accumulates. A KL limit (TRPO's target) stops an update's epochs early.
+WARM_START_ROUNDS = 3
+WARM_START_STEPS = 1500  # per environment copy and round
 WARM_START_TARGET_KL = 0.01
 SELECT = ("bar", "error")  # how `--export best` ranks evaluations (quick_eval.selection_key)
 
@@ -134,8 +136,12 @@ class TrainConfig:
         metavar="NAME|FILE")
     warm_start: str | None = option(
         None, "before RL, fit the actor to a PID preset's outputs on the training flights (behaviour cloning "
-              "with DAgger rounds) and the critic to their returns (training.warm_start): pid, pid:paper",
+              "with DAgger rounds) and the critic to their returns (training.warm_start): pid, pid:paper, or "
+              "schedule:NAME|FILE, presets by each drawn airframe's loop delay (training/teachers/)",
         metavar="PRESET")
+    warm_start_rounds: int = option(WARM_START_ROUNDS, "warm start: rounds of flights and fits (the first "
+                                                       "flown by the teacher, the others by the network)")
+    warm_start_steps: int = option(WARM_START_STEPS, "warm start: steps per environment copy in each round")
     caps_temporal: float = option(0.0, "PPO: CAPS temporal smoothness weight λ_T, ‖π(s_t) − π(s_t+1)‖ "
                                         "(training.caps)")
     caps_spatial: float = option(0.0, "PPO: CAPS spatial smoothness weight λ_S, ‖π(s) − π(s̃)‖, "
@@ -173,6 +179,9 @@ class TrainConfig:
             from training.warm_start_teacher import check_teacher
 
             check_teacher(self.warm_start)
+        if self.warm_start_rounds < 1 or self.warm_start_steps < 1:
+            raise ValueError(f"--warm-start-rounds and --warm-start-steps must be >= 1, got "
+                             f"{self.warm_start_rounds} and {self.warm_start_steps}")
         if self.caps and self.algo != "ppo":
             raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
         if self.randomize is not None:

@@ -207,7 +207,7 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
     if cfg.warm_start:
         from training.warm_start import WarmStart
 
-        warm = WarmStart(preset=cfg.warm_start).run(model, venv)
+        warm = WarmStart(cfg.warm_start_rounds, cfg.warm_start_steps, preset=cfg.warm_start).run(model, venv)
         warm["wall_s"] = round(time.perf_counter() - t0, 1)
         print(f"[warm start] {warm['env_steps']} env steps, {warm['wall_s']:.0f} s: "
               + ", ".join(f"actor mse {h['actor_mse']:.4f}" for h in warm["history"])

@@ -22,13 +22,14 @@ import numpy as np
 import torch
 
 from training import quick_eval
-from training.warm_start_teacher import PidTeacher, teacher_inputs
+from training.config import WARM_START_ROUNDS, WARM_START_STEPS
+from training.warm_start_teacher import PidTeacher, episode_delay_ticks, teacher_inputs
 
 
 @dataclass
 class WarmStart:
-    rounds: int = 3  # the first flies the PID, the others the network (DAgger)
-    steps_per_round: int = 1500  # per environment copy
+    rounds: int = WARM_START_ROUNDS  # the first flies the PID, the others the network (DAgger)
+    steps_per_round: int = WARM_START_STEPS  # per environment copy
     epochs: int = 8
     batch_size: int = 4096
     learning_rate: float = 1e-3
@@ -74,7 +75,7 @@ class WarmStart:
         flies, or the PID when it is None."""
         n = venv.num_envs
         obs = venv.reset()
-        teacher.reset(np.ones(n, dtype=bool))
+        teacher.reset(np.ones(n, dtype=bool), episode_delay_ticks(batch))
         raw_all = np.empty((self.steps_per_round, n, obs.shape[-1]), dtype=np.float32)
         labels = np.empty((self.steps_per_round, n, 4))
         rewards = np.empty((self.steps_per_round, n))
@@ -87,7 +88,7 @@ class WarmStart:
             obs, _, done, _ = venv.step(np.clip(action, -1.0, 1.0).astype(np.float32))
             rewards[k] = venv.get_original_reward()
             dones[k] = done
-            teacher.reset(done)
+            teacher.reset(done, episode_delay_ticks(batch))  # the copies done have begun new episodes
         return raw_all, labels, rewards, dones
 
     def _fit_actor(self, policy, venv, raw: np.ndarray, labels: np.ndarray) -> float:

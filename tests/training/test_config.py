@@ -143,3 +143,11 @@ def test_randomize_reaches_the_training_env_and_is_off_by_default():
         TrainConfig(randomize="nosuch")
     with pytest.raises(ValueError, match="ranges are for airframe 'iris', not 'iris_realistic'"):
         TrainConfig(randomize="iris", airframe="iris_realistic")
+
+
+def test_the_warm_starts_size_is_set_and_checked():
+    cfg = TrainConfig(warm_start="pid", warm_start_rounds=5, warm_start_steps=3000)
+    assert (cfg.warm_start_rounds, cfg.warm_start_steps) == (5, 3000)
+    for bad in ({"warm_start_rounds": 0}, {"warm_start_steps": 0}):
+        with pytest.raises(ValueError, match="must be >= 1"):
+            TrainConfig(warm_start="pid", **bad)

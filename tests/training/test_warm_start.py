@@ -10,11 +10,12 @@ import pytest
 from stable_baselines3.common.vec_env import VecNormalize
 
 from evaluation.metrics import compute_metrics
+from firmware.controllers import load_controller
 from training import quick_eval
 from training.config import TrainConfig
 from training.train import make_model, make_vec_env
 from training.warm_start import WarmStart
-from training.warm_start_teacher import PidTeacher, teacher_inputs
+from training.warm_start_teacher import PidTeacher, episode_delay_ticks, load_schedule, teacher_inputs
 
 
 def _teacher_flight(n: int, seed: int):
@@ -78,3 +79,52 @@ def test_the_teacher_must_be_a_pid():
         TrainConfig(warm_start="pid:nope")
     with pytest.raises(ValueError, match="actor-critic"):
         TrainConfig(algo="sac", warm_start="pid")
+
+
+def test_a_schedule_flies_each_copy_with_the_band_for_its_airframes_delay(tmp_path: Path):
+    path = tmp_path / "two.json"
+    path.write_text('{"bands": [{"from_delay_ticks": 0, "controller": "pid"},'
+                    ' {"from_delay_ticks": 3, "controller": "pid:iris_robust"}]}')
+    teacher = PidTeacher(f"schedule:{path}", 4, 0.001)
+    assert [teacher.schedule.band(d) for d in (0, 2, 3, 5)] == [0, 0, 1, 1]
+    teacher.reset(np.ones(4, dtype=bool), np.array([0, 2, 3, 5]))
+    roll_kp = [c.pid.gains.kp[0] for c in teacher.ctrls]
+    nominal, robust = (load_controller(s).pid.gains.kp[0] for s in ("pid", "pid:iris_robust"))
+    assert roll_kp == pytest.approx([nominal, nominal, robust, robust]) and robust < nominal
+    teacher.reset(np.array([False, False, True, False]), np.array([9, 9, 1, 9]))  # only copy 2 starts anew
+    assert [c.pid.gains.kp[0] for c in teacher.ctrls] == pytest.approx([nominal, nominal, nominal, robust])
+    with pytest.raises(ValueError, match="needs each episode's delay_ticks"):
+        teacher.reset(np.ones(4, dtype=bool))
+
+
+def test_the_delay_of_each_episode_is_the_drawn_airframes():
+    from sim_bridge.vec_env import BatchedRateEnv
+
+    batch = BatchedRateEnv(8, randomize="iris")
+    batch.reset(seed=3)
+    drawn = [f["esc_delay_ticks"] + f["gyro_delay_ticks"] for f in batch.episode_factors]
+    assert episode_delay_ticks(batch).tolist() == drawn and len(set(drawn)) > 1
+    nominal = BatchedRateEnv(2)
+    nominal.reset(seed=3)
+    assert episode_delay_ticks(nominal).tolist() == [0, 0]
+
+
+@pytest.mark.parametrize("bands, match", [
+    ('[{"from_delay_ticks": 1, "controller": "pid"}]', "start at 0"),
+    ('[{"from_delay_ticks": 0, "controller": "pid"}, {"from_delay_ticks": 0, "controller": "pid"}]', "rise"),
+    ('[{"from_delay_ticks": 0, "controller": "policies/iris_rate_ppo.onnx"}]', "teacher is a PID"),
+    ('[{"from_delay_ticks": 0}]', "cannot read"),
+    ('[]', "at least one band"),
+])
+def test_a_bad_schedule_is_refused_with_the_reason(tmp_path: Path, bands: str, match: str):
+    path = tmp_path / "bad.json"
+    path.write_text(f'{{"bands": {bands}}}')
+    with pytest.raises(ValueError, match=match):
+        TrainConfig(warm_start=f"schedule:{path}")
+
+
+def test_the_shipped_schedule_is_a_teacher_and_an_unknown_one_names_the_shipped():
+    assert load_schedule("schedule:latency").controllers[0] == "pid"
+    TrainConfig(warm_start="schedule:latency")
+    with pytest.raises(ValueError, match="shipped: latency"):
+        TrainConfig(warm_start="schedule:nope")
