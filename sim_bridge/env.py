@@ -7,8 +7,9 @@ trained here flies unchanged in the firmware.
 
 Per episode, in this order, the env draws from `np_random` (see `draw_episode`): the
 setpoint (a command or a pulse schedule, `sim_bridge.tasks`), the throttle (throttle
-mapping with a range), the airframe scale factors (`randomize`), and the twin's noise seed
-(when `noise` is enabled). The batched environment (`sim_bridge.vec_env`) makes the same
+mapping with a range), the airframe scale factors (`randomize`; with a `randomize_share`
+below 1, first whether this episode draws them or flies the nominal airframe), and the
+twin's noise seed (when `noise` is enabled). The batched environment (`sim_bridge.vec_env`) makes the same
 draws with the same code, which is what makes the two bit-identical.
 
 Step k (1..T) returns the observation and reward for the setpoint of sample k; the
@@ -72,6 +73,7 @@ class EnvConfig:
     reward: str = "paper"  # sim_bridge.reward.REWARDS
     axis_weights: tuple[float, float, float] = UNWEIGHTED  # roll, pitch, yaw error; unclipped only
     integral_leak: float = DEFAULT_LEAK  # λ of rate_error_integral, when it is a field
+    randomize_share: float = 1.0  # with ranges: the share of episodes drawn from them, the rest nominal
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -87,6 +89,11 @@ class EnvConfig:
             if any(not 0.0 <= f < 1.0 for f in (self.randomize or {}).values()):
                 raise ValueError(
                     f"randomisation fractions must be in [0, 1), got {dict(self.randomize or {})}")
+        if not 0.0 <= self.randomize_share <= 1.0:
+            raise ValueError(f"the randomised share of episodes must be in [0, 1], "
+                             f"got {self.randomize_share}")
+        if self.randomize_share < 1.0 and not isinstance(self.randomize, Randomization):
+            raise ValueError("a randomised share below 1 needs randomisation ranges (e.g. randomize='iris')")
         if not isinstance(self.airframe, Airframe):
             object.__setattr__(self, "airframe", load_airframe(self.airframe))
         if isinstance(self.randomize, Randomization):
@@ -158,7 +165,8 @@ def draw_episode(rng: np.random.Generator, cfg: EnvConfig) -> Episode:
         setpoints = pulse_schedule(rng, n, cfg.dt, cfg.omega_max, cfg.hold_s, cfg.rest_s)
     throttle = draw_throttle(rng, cfg.throttle) if cfg.action_mapping == "throttle" else 0.0
     if isinstance(cfg.randomize, Randomization):
-        factors = cfg.randomize.draw(rng)
+        drawn = cfg.randomize_share >= 1.0 or rng.random() < cfg.randomize_share  # no extra draw at 1
+        factors = cfg.randomize.draw(rng) if drawn else cfg.randomize.nominal()
     else:
         frac = cfg.randomize or {}
         factors = {k: float(rng.uniform(1.0 - frac[k], 1.0 + frac[k])) for k in RANDOMIZE_KEYS if k in frac}
@@ -232,11 +240,11 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
                  airframe: Airframe | str = "iris", dt: float = 0.001,
                  render_mode: str | None = None, obs_fields: tuple[str, ...] = FIELDS,
                  reward: str = "paper", axis_weights: tuple[float, float, float] = UNWEIGHTED,
-                 integral_leak: float = DEFAULT_LEAK) -> None:
+                 integral_leak: float = DEFAULT_LEAK, randomize_share: float = 1.0) -> None:
         self.config = EnvConfig(task, memory, action_mapping, throttle, episode_s, noise, randomize,
                                 omega_max, action_rate_penalty, airframe, dt, obs_fields=tuple(obs_fields),
                                 reward=reward, axis_weights=tuple(axis_weights),  # type: ignore[arg-type]
-                                integral_leak=integral_leak)
+                                integral_leak=integral_leak, randomize_share=randomize_share)
         self.obs_spec = self.config.observation_spec
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)

@@ -122,15 +122,25 @@ class Randomization:
     def draw(self, rng: np.random.Generator) -> dict[str, Any]:
         """One airframe as `Airframe.scaled` keywords: factors of mass, inertia and motor constants
         (per-axis: a 3-tuple, 1.0 where not drawn), effect values (per-axis: None where not drawn)."""
+        def drawn(p: ParameterRange, kind: str) -> Any:
+            if kind == "ticks":
+                return int(rng.integers(round(p.lo), round(p.hi) + 1))
+            value = float(rng.uniform(p.lo, p.hi))
+            return value / p.nominal if kind == "scale" else value
+
+        return self._keywords(drawn)
+
+    def nominal(self) -> dict[str, Any]:
+        """The airframe the ranges are for, as the keywords a draw sets (so an episode that flies
+        it replaces a drawn airframe in every parameter a draw could have changed)."""
+        return self._keywords(lambda p, kind: 1.0 if kind == "scale" else round(p.nominal) if kind == "ticks"
+                              else p.nominal)
+
+    def _keywords(self, value_of: Callable[[ParameterRange, str], Any]) -> dict[str, Any]:
         out: dict[str, Any] = {}
         for p in self._ordered():
             _, keyword, axis, kind = PARAMETERS[p.key]
-            if kind == "ticks":
-                value: Any = int(rng.integers(round(p.lo), round(p.hi) + 1))
-            else:
-                value = float(rng.uniform(p.lo, p.hi))
-                if kind == "scale":
-                    value /= p.nominal
+            value = value_of(p, kind)
             if axis is None:
                 out[keyword] = value
             else:

@@ -134,6 +134,8 @@ class TrainConfig:
               "noise, damping, battery) from ranges, a shipped name (iris: "
               "sim_bridge/airframes/iris.randomization.json) or a file; default: the nominal airframe",
         metavar="NAME|FILE")
+    randomize_share: float = option(1.0, "with --randomize: the share of episodes drawn from the ranges; the "
+                                          "others fly the nominal airframe")
     warm_start: str | None = option(
         None, "before RL, fit the actor to a PID preset's outputs on the training flights (behaviour cloning "
               "with DAgger rounds) and the critic to their returns (training.warm_start): pid, pid:paper, or "
@@ -193,6 +195,9 @@ class TrainConfig:
             except (OSError, ValueError, KeyError) as exc:
                 raise ValueError(f"--airframe {self.airframe}: {exc}") from None
             load_randomization(self.randomize).check_airframe(airframe)  # RandomizationError: a ValueError
+        if not 0.0 <= self.randomize_share <= 1.0 or (self.randomize_share != 1.0 and self.randomize is None):
+            raise ValueError(f"--randomize-share must be in [0, 1] and needs --randomize, "
+                             f"got {self.randomize_share}")
 
     @property
     def caps(self) -> bool:
@@ -227,7 +232,8 @@ class TrainConfig:
                 "reward": self.reward, "axis_weights": tuple(self.axis_weights),
                 "action_rate_penalty": self.action_rate_penalty,
                 **({"airframe": self.airframe} if self.airframe != "iris" else {}),
-                **({"randomize": self.randomize} if self.randomize is not None else {})}
+                **({"randomize": self.randomize} if self.randomize is not None else {}),
+                **({"randomize_share": self.randomize_share} if self.randomize_share != 1.0 else {})}
 
 
 # ── The command line, generated from the fields ────────────────────────────────────────

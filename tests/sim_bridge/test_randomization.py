@@ -160,10 +160,10 @@ def test_the_pm_fraction_mapping_draws_as_before():
     assert env.episode.factors == expected
 
 
-def _batch_matches_single(ranges, steps: int = 60, n: int = 1, episode_s: float = 0.2) -> bool:
+def _batch_matches_single(ranges, steps: int = 60, n: int = 1, episode_s: float = 0.2, **env) -> bool:
     """Copy i of a batch and a single env seeded 3 + i, the same actions, across auto-resets."""
-    batch = BatchedRateEnv(n, randomize=ranges, episode_s=episode_s)
-    singles = [RateControlEnv(randomize=ranges, episode_s=episode_s) for _ in range(n)]
+    batch = BatchedRateEnv(n, randomize=ranges, episode_s=episode_s, **env)
+    singles = [RateControlEnv(randomize=ranges, episode_s=episode_s, **env) for _ in range(n)]
     ob, _ = batch.reset(seed=3)
     same = all(np.array_equal(ob[i], e.reset(seed=3 + i)[0]) for i, e in enumerate(singles))
     rng = np.random.default_rng(0)
@@ -199,3 +199,34 @@ def test_the_batched_training_env_draws_every_effect_per_copy_and_episode():
     drawn = batch.episode_factors
     assert len({f["esc_delay_ticks"] for f in drawn} | {f["gyro_delay_ticks"] for f in drawn}) > 1
     assert len({f["gyro_noise_std"] for f in drawn}) == 4 and len({f["tau_up"] for f in drawn}) == 4
+
+
+def test_the_nominal_draw_is_the_airframe_itself():
+    ranges = load_randomization("iris")
+    iris = ranges.base_airframe()
+    assert iris.scaled(**ranges.nominal()) == iris
+    assert set(ranges.nominal()) == set(ranges.draw(np.random.default_rng(0)))  # replaces all a draw sets
+
+
+def test_a_share_of_episodes_flies_the_nominal_airframe():
+    from sim_bridge.env import EnvConfig, draw_episode
+
+    ranges = load_randomization("iris")
+    nominal = ranges.nominal()
+
+    def nominal_share(share: float) -> float:
+        cfg, rng = EnvConfig(randomize=ranges, randomize_share=share), np.random.default_rng(5)
+        return float(np.mean([draw_episode(rng, cfg).factors == nominal for _ in range(400)]))
+
+    assert nominal_share(1.0) == 0.0 and nominal_share(0.0) == 1.0
+    assert 0.4 < nominal_share(0.5) < 0.6
+    all_drawn, rng_a, rng_b = EnvConfig(randomize=ranges), np.random.default_rng(2), np.random.default_rng(2)
+    assert [draw_episode(rng_a, all_drawn).factors for _ in range(3)] == [
+        draw_episode(rng_b, EnvConfig(randomize=ranges, randomize_share=1.0)).factors for _ in range(3)]
+    # a copy that flew a drawn airframe flies the nominal one again, in the batch as in a single env
+    assert _batch_matches_single(ranges, steps=130, n=4, episode_s=0.04, randomize_share=0.5)
+    for bad, message in ((1.5, "must be in"), (-0.1, "must be in")):
+        with pytest.raises(ValueError, match=message):
+            EnvConfig(randomize=ranges, randomize_share=bad)
+    with pytest.raises(ValueError, match="needs randomisation ranges"):
+        EnvConfig(randomize={"mass": 0.1}, randomize_share=0.5)

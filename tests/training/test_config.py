@@ -151,3 +151,11 @@ def test_the_warm_starts_size_is_set_and_checked():
     for bad in ({"warm_start_rounds": 0}, {"warm_start_steps": 0}):
         with pytest.raises(ValueError, match="must be >= 1"):
             TrainConfig(warm_start="pid", **bad)
+
+
+def test_a_share_of_randomised_episodes_goes_to_the_env_and_needs_ranges():
+    assert TrainConfig(randomize="iris", randomize_share=0.5).env_kwargs()["randomize_share"] == 0.5
+    assert "randomize_share" not in TrainConfig(randomize="iris").env_kwargs()
+    for bad in ({"randomize": "iris", "randomize_share": 2.0}, {"randomize_share": 0.5}):
+        with pytest.raises(ValueError, match="--randomize-share"):
+            TrainConfig(**bad)
