@@ -13,6 +13,7 @@ import argparse
 import ast
 import copy
 import dataclasses
+import math
 import os
 import types
 import typing
@@ -149,6 +150,9 @@ class TrainConfig:
     caps_spatial: float = option(0.0, "PPO: CAPS spatial smoothness weight λ_S, ‖π(s) − π(s̃)‖, "
                                        "s̃ ~ N(s, caps_sigma²)")
     caps_sigma: float = option(0.05, "CAPS spatial noise, in normalised observation units")
+    anchor: float = option(0.0, "PPO after --warm-start: weight of the teacher anchor, the mean squared "
+                                "difference of the policy's action from the teacher's on the warm start's "
+                                "data, in PPO's loss (training.regularised_ppo)")
 
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
@@ -184,6 +188,11 @@ class TrainConfig:
         if self.warm_start_rounds < 1 or self.warm_start_steps < 1:
             raise ValueError(f"--warm-start-rounds and --warm-start-steps must be >= 1, got "
                              f"{self.warm_start_rounds} and {self.warm_start_steps}")
+        if self.anchor and not (self.warm_start and self.algo == "ppo"):
+            raise ValueError("--anchor keeps PPO near the warm start's teacher: it needs --algo ppo and "
+                             "--warm-start")
+        if not (math.isfinite(self.anchor) and self.anchor >= 0.0):
+            raise ValueError(f"--anchor must be finite and >= 0, got {self.anchor}")
         if self.caps and self.algo != "ppo":
             raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
         if self.randomize is not None:

@@ -63,10 +63,11 @@ def make_model(cfg: TrainConfig, venv: VecEnv, tb_dir: Path):
         from stable_baselines3.common.noise import NormalActionNoise
 
         hp["action_noise"] = NormalActionNoise(np.zeros(4), NOISE_STD * np.ones(4))
-    if cfg.caps:
-        from training.caps import CapsPPO as Algo
+    if cfg.caps or cfg.anchor:
+        from training.regularised_ppo import RegularisedPPO as Algo
 
-        hp.update(caps_temporal=cfg.caps_temporal, caps_spatial=cfg.caps_spatial, caps_sigma=cfg.caps_sigma)
+        hp.update(caps_temporal=cfg.caps_temporal, caps_spatial=cfg.caps_spatial, caps_sigma=cfg.caps_sigma,
+                  anchor=cfg.anchor)
     return Algo("MlpPolicy", venv, seed=cfg.seed, verbose=0, device="cpu", tensorboard_log=str(tb_dir), **hp)
 
 
@@ -169,7 +170,8 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
             "hyperparameters": json.loads(json.dumps(algo_hp, default=repr)),
             "torch_threads": cfg.threads, "command": " ".join(sys.argv),
             **({"caps": {"temporal": cfg.caps_temporal, "spatial": cfg.caps_spatial, "sigma": cfg.caps_sigma}}
-               if cfg.caps else {})}
+               if cfg.caps else {}),
+            **({"anchor": cfg.anchor} if cfg.anchor else {})}
 
 
 def _observation_spec(cfg: TrainConfig):
@@ -208,6 +210,9 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
         from training.warm_start import WarmStart
 
         warm = WarmStart(cfg.warm_start_rounds, cfg.warm_start_steps, preset=cfg.warm_start).run(model, venv)
+        dataset = warm.pop("dataset")
+        if cfg.anchor:
+            model.set_anchor_data(*dataset, venv.normalize_obs)
         warm["wall_s"] = round(time.perf_counter() - t0, 1)
         print(f"[warm start] {warm['env_steps']} env steps, {warm['wall_s']:.0f} s: "
               + ", ".join(f"actor mse {h['actor_mse']:.4f}" for h in warm["history"])

@@ -65,6 +65,7 @@ class WarmStart:
         with torch.no_grad():
             policy.log_std.fill_(self.log_std)
         return {"rounds": self.rounds, "env_steps": self.rounds * self.steps_per_round * venv.num_envs,
+                "dataset": (x, y),  # raw observations and the teacher's actions: not for the summary
                 "history": history,
                 "critic_mse_before": vloss_before, "critic_mse": vloss, "preset": self.preset,
                 "log_std": self.log_std}

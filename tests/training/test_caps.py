@@ -10,7 +10,8 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import ActorCriticPolicy
 
-from training.caps import CapsPPO, consecutive_pairs, spatial_smoothness, temporal_smoothness
+from training.caps import consecutive_pairs, spatial_smoothness, temporal_smoothness
+from training.regularised_ppo import RegularisedPPO
 from training.train import TrainConfig, train
 
 OBS = spaces.Box(-np.inf, np.inf, (7,), np.float32)
@@ -70,15 +71,16 @@ def test_pairs_never_cross_an_episode_boundary():
 def test_a_rollout_without_pairs_trains_as_plain_ppo():
     from stable_baselines3.common.env_util import make_vec_env
 
-    model = CapsPPO("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2, seed=0), n_steps=1, batch_size=2,
-                    n_epochs=1, seed=0, device="cpu", caps_temporal=1.0, caps_spatial=1.0)
+    model = RegularisedPPO("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2, seed=0), n_steps=1,
+                           batch_size=2, n_epochs=1, seed=0, device="cpu", caps_temporal=1.0,
+                           caps_spatial=1.0)
     model.learn(4)  # one step per environment: no (s_t, s_t+1) pair in any rollout
     assert model.num_timesteps == 4
 
 
 def test_weights_must_be_non_negative():
     with pytest.raises(ValueError, match="caps_temporal"):
-        CapsPPO("MlpPolicy", "Pendulum-v1", caps_temporal=-1.0)
+        RegularisedPPO("MlpPolicy", "Pendulum-v1", caps_temporal=-1.0)
     with pytest.raises(ValueError, match="for PPO"):
         TrainConfig(algo="sac", caps_spatial=0.1)
 
@@ -116,7 +118,39 @@ def test_caps_enters_the_ppo_update_and_nothing_else_changes():
     from stable_baselines3 import PPO
 
     plain = _learned(PPO)
-    zero = _learned(CapsPPO, caps_temporal=0.0, caps_spatial=0.0)
-    caps = _learned(CapsPPO, caps_temporal=1.0, caps_spatial=1.0, caps_sigma=0.2)
+    zero = _learned(RegularisedPPO, caps_temporal=0.0, caps_spatial=0.0)
+    caps = _learned(RegularisedPPO, caps_temporal=1.0, caps_spatial=1.0, caps_sigma=0.2)
     assert all(th.equal(a, b) for a, b in zip(plain, zero, strict=True))  # λ = 0: PPO to the bit
     assert any(not th.equal(a, b) for a, b in zip(plain, caps, strict=True))
+
+
+def test_the_anchor_pulls_the_policy_towards_the_teachers_actions():
+    from stable_baselines3.common.env_util import make_vec_env
+
+    def fitted(anchor: float) -> float:
+        model = RegularisedPPO("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2, seed=0), n_steps=64,
+                               batch_size=32, n_epochs=4, seed=3, device="cpu", anchor=anchor,
+                               learning_rate=3e-3, policy_kwargs={"net_arch": [16, 16]})
+        rng = np.random.default_rng(0)
+        obs = rng.uniform(-1.0, 1.0, (256, 3)).astype(np.float32)
+        labels = np.full((256, 1), 1.5, dtype=np.float32)  # a teacher that always pushes +1.5
+        model.set_anchor_data(obs, labels, lambda raw: raw)
+        model.learn(1024)
+        with th.no_grad():
+            act = model.policy.get_distribution(th.as_tensor(obs)).mode().numpy()
+        return float(np.mean((act - labels) ** 2))
+
+    assert fitted(50.0) < 0.25 * fitted(0.0)  # PPO alone never learns the teacher's constant
+
+
+def test_anchor_data_must_match_the_action_space_and_the_option_needs_a_warm_start():
+    model = RegularisedPPO("MlpPolicy", "Pendulum-v1", n_steps=64, batch_size=32, device="cpu", anchor=1.0)
+    with pytest.raises(ValueError, match="anchor data"):
+        model.set_anchor_data(np.zeros((4, 3)), np.zeros((4, 2)), lambda raw: raw)
+    with pytest.raises(ValueError, match="anchor must be finite"):
+        RegularisedPPO("MlpPolicy", "Pendulum-v1", anchor=-1.0)
+    with pytest.raises(ValueError, match="needs --algo ppo and --warm-start"):
+        TrainConfig(anchor=0.5)
+    with pytest.raises(ValueError, match="finite and >= 0"):
+        TrainConfig(anchor=-0.5, warm_start="pid")
+    assert TrainConfig(anchor=0.5, warm_start="pid").anchor == 0.5

@@ -53,16 +53,21 @@ def test_warm_start_fits_the_network_to_fly_near_the_pid(tmp_path: Path, squash:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", ["ppo", "trpo"])
-def test_train_with_a_warm_start_reports_it_and_its_time_counts_in_the_race(tmp_path: Path, algo: str):
+@pytest.mark.parametrize("algo, anchor", [("ppo", 1.0), ("trpo", 0.0)])
+def test_train_with_a_warm_start_reports_it_and_its_time_counts_in_the_race(tmp_path: Path, algo: str,
+                                                                           anchor: float):
+    import json
+
     from training.train import train
 
     out = tmp_path / "run"
     cfg = TrainConfig(algo=algo, seed=0, out=str(out), envs=8, steps=4096, checkpoint_every=100_000,
                       eval_every=2048, eval_commands=2, eval_episodes=0, warm_start="pid", select="error",
-                      progress=False,
+                      progress=False, anchor=anchor,
                       hp={"n_steps": 128, "batch_size": 256})
     summary = train(cfg)
+    assert json.loads((out / "config.json").read_text()).get("anchor", 0.0) == anchor
+    assert "dataset" not in json.loads((out / "summary.json").read_text())["warm_start"]
     warm = summary["warm_start"]
     assert warm["env_steps"] == 3 * 1500 * 8 and warm["preset"] == "pid"
     assert summary["steps"] == 4096  # the warm start's steps are not the algorithm's
