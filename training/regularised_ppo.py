@@ -8,7 +8,7 @@
   keeps the network near its teacher wherever the reward gives no clear reason to leave
   it, as behaviour-cloning terms do in demonstration-augmented policy gradients (DAPG,
   Rajeswaran et al. 2018). The data are raw observations, normalised with the training
-  VecNormalize's statistics at each update, as the rollout's are.
+  VecNormalize's statistics of the moment, as the rollout's are.
 
 Stable-Baselines3's `PPO.train` builds its loss inline, so the terms enter through the
 optimiser: each minibatch's `zero_grad` is followed by the terms' backward, PPO's own
@@ -44,6 +44,7 @@ class RegularisedPPO(PPO):
         super().__init__(*args, **kwargs)
         self._caps_gen = th.Generator(device=self.device)
         self._caps_gen.manual_seed(0 if self.seed is None else int(self.seed))
+        self._anchor_rng = np.random.default_rng(self.seed)
 
     def set_anchor_data(self, raw_obs: np.ndarray, labels: np.ndarray,
                         normalise: Callable[[np.ndarray], np.ndarray]) -> None:
@@ -57,7 +58,6 @@ class RegularisedPPO(PPO):
         buffer = self.rollout_buffer
         obs, next_obs = consecutive_pairs(buffer.observations, buffer.episode_starts)
         pairs = (th.as_tensor(obs, device=self.device), th.as_tensor(next_obs, device=self.device))
-        anchor = self._anchor_tensors()
         optimizer = self.policy.optimizer
         zero_grad = optimizer.zero_grad
         terms: dict[str, list[float]] = {"caps_temporal": [], "caps_spatial": [], "anchor": []}
@@ -70,8 +70,8 @@ class RegularisedPPO(PPO):
                 terms["caps_temporal"].append(float(temporal.detach()))
                 terms["caps_spatial"].append(float(spatial.detach()))
                 loss = loss + self.caps_temporal * temporal + self.caps_spatial * spatial
-            if anchor is not None:
-                imitation = self.anchor_loss(*anchor)
+            if self.anchor and self._anchor_data is not None:
+                imitation = self.anchor_loss()
                 terms["anchor"].append(float(imitation.detach()))
                 loss = loss + self.anchor * imitation
             if loss.requires_grad:  # no pairs and no anchor: nothing to add
@@ -97,15 +97,12 @@ class RegularisedPPO(PPO):
         return (temporal_smoothness(self.policy, s, s_next),
                 spatial_smoothness(self.policy, s, self.caps_sigma, self._caps_gen))
 
-    def anchor_loss(self, obs: th.Tensor, labels: th.Tensor) -> th.Tensor:
-        """L_A: mean squared error of the policy's action against the teacher's, on a minibatch."""
-        idx = th.randint(len(obs), (min(self.batch_size, len(obs)),), generator=self._caps_gen,
-                         device=obs.device)
-        return th.nn.functional.mse_loss(mean_action(self.policy, obs[idx]), labels[idx])
-
-    def _anchor_tensors(self) -> tuple[th.Tensor, th.Tensor] | None:
-        if not self.anchor or self._anchor_data is None:
-            return None
+    def anchor_loss(self) -> th.Tensor:
+        """L_A: mean squared error of the policy's action against the teacher's, on a minibatch
+        (PPO's batch size) of the anchor data, normalised as the policy sees it now."""
+        assert self._anchor_data is not None
         raw, labels, normalise = self._anchor_data
-        return (th.as_tensor(normalise(raw), dtype=th.float32, device=self.device),
-                th.as_tensor(labels, dtype=th.float32, device=self.device))
+        idx = self._anchor_rng.integers(len(raw), size=min(self.batch_size, len(raw)))
+        obs = th.as_tensor(normalise(raw[idx]), dtype=th.float32, device=self.device)
+        target = th.as_tensor(labels[idx], dtype=th.float32, device=self.device)
+        return th.nn.functional.mse_loss(mean_action(self.policy, obs), target)
