@@ -54,6 +54,10 @@ class RegularisedPPO(PPO):
             raise ValueError(f"anchor data: {len(raw_obs)} observations, labels of shape {labels.shape}")
         self._anchor_data = (raw_obs, labels, normalise)
 
+    def _excluded_save_params(self) -> list[str]:
+        # The anchor data are the warm start's whole dataset (hundreds of MB): not part of a checkpoint.
+        return [*super()._excluded_save_params(), "_anchor_data"]
+
     def train(self) -> None:
         buffer = self.rollout_buffer
         obs, next_obs = consecutive_pairs(buffer.observations, buffer.episode_starts)

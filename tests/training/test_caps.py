@@ -154,3 +154,12 @@ def test_anchor_data_must_match_the_action_space_and_the_option_needs_a_warm_sta
     with pytest.raises(ValueError, match="finite and >= 0"):
         TrainConfig(anchor=-0.5, warm_start="pid")
     assert TrainConfig(anchor=0.5, warm_start="pid").anchor == 0.5
+
+
+def test_a_checkpoint_leaves_the_anchor_data_out(tmp_path):
+    model = RegularisedPPO("MlpPolicy", "Pendulum-v1", n_steps=64, batch_size=32, device="cpu", anchor=1.0)
+    model.set_anchor_data(np.zeros((200_000, 3), dtype=np.float32), np.zeros((200_000, 1), dtype=np.float32),
+                          lambda raw: raw)
+    model.save(tmp_path / "m.zip")
+    assert (tmp_path / "m.zip").stat().st_size < 1_000_000  # the data alone are 3.2 MB
+    assert RegularisedPPO.load(tmp_path / "m.zip", device="cpu")._anchor_data is None
