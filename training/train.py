@@ -210,9 +210,10 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
         from training.warm_start import WarmStart
 
         warm = WarmStart(cfg.warm_start_rounds, cfg.warm_start_steps, preset=cfg.warm_start).run(model, venv)
-        dataset = warm.pop("dataset")
+        data = warm.pop("dataset")  # the fit's samples: the anchor's, else let go here
         if cfg.anchor:
-            model.set_anchor_data(*dataset, venv.normalize_obs)
+            model.set_anchor_data(*data, venv.normalize_obs)
+        del data
         warm["wall_s"] = round(time.perf_counter() - t0, 1)
         print(f"[warm start] {warm['env_steps']} env steps, {warm['wall_s']:.0f} s: "
               + ", ".join(f"actor mse {h['actor_mse']:.4f}" for h in warm["history"])
