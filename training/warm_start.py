@@ -89,7 +89,8 @@ class WarmStart:
             obs, _, done, _ = venv.step(np.clip(action, -1.0, 1.0).astype(np.float32))
             rewards[k] = venv.get_original_reward()
             dones[k] = done
-            teacher.reset(done, episode_delay_ticks(batch))  # the copies done have begun new episodes
+            if done.any():  # the copies done have begun new episodes
+                teacher.reset(done, episode_delay_ticks(batch))
         return raw_all, labels, rewards, dones
 
     def _fit_actor(self, policy, venv, raw: np.ndarray, labels: np.ndarray) -> float:
