@@ -60,8 +60,10 @@ class RegularisedPPO(PPO):
 
     def train(self) -> None:
         buffer = self.rollout_buffer
-        obs, next_obs = consecutive_pairs(buffer.observations, buffer.episode_starts)
-        pairs = (th.as_tensor(obs, device=self.device), th.as_tensor(next_obs, device=self.device))
+        caps = bool(self.caps_temporal or self.caps_spatial)
+        if caps:  # an anchor-only run has no use for the rollout's pairs
+            obs, next_obs = consecutive_pairs(buffer.observations, buffer.episode_starts)
+            pairs = (th.as_tensor(obs, device=self.device), th.as_tensor(next_obs, device=self.device))
         optimizer = self.policy.optimizer
         zero_grad = optimizer.zero_grad
         terms: dict[str, list[float]] = {"caps_temporal": [], "caps_spatial": [], "anchor": []}
@@ -69,7 +71,7 @@ class RegularisedPPO(PPO):
         def zero_grad_then_terms(set_to_none: bool = True) -> None:
             zero_grad(set_to_none=set_to_none)
             loss = th.zeros((), device=self.device)
-            if self.caps_temporal or self.caps_spatial:
+            if caps:
                 temporal, spatial = self.caps_losses(*pairs)
                 terms["caps_temporal"].append(float(temporal.detach()))
                 terms["caps_spatial"].append(float(spatial.detach()))
