@@ -153,6 +153,9 @@ class TrainConfig:
     anchor: float = option(0.0, "PPO after --warm-start: weight of the teacher anchor, the mean squared "
                                 "difference of the policy's action from the teacher's on the warm start's "
                                 "data, in PPO's loss (training.regularised_ppo)")
+    anchor_from_ticks: int = option(0, "--anchor only on the warm start's samples from airframes whose loop "
+                                       "delay (ESC + gyro) is at least this many ticks: hold the policy to "
+                                       "the teacher where delay makes it fragile, leave PPO free elsewhere")
 
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
@@ -193,6 +196,9 @@ class TrainConfig:
                              "--warm-start")
         if not (math.isfinite(self.anchor) and self.anchor >= 0.0):
             raise ValueError(f"--anchor must be finite and >= 0, got {self.anchor}")
+        if self.anchor_from_ticks < 0 or (self.anchor_from_ticks and not self.anchor):
+            raise ValueError(f"--anchor-from-ticks must be >= 0 and goes with --anchor, got "
+                             f"{self.anchor_from_ticks} with --anchor {self.anchor}")
         if self.caps and self.algo != "ppo":
             raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
         if self.randomize is not None:

@@ -171,7 +171,7 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
             "torch_threads": cfg.threads, "command": " ".join(sys.argv),
             **({"caps": {"temporal": cfg.caps_temporal, "spatial": cfg.caps_spatial, "sigma": cfg.caps_sigma}}
                if cfg.caps else {}),
-            **({"anchor": cfg.anchor} if cfg.anchor else {})}
+            **({"anchor": cfg.anchor, "anchor_from_ticks": cfg.anchor_from_ticks} if cfg.anchor else {})}
 
 
 def _observation_spec(cfg: TrainConfig):
@@ -212,7 +212,13 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
         warm = WarmStart(cfg.warm_start_rounds, cfg.warm_start_steps, preset=cfg.warm_start).run(model, venv)
         data = warm.pop("dataset")  # the fit's samples: the anchor's, else let go here
         if cfg.anchor:
-            model.set_anchor_data(*data, venv.normalize_obs)
+            raw, labels, delays = data
+            keep = delays >= cfg.anchor_from_ticks
+            if not keep.any():
+                raise ValueError(f"--anchor-from-ticks {cfg.anchor_from_ticks}: no warm-start sample came "
+                                 f"from an airframe with that much delay (at most {int(delays.max())} ticks)")
+            model.set_anchor_data(raw[keep], labels[keep], venv.normalize_obs)
+            warm["anchor_samples"] = int(keep.sum())
         del data
         warm["wall_s"] = round(time.perf_counter() - t0, 1)
         print(f"[warm start] {warm['env_steps']} env steps, {warm['wall_s']:.0f} s: "

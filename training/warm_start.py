@@ -46,14 +46,16 @@ class WarmStart:
         policy = model.policy
         obs_x: list[np.ndarray] = []
         act_y: list[np.ndarray] = []
+        delay_z: list[np.ndarray] = []
         rets: list[np.ndarray] = []
         ret_x: list[np.ndarray] = []
         history: list[dict] = []
         for r in range(self.rounds):
             actor = quick_eval.sb3_actor(model) if r else None  # the network flies, the PID labels
-            raw, labels, rewards, dones = self._fly(venv, batch, teacher, actor)
+            raw, labels, rewards, dones, delays = self._fly(venv, batch, teacher, actor)
             obs_x.append(raw.reshape(-1, raw.shape[-1]))
             act_y.append(labels.reshape(-1, 4))
+            delay_z.append(delays.reshape(-1))
             ret, keep = _discounted(_normalised(venv, rewards), dones, model.gamma)
             ret_x.append(raw[keep].reshape(-1, raw.shape[-1]))
             rets.append(ret[keep].reshape(-1))
@@ -65,33 +67,38 @@ class WarmStart:
         with torch.no_grad():
             policy.log_std.fill_(self.log_std)
         return {"rounds": self.rounds, "env_steps": self.rounds * self.steps_per_round * venv.num_envs,
-                "dataset": (x, y),  # raw observations and the teacher's actions: not for the summary
+                # raw observations, the teacher's actions, each sample's airframe loop delay
+                # (ticks): not for the summary
+                "dataset": (x, y, np.concatenate(delay_z)),
                 "history": history,
                 "critic_mse_before": vloss_before, "critic_mse": vloss, "preset": self.preset,
                 "log_std": self.log_std}
 
     def _fly(self, venv, batch, teacher: PidTeacher, actor):
         """One round: `steps_per_round` steps of every copy; the raw observations, the PID's
-        labels, the raw rewards and the episode ends. `actor` (normalised obs → action)
-        flies, or the PID when it is None."""
+        labels, the raw rewards, the episode ends and each step's airframe loop delay.
+        `actor` (normalised obs → action) flies, or the PID when it is None."""
         n = venv.num_envs
         obs = venv.reset()
-        teacher.reset(np.ones(n, dtype=bool), episode_delay_ticks(batch))
+        delay = episode_delay_ticks(batch)
+        teacher.reset(np.ones(n, dtype=bool), delay)
         raw_all = np.empty((self.steps_per_round, n, obs.shape[-1]), dtype=np.float32)
         labels = np.empty((self.steps_per_round, n, 4))
         rewards = np.empty((self.steps_per_round, n))
         dones = np.empty((self.steps_per_round, n), dtype=bool)
+        delays = np.empty((self.steps_per_round, n), dtype=np.int8)
         for k in range(self.steps_per_round):
             raw = venv.get_original_obs()
             label = teacher.act(*teacher_inputs(batch, raw))
             action = label if actor is None else actor(obs)
-            raw_all[k], labels[k] = raw, label
+            raw_all[k], labels[k], delays[k] = raw, label, delay
             obs, _, done, _ = venv.step(np.clip(action, -1.0, 1.0).astype(np.float32))
             rewards[k] = venv.get_original_reward()
             dones[k] = done
             if done.any():  # the copies done have begun new episodes
-                teacher.reset(done, episode_delay_ticks(batch))
-        return raw_all, labels, rewards, dones
+                delay = episode_delay_ticks(batch)
+                teacher.reset(done, delay)
+        return raw_all, labels, rewards, dones, delays
 
     def _fit_actor(self, policy, venv, raw: np.ndarray, labels: np.ndarray) -> float:
         x = torch.as_tensor(venv.normalize_obs(raw), dtype=torch.float32)
