@@ -133,3 +133,37 @@ def test_the_shipped_schedule_is_a_teacher_and_an_unknown_one_names_the_shipped(
     TrainConfig(warm_start="schedule:latency")
     with pytest.raises(ValueError, match="shipped: latency"):
         TrainConfig(warm_start="schedule:nope")
+
+
+def test_each_warm_start_sample_carries_its_airframes_delay(tmp_path: Path):
+    cfg = TrainConfig(seed=1, out=str(tmp_path), envs=6, progress=False, randomize="iris")
+    venv = VecNormalize(make_vec_env(cfg), norm_obs=True, norm_reward=True, clip_obs=10.0, gamma=0.99)
+    model = make_model(cfg, venv, tmp_path / "tb")
+    warm = WarmStart(rounds=1, steps_per_round=40, preset="schedule:latency")
+    _, labels, delays = warm.run(model, venv)["dataset"]
+    per_step = delays.reshape(40, 6)  # 40 ticks: no episode ends, each copy keeps its airframe
+    assert len(delays) == len(labels) and (per_step == episode_delay_ticks(venv.unwrapped.batch)).all()
+    assert len(set(per_step[0].tolist())) > 1
+
+
+@pytest.mark.slow
+def test_the_anchor_can_keep_to_the_airframes_with_a_long_delay(tmp_path: Path):
+    import json
+
+    from training.train import train
+
+    cfg = TrainConfig(algo="ppo", seed=0, out=str(tmp_path), envs=8, steps=1024, checkpoint_every=100_000,
+                      eval_every=0, eval_episodes=0, warm_start="schedule:latency", warm_start_rounds=1,
+                      warm_start_steps=300, randomize="iris", anchor=1.0, anchor_from_ticks=3,
+                      progress=False, hp={"n_steps": 128, "batch_size": 256})
+    train(cfg)
+    kept = json.loads((tmp_path / "summary.json").read_text())["warm_start"]["anchor_samples"]
+    assert 0 < kept < 300 * 8 and kept % 300 == 0  # whole episodes: none ends within 300 ticks
+
+
+def test_anchor_from_ticks_goes_with_an_anchor():
+    with pytest.raises(ValueError, match="goes with --anchor"):
+        TrainConfig(warm_start="pid", anchor_from_ticks=3)
+    with pytest.raises(ValueError, match="must be >= 0"):
+        TrainConfig(warm_start="pid", anchor=1.0, anchor_from_ticks=-1)
+    assert TrainConfig(warm_start="pid", anchor=1.0, anchor_from_ticks=3).anchor_from_ticks == 3
