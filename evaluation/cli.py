@@ -48,7 +48,7 @@ def register_bound(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gyro-passes", type=int, default=0,
                    help="also re-solve with the previous solution's gyroscopic term "
                         "(an estimate, not a bound)")
-    p.add_argument("--jobs", type=int, default=0, help="worker processes (default: one per CPU)")
+    p.add_argument("--jobs", type=int, default=0, help="worker processes (default: one per usable CPU)")
     p.add_argument("--controller", action="append", default=None,
                    help="also fly pid, pid:<preset> or FILE.onnx on the same commands and compare")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
