@@ -21,6 +21,7 @@ reward and info after.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -74,6 +75,9 @@ class EnvConfig:
     axis_weights: tuple[float, float, float] = UNWEIGHTED  # roll, pitch, yaw error; unclipped only
     integral_leak: float = DEFAULT_LEAK  # λ of rate_error_integral, when it is a field
     randomize_share: float = 1.0  # with ranges: the share of episodes drawn from them, the rest nominal
+    # the action-rate penalty only once the setpoint has been held this long (s): a settled
+    # response must be quiet, a step may be sharp (0: every step, Neuroflight's penalty)
+    action_rate_after_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -107,6 +111,8 @@ class EnvConfig:
         if self.n_steps < 1:
             raise ValueError(f"episode_s={self.episode_s} is shorter than one step of {self.dt} s")
         object.__setattr__(self, "axis_weights", self.rate_reward.axis_weights)  # validates the reward
+        if not (math.isfinite(self.action_rate_after_s) and self.action_rate_after_s >= 0.0):
+            raise ValueError(f"action_rate_after_s must be finite and >= 0, got {self.action_rate_after_s}")
 
     @property
     def base_airframe(self) -> Airframe:
@@ -188,6 +194,10 @@ class RateTask:
         self._previous_u = np.zeros((*batch_shape, 4))
         self._first = np.ones(batch_shape, dtype=bool)  # episode starts: no previous output
         self._any_first = True
+        # the action-rate penalty's gate: how long each copy's setpoint has been held (ticks)
+        self._gate_ticks = round(cfg.action_rate_after_s / cfg.dt) if cfg.action_rate_after_s else 0
+        self._held = np.zeros(batch_shape, dtype=np.int64)
+        self._held_setpoint = np.zeros((*batch_shape, 3))
 
     def pwm(self, action: np.ndarray, throttle: np.ndarray | float) -> np.ndarray:
         return action_to_pwm(self.config.action_mapping, np.asarray(action, dtype=np.float32), throttle)
@@ -199,11 +209,24 @@ class RateTask:
         self._any_first = True
         if rows is None:
             self._first[...] = True
+            self._held[...] = 0
+            self._held_setpoint[...] = setpoint
             return self.history.reset(step)
         self._first[rows] = True
+        self._held[rows] = 0
+        self._held_setpoint[rows] = setpoint
         full = np.zeros((*self._first.shape, self.spec.step_size), dtype=np.float32)
         full[rows] = step
         return self.history.reset(full, rows)
+
+    def _settled(self, setpoint: np.ndarray) -> np.ndarray | None:
+        """Where the setpoint has been held for `action_rate_after_s` (None: no gate)."""
+        if not self._gate_ticks:
+            return None
+        held = (setpoint == self._held_setpoint).all(axis=-1)
+        self._held = np.where(held, self._held + 1, 0)
+        self._held_setpoint[...] = setpoint
+        return self._held >= self._gate_ticks
 
     def step(self, setpoint: np.ndarray, rate: np.ndarray, gyro: np.ndarray, rotor_speed: np.ndarray,
              pwm: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
@@ -213,7 +236,7 @@ class RateTask:
         if self._any_first:  # a first step has no Δu: its previous output is its own
             np.copyto(self._previous_u, u, where=self._first[..., None])
             self._first[...], self._any_first = False, False
-        reward, terms = self.reward(setpoint, rate, u, self._previous_u)
+        reward, terms = self.reward(setpoint, rate, u, self._previous_u, self._settled(setpoint))
         self._previous_u = u
         obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed))
         return obs, reward, {"setpoint": setpoint, "rate": rate, "gyro": gyro, "pwm": pwm, **terms}
@@ -240,11 +263,13 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
                  airframe: Airframe | str = "iris", dt: float = 0.001,
                  render_mode: str | None = None, obs_fields: tuple[str, ...] = FIELDS,
                  reward: str = "paper", axis_weights: tuple[float, float, float] = UNWEIGHTED,
-                 integral_leak: float = DEFAULT_LEAK, randomize_share: float = 1.0) -> None:
+                 integral_leak: float = DEFAULT_LEAK, randomize_share: float = 1.0,
+                 action_rate_after_s: float = 0.0) -> None:
         self.config = EnvConfig(task, memory, action_mapping, throttle, episode_s, noise, randomize,
                                 omega_max, action_rate_penalty, airframe, dt, obs_fields=tuple(obs_fields),
                                 reward=reward, axis_weights=tuple(axis_weights),  # type: ignore[arg-type]
-                                integral_leak=integral_leak, randomize_share=randomize_share)
+                                integral_leak=integral_leak, randomize_share=randomize_share,
+                                action_rate_after_s=action_rate_after_s)
         self.obs_spec = self.config.observation_spec
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)

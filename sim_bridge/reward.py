@@ -60,11 +60,12 @@ class RateReward:
             raise ValueError(f"omega_max must be > 0, got {self.omega_max}")
         object.__setattr__(self, "axis_weights", weights)
 
-    def __call__(self, setpoint: np.ndarray, rate: np.ndarray, u: np.ndarray,
-                 previous_u: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+    def __call__(self, setpoint: np.ndarray, rate: np.ndarray, u: np.ndarray, previous_u: np.ndarray,
+                 penalised: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """(reward, terms) for rates (..., 3) and motor outputs (..., 4).
 
         `previous_u` is the step before's u; on an episode's first step, u itself (Δu = 0).
+        `penalised` (...,) bool: where the action-rate penalty applies (default: everywhere).
         """
         paper = rate_reward(setpoint, rate, self.omega_max)
         if self.kind == "paper":
@@ -76,6 +77,8 @@ class RateReward:
             tracking = -((w[0] * e[..., 0] + w[1] * e[..., 1] + w[2] * e[..., 2]) * scale)
         action_rate = motor_output_rate(u, previous_u)
         penalty = self.action_rate_penalty * action_rate
+        if penalised is not None:
+            penalty = np.where(penalised, penalty, 0.0)
         terms = {"reward_tracking": tracking, "reward_action_rate": -penalty, "paper_reward": paper,
                  "action_rate": action_rate}  # REWARD_TERMS
         return tracking - penalty, terms

@@ -105,6 +105,9 @@ class TrainConfig:
     task: str = option("episodic", "training task", choices=("episodic", "continuous"))
     action_rate_penalty: float = option(0.0, "weight of Neuroflight's output-oscillation penalty "
                                              "(mean |Δu| per step); use with --squash")
+    action_rate_after: float = option(0.0, "apply --action-rate-penalty only once the setpoint has been "
+                                           "held this many seconds: quiet when settled, free in a step "
+                                           "(0: every step)")
     reward: str = option("unclipped", "paper: −clip(Σ|e|/(3·Ω_max), 0, 1); unclipped: the same without "
                                       "the clip", choices=REWARDS)
     axis_weights: tuple[float, float, float] = option(
@@ -196,6 +199,8 @@ class TrainConfig:
                              "--warm-start")
         if not (math.isfinite(self.anchor) and self.anchor >= 0.0):
             raise ValueError(f"--anchor must be finite and >= 0, got {self.anchor}")
+        if self.action_rate_after and not self.action_rate_penalty:
+            raise ValueError("--action-rate-after gates --action-rate-penalty: give the penalty too")
         if self.anchor_from_ticks < 0 or (self.anchor_from_ticks and not self.anchor):
             raise ValueError(f"--anchor-from-ticks must be >= 0 and goes with --anchor, got "
                              f"{self.anchor_from_ticks} with --anchor {self.anchor}")
@@ -248,7 +253,8 @@ class TrainConfig:
                 "action_rate_penalty": self.action_rate_penalty,
                 **({"airframe": self.airframe} if self.airframe != "iris" else {}),
                 **({"randomize": self.randomize} if self.randomize is not None else {}),
-                **({"randomize_share": self.randomize_share} if self.randomize_share != 1.0 else {})}
+                **({"randomize_share": self.randomize_share} if self.randomize_share != 1.0 else {}),
+                **({"action_rate_after_s": self.action_rate_after} if self.action_rate_after else {})}
 
 
 # ── The command line, generated from the fields ────────────────────────────────────────
