@@ -125,3 +125,29 @@ def test_bad_weights_are_refused(kwargs, match):
         RateControlEnv(**kwargs)
     with pytest.raises(ValueError, match=match):
         BatchedRateEnv(2, **kwargs)
+
+
+@pytest.mark.parametrize("task", ["episodic", "continuous"])
+def test_a_gated_penalty_waits_for_the_setpoint_to_be_held(task):
+    after_s, dt, steps = 0.03, 0.001, 2000
+    env = RateControlEnv(task=task, reward="unclipped", action_rate_penalty=1.0, action_rate_after_s=after_s,
+                         episode_s=steps * dt)
+    env.reset(seed=4)
+    rng = np.random.default_rng(0)
+    held, previous, changes, penalised_steps, charged = 0, None, 0, 0, 0.0
+    for _ in range(steps):
+        _, _, _, _, info = env.step(rng.uniform(-1, 1, 4).astype(np.float32))
+        # both tasks begin held (episodic: one setpoint; continuous: a rest), so the first step counts 1
+        changed = previous is not None and not np.array_equal(info["setpoint"], previous)
+        held, changes = (0, changes + 1) if changed else (held + 1, changes)
+        previous = info["setpoint"].copy()
+        penalised = held >= round(after_s / dt)
+        penalised_steps += penalised
+        assert info["reward_action_rate"] == pytest.approx(-info["action_rate"] if penalised else 0.0)
+        charged += -info["reward_action_rate"]
+    assert changes >= (2 if task == "continuous" else 0) and 0 < penalised_steps < steps and charged > 0
+
+
+def test_the_gate_is_checked():
+    with pytest.raises(ValueError, match="action_rate_after_s"):
+        RateControlEnv(action_rate_after_s=-0.1)

@@ -15,6 +15,9 @@ CONFIGS = {
     "noise": dict(noise=SensorNoise(gyro_std=0.1, gyro_bias=(0.01, 0.02, -0.03), accel_std=0.3,
                                     rotor_speed_std=4.0), episode_s=0.3),
     "randomize": dict(randomize={"mass": 0.2, "inertia": 0.3, "kf": 0.2, "km": 0.3}, episode_s=0.05),
+    # the penalty's gate counts each copy's held setpoint across pulses and auto-resets
+    "gated-penalty": dict(task="continuous", action_rate_penalty=0.5, action_rate_after_s=0.02,
+                          episode_s=0.3),
     # the integrator state lives in ObservationHistory: restarted per copy on auto-reset
     "integral-m2": dict(memory=2, obs_fields=("rate_error", "rotor_speed", "rate_error_integral"),
                         action_mapping="throttle", episode_s=0.05),
