@@ -199,6 +199,9 @@ class TrainConfig:
                              "--warm-start")
         if not (math.isfinite(self.anchor) and self.anchor >= 0.0):
             raise ValueError(f"--anchor must be finite and >= 0, got {self.anchor}")
+        if not (math.isfinite(self.action_rate_after) and self.action_rate_after >= 0.0):
+            raise ValueError(f"--action-rate-after must be finite and >= 0 (action_rate_after_s), "
+                             f"got {self.action_rate_after}")
         if self.action_rate_after and not self.action_rate_penalty:
             raise ValueError("--action-rate-after gates --action-rate-penalty: give the penalty too")
         if self.anchor_from_ticks < 0 or (self.anchor_from_ticks and not self.anchor):

@@ -159,3 +159,13 @@ def test_a_share_of_randomised_episodes_goes_to_the_env_and_needs_ranges():
     for bad in ({"randomize": "iris", "randomize_share": 2.0}, {"randomize_share": 0.5}):
         with pytest.raises(ValueError, match="--randomize-share"):
             TrainConfig(**bad)
+
+
+def test_the_penalty_gate_goes_to_the_env_and_needs_the_penalty():
+    kwargs = TrainConfig(action_rate_penalty=1.0, action_rate_after=0.2).env_kwargs()
+    assert kwargs["action_rate_after_s"] == 0.2
+    assert "action_rate_after_s" not in TrainConfig(action_rate_penalty=1.0).env_kwargs()
+    with pytest.raises(ValueError, match="give the penalty too"):
+        TrainConfig(action_rate_after=0.2)
+    with pytest.raises(ValueError, match="action_rate_after_s"):
+        TrainConfig(action_rate_penalty=1.0, action_rate_after=-0.2)
