@@ -16,7 +16,7 @@ POLICIES = sorted(POLICY_DIR.glob("*.onnx"))
 
 def test_there_are_shipped_policies():
     assert {p.name for p in POLICIES} >= {"iris_rate_ppo.onnx", "iris_rate_ppo_smooth.onnx",
-                                          "iris_rate_ppo_robust.onnx"}
+                                          "iris_rate_ppo_robust.onnx", "iris_rate_ppo_quiet.onnx"}
 
 
 @pytest.mark.parametrize("path", POLICIES, ids=lambda p: p.name)
