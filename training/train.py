@@ -174,6 +174,19 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
             **({"anchor": cfg.anchor, "anchor_from_ticks": cfg.anchor_from_ticks} if cfg.anchor else {})}
 
 
+def _anchor_samples(data: tuple, from_ticks: int) -> tuple:
+    """The warm start's (observations, labels) from airframes with at least `from_ticks` of loop
+    delay; all of them, uncopied, at 0 (the dataset is hundreds of MB at m = 16)."""
+    raw, labels, delays = data
+    if not from_ticks:
+        return raw, labels
+    keep = delays >= from_ticks
+    if not keep.any():
+        raise ValueError(f"--anchor-from-ticks {from_ticks}: no warm-start sample came from an airframe "
+                         f"with that much delay (at most {int(delays.max())} ticks)")
+    return raw[keep], labels[keep]
+
+
 def _observation_spec(cfg: TrainConfig):
     """The spec the training env observes with (what the exported model's metadata carries)."""
     from sim_bridge.env import EnvConfig
@@ -212,13 +225,10 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
         warm = WarmStart(cfg.warm_start_rounds, cfg.warm_start_steps, preset=cfg.warm_start).run(model, venv)
         data = warm.pop("dataset")  # the fit's samples: the anchor's, else let go here
         if cfg.anchor:
-            raw, labels, delays = data
-            keep = delays >= cfg.anchor_from_ticks
-            if not keep.any():
-                raise ValueError(f"--anchor-from-ticks {cfg.anchor_from_ticks}: no warm-start sample came "
-                                 f"from an airframe with that much delay (at most {int(delays.max())} ticks)")
-            model.set_anchor_data(raw[keep], labels[keep], venv.normalize_obs)
-            warm["anchor_samples"] = int(keep.sum())
+            anchor = _anchor_samples(data, cfg.anchor_from_ticks)
+            model.set_anchor_data(*anchor, venv.normalize_obs)
+            warm["anchor_samples"] = len(anchor[0])
+            del anchor
         del data
         warm["wall_s"] = round(time.perf_counter() - t0, 1)
         print(f"[warm start] {warm['env_steps']} env steps, {warm['wall_s']:.0f} s: "
