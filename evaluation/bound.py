@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
-import os
 import time
 from dataclasses import dataclass
 
@@ -50,6 +49,7 @@ from tqdm import tqdm
 
 from evaluation.rate_boxes import GYRO_PAIRS, Boxes, RateBoxes, gyro_coefficients
 from firmware.errors import UserError
+from firmware.timing import available_cpus
 from sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
 from sim_bridge.tasks import episodic_commands
 from sim_bridge.twin import Twin
@@ -335,11 +335,6 @@ def _solve(job: tuple[np.ndarray, int]) -> CommandBound:
     return _WORKER.solve(command, passes)
 
 
-def _usable_cpus() -> int:
-    """The CPUs this process may run on (its affinity: `taskset`, a container's cpuset), not the machine's."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def error_bounds(commands: np.ndarray, horizon: int = HORIZON, gyro_passes: int = 0, jobs: int = 1,
                  progress: bool = False, airframe: str = "iris") -> list[CommandBound]:
     """The bound for each command; `jobs` worker processes."""
@@ -365,7 +360,7 @@ def bound_command(args) -> int:
     progress = sys.stderr.isatty() and not args.json
     commands = episodic_commands(args.seed, args.episodes)
     t0 = time.perf_counter()
-    found = error_bounds(commands, args.horizon, args.gyro_passes, args.jobs or _usable_cpus(), progress,
+    found = error_bounds(commands, args.horizon, args.gyro_passes, args.jobs or available_cpus(), progress,
                          args.airframe)
     per_command = np.array([b.bound for b in found])
     split = np.array([b.split for b in found]).mean(axis=0)

@@ -177,6 +177,11 @@ def prioritize_loop() -> Callable[[], None]:
     return lower
 
 
+def available_cpus() -> int:
+    """The CPUs this process may run on (its affinity: `taskset`, a container's limit), not the machine's."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def give_loop_a_core(helper_pids: Iterable[int]) -> Callable[[], None]:
     """Pin this process (the flight loop) to one CPU and `helper_pids` to the others, and raise
     its priority (`prioritize_loop`).

@@ -14,13 +14,13 @@ import ast
 import copy
 import dataclasses
 import math
-import os
 import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any
 
 from firmware.observation import DEFAULT_LEAK
+from firmware.timing import available_cpus
 from sim_bridge.reward import REWARDS
 
 # ── Defaults per algorithm ─────────────────────────────────────────────────────────────
@@ -53,11 +53,6 @@ WARM_START_ROUNDS = 3
 WARM_START_STEPS = 1500  # per environment copy and round
 WARM_START_TARGET_KL = 0.01
 SELECT = ("bar", "error")  # how `--export best` ranks evaluations (quick_eval.selection_key)
-
-
-def available_cpus() -> int:
-    """The CPUs this process may run on (its affinity: `taskset` or a container's limit)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def parse_hp(items: list[str] | dict[str, Any] | None) -> dict[str, Any]:
