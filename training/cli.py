@@ -46,6 +46,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-early-stop", action="store_true", help="run every trial to the end")
     p.add_argument("--best-episodes", type=int, default=1000,
                    help="commands of the best policy's evaluation through the firmware loop")
+    p.add_argument("--perturb", type=int, default=0, metavar="N",
+                   help="fly each trial's policy, and the PID once, on N airframes drawn from the "
+                        "--randomize ranges (default iris), as `fcemu eval --perturb N` does, and "
+                        "judge each by issue 10's perturbed lines (default 0: not flown)")
+    p.add_argument("--perturb-seed", type=int, default=0, metavar="S",
+                   help="seed of the perturbed airframes (a stream training never draws from)")
+    p.add_argument("--perturb-episodes", type=int, default=100, metavar="E",
+                   help="commands flown on each perturbed airframe (the bar's commands, seed 7)")
     config.add_arguments(p, exclude=("seed", "out", "hp", "threads", "progress"), defaults=SWEEP_DEFAULTS,
                          only_given=True)
     p.add_argument("--json", action="store_true", help="print one JSON object: trials and the best")

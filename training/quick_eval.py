@@ -130,6 +130,7 @@ ERROR_RATIO_BAR = 0.95  # Error sum ≤ this × the PID's
 PEAK_MARGIN_PCT = 3.0  # Peak ≤ the PID's + this, every axis
 SUCCESS_BAR_PCT = 99.8  # Success ≥ this, every axis
 SMOOTHNESS_BAR = 1.5  # smoothness (mean |Δpwm| per step) ≤ this × the PID's
+PERTURBED_SUCCESS_BAR_PCT = 99.0  # on perturbed airframes: Success ≥ this, every axis (Error ≤ the PID's)
 
 
 def bar_verdict(policy: EvalMetrics, pids: dict[str, EvalMetrics], error_ratio: float = ERROR_RATIO_BAR,

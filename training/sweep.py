@@ -3,7 +3,8 @@
 spec (seeds × search space, `fcemu train` options; command line over YAML) → Ray, local or
 joined with --address → one Tune trial per point, each `training.train.train(cfg)` with
 its in-training race against the PID reported to Tune → ASHA stops trials whose best Error
-ratio falls behind → results table (CSV, Markdown) → the best trial's policy exported to
+ratio falls behind → (--perturb N: each trial's policy flown on N perturbed airframes, the
+PID once after them) → results table (CSV, Markdown) → the best trial's policy exported to
 OUT/best/policy.onnx and flown through the firmware loop against the PID.
 
 Layout: OUT/sweep.json (the spec), OUT/ray/ (Tune's experiment: restored when the same
@@ -34,6 +35,7 @@ EXPERIMENT = "sweep"
 class SweepError(RuntimeError):
     """Ray or the trials failed: `fcemu: error: ...`, exit status 1."""
 METRIC = "best_error_ratio"  # the in-training Error sum over the best PID's; lower is better
+BAR_COMMAND_SEED = 7  # issue 10's bar is flown on the commands of `fcemu eval --seed 7`
 
 
 # ── 1. The specification: seeds × search space, on top of `fcemu train` options ──────
@@ -81,6 +83,9 @@ class SweepSpec:
     seeds: list[int]
     space: dict[str, list[Any]]  # TrainConfig field or algorithm hyper-parameter → values tried
     train: dict[str, Any]  # fixed `fcemu train` options (TrainConfig fields)
+    # Each trial's policy flown on perturbed airframes after training (empty: not flown):
+    # {"airframes": N, "seed": S, "episodes": E, "ranges": name or file}
+    perturb: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     @property
     def n_trials(self) -> int:
@@ -130,10 +135,45 @@ def spec_from_args(args, defaults: dict[str, Any]) -> SweepSpec:
         raise ValueError("a sweep needs 0 < --eval-every <= --steps: early stopping and the choice "
                          "of the best trial read the in-training evaluations")
     spec = SweepSpec(seeds, space, {k: v for k, v in dataclasses.asdict(cfg).items()
-                                    if k not in ("seed", "out", "threads", "progress")})
+                                    if k not in ("seed", "out", "threads", "progress")},
+                     perturb_from_args(args, cfg))
     for point in itertools.product(*space.values()):  # a bad value fails here, not in a trial
         spec.config(seeds[0], dict(zip(space, point, strict=True)), "unused", threads=1)
     return spec
+
+
+def perturb_from_args(args, cfg: TrainConfig) -> dict[str, Any]:
+    """--perturb N [--perturb-seed S --perturb-episodes E]: the trials' perturbed flight, checked
+    here (the ranges load) so a bad value fails before any trial starts."""
+    n = getattr(args, "perturb", 0) or 0
+    if n == 0:
+        return {}
+    seed, episodes = args.perturb_seed, args.perturb_episodes
+    if n < 0 or seed < 0 or episodes < 1:
+        raise ValueError(f"--perturb {n} --perturb-seed {seed} --perturb-episodes {episodes}: expected "
+                         "N >= 1 airframes, a seed >= 0 and at least one command")
+    from sim_bridge.randomization import load_randomization
+
+    ranges = cfg.randomize or "iris"
+    load_randomization(ranges)  # RandomizationError is a ValueError
+    return {"airframes": n, "seed": seed, "episodes": episodes, "ranges": ranges}
+
+
+def fly_perturbed_summary(controller: str, perturb: dict[str, Any]) -> dict[str, Any]:
+    """`fcemu eval --controller C --episodes E --seed 7 --perturb N --perturb-seed S`, pooled:
+    the Error summed over the axes, each axis's Success and the motors' smoothness."""
+    from evaluation.metrics import AXES
+    from evaluation.perturb import fly_perturbed, perturbed_airframes
+    from evaluation.runner import EvalConfig
+    from sim_bridge.randomization import load_randomization
+
+    ranges = load_randomization(perturb["ranges"])
+    airframes = perturbed_airframes(ranges, perturb["airframes"], perturb["seed"])
+    cfg = EvalConfig(episodes=perturb["episodes"], seed=BAR_COMMAND_SEED)
+    m = fly_perturbed(controller, cfg, airframes, perturb["seed"], ranges=str(ranges.path)).metrics
+    return {"error": float(sum(m.stat("error", a).mean for a in AXES)),
+            "success_pct": [float(m.stat("success_pct", a).mean) for a in AXES],
+            "smoothness": float(m.stat("smoothness", AXES[0]).mean)}
 
 
 # ── 2. One trial: one `fcemu train` run, its race against the PID reported to Tune ─────
@@ -180,6 +220,8 @@ def run_trial(point: dict[str, Any], spec: dict[str, Any], runs: str, threads: i
     final = trial_metrics(race.history, race.best)
     final.update(finished=True, steps=summary["steps"], wall_s=summary["train_wall_s"],
                  steps_per_s=summary["steps_per_s"], exported=summary["exported"])
+    if spec["perturb"]:
+        final["perturbed"] = fly_perturbed_summary(summary["export"]["out"], spec["perturb"])
     tune.report(final)
 
 
@@ -265,6 +307,7 @@ def fit(tuner) -> tuple[Any, bool]:
 # ── 4. Results: a row per trial, the table, the best policy flown in the firmware ─────
 COLUMNS = ("trial", "seed", "settings", "status", "best_error_ratio", "best_steps", "success_pct",
            "smoothness", "meets_bar", "steps", "wall_s")
+PERTURBED_COLUMNS = ("perturbed_error_ratio", "perturbed_success_pct", "meets_perturbed")
 
 
 def trial_rows(results) -> list[dict[str, Any]]:
@@ -282,7 +325,7 @@ def trial_rows(results) -> list[dict[str, Any]]:
                      "best_error_ratio": m.get(METRIC), "best_steps": m.get("best_steps"),
                      "success_pct": m.get("success_pct"), "smoothness": m.get("smoothness"),
                      "meets_bar": m.get("meets_bar"), "selection_key": m.get("selection_key"),
-                     "steps": m.get("steps"),
+                     "steps": m.get("steps"), "perturbed": m.get("perturbed"),
                      "wall_s": None if m.get("wall_s") is None else round(m["wall_s"], 1),
                      "best_checkpoint": m.get("best_checkpoint")})
     return sorted(rows, key=lambda row: (row["seed"], json.dumps(row["settings"], sort_keys=True)))
@@ -293,24 +336,43 @@ def _cell(key: str, value: Any) -> str:
         return "n/a"
     if key == "settings":
         return " ".join(f"{k}={v}" for k, v in value.items()) or "(recipe)"
-    if key == "success_pct":
+    if key.endswith("success_pct"):
         return "/".join(f"{v:.1f}" for v in value)
     if isinstance(value, bool):
         return "yes" if value else "no"
     if isinstance(value, float):
-        return f"{value:.3f}" if key == "best_error_ratio" else f"{value:.1f}"
+        return f"{value:.3f}" if key.endswith("error_ratio") else f"{value:.1f}"
     return str(value)
 
 
-def write_tables(rows: list[dict[str, Any]], out: Path) -> None:
+def judge_perturbed(rows: list[dict[str, Any]], perturb: dict[str, Any]) -> dict[str, Any]:
+    """The PID flown once on the trials' perturbed airframes; each trial judged against it by
+    issue 10's perturbed lines (Error ≤ the PID's, Success ≥ 99 % on every axis)."""
+    from training.quick_eval import PERTURBED_SUCCESS_BAR_PCT
+
+    print(f"fcemu sweep: flying pid on the {perturb['airframes']} perturbed airframes", file=sys.stderr)
+    pid = fly_perturbed_summary("pid", perturb)
+    for row in rows:
+        p = row["perturbed"]
+        row["perturbed_error_ratio"] = None if p is None else p["error"] / pid["error"]
+        row["perturbed_success_pct"] = None if p is None else p["success_pct"]
+        row["meets_perturbed"] = None if p is None else bool(
+            p["error"] <= pid["error"] and min(p["success_pct"]) >= PERTURBED_SUCCESS_BAR_PCT)
+    return pid
+
+
+def write_tables(rows: list[dict[str, Any]], out: Path, perturbed: bool = False) -> None:
+    columns = COLUMNS + (PERTURBED_COLUMNS if perturbed else ())
     with (out / "results.csv").open("w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(COLUMNS)
-        writer.writerows([[_cell(k, row[k]) for k in COLUMNS] for row in rows])
+        writer.writerow(columns)
+        writer.writerows([[_cell(k, row[k]) for k in columns] for row in rows])
     head = ("trial", "seed", "settings", "status", "best Error ratio vs PID", "at step",
             "Success % r/p/y", "smoothness µs/step", "meets issue 10's bar", "steps", "wall s")
+    if perturbed:
+        head += ("perturbed Error ratio vs PID", "perturbed Success % r/p/y", "meets the perturbed lines")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    lines += ["| " + " | ".join(_cell(k, row[k]) for k in COLUMNS) + " |" for row in rows]
+    lines += ["| " + " | ".join(_cell(k, row[k]) for k in columns) + " |" for row in rows]
     (out / "results.md").write_text("\n".join(lines) + "\n")
 
 
@@ -400,9 +462,13 @@ def run_sweep(spec: SweepSpec, out: Path, args) -> dict[str, Any] | None:
         if interrupted:
             return None
         rows = trial_rows(results)
-        write_tables(rows, out)
+        pid = judge_perturbed(rows, spec.perturb) if spec.perturb else None
+        write_tables(rows, out, perturbed=pid is not None)
         best = export_best(rows, spec, out, args.best_episodes)
     finally:
         ray.shutdown()
-    return {"engine": "ray", "ray_version": ray.__version__, "out": str(out), "steps": spec.train["steps"],
-            "wall_s": round(time.perf_counter() - t0, 1), "trials": rows, "best": best}
+    payload = {"engine": "ray", "ray_version": ray.__version__, "out": str(out), "steps": spec.train["steps"],
+               "wall_s": round(time.perf_counter() - t0, 1), "trials": rows, "best": best}
+    if pid is not None:
+        payload["perturbed_pid"] = {**spec.perturb, **pid}
+    return payload

@@ -22,6 +22,8 @@ ROOT = Path(__file__).resolve().parents[2]
 SHORT = ["--steps", "2048", "--envs", "8", "--eval-every", "1024", "--eval-commands", "2",
          "--checkpoint-every", "1024", "--best-episodes", "2"]
 
+PERTURB = ["--perturb", "2", "--perturb-seed", "5", "--perturb-episodes", "2"]  # each trial, then the PID
+
 
 def fcemu(*args: str, **kwargs) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
@@ -66,7 +68,7 @@ def test_spec_from_yaml_and_command_line(tmp_path):
 def sweep(tmp_path_factory) -> tuple[Path, dict, str]:
     out = tmp_path_factory.mktemp("sweep") / "out"
     proc = fcemu("sweep", "--seeds", "0-1", *SHORT, "--hp", "n_steps=128", "batch_size=256",
-                 "--cpus", "2", "--no-early-stop", "--out", str(out), "--json")
+                 "--cpus", "2", "--no-early-stop", "--out", str(out), "--json", *PERTURB)
     stdout, stderr = proc.communicate(timeout=600)
     assert proc.returncode == 0, stderr[-3000:]
     return out, json.loads(stdout), stderr  # stdout holds one JSON object and nothing else
@@ -103,6 +105,45 @@ def test_tables_hold_every_trial(sweep):
     assert all(r["status"] == "done" and r["settings"] == "n_steps=128 batch_size=256" for r in rows)
     md = (out / "results.md").read_text().splitlines()
     assert md[0].startswith("| trial | seed |") and len(md) == 2 + len(rows)
+    assert md[0].endswith("| perturbed Error ratio vs PID | perturbed Success % r/p/y "
+                          "| meets the perturbed lines |")
+    assert all(r["meets_perturbed"] in ("yes", "no") for r in rows)
+
+
+def _eval_perturbed(controller: str) -> dict:
+    proc = fcemu("eval", "--controller", controller, "--episodes", "2", "--seed", "7", *PERTURB[:4], "--json")
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 0, stderr[-2000:]
+    return json.loads(stdout)["perturbed"]  # one controller: one object
+
+
+def test_each_trial_and_the_pid_fly_the_perturbed_airframes_of_fcemu_eval(sweep):
+    out, payload, _ = sweep
+    pid = payload["perturbed_pid"]
+    assert (pid["airframes"], pid["seed"], pid["episodes"], pid["ranges"]) == (2, 5, 2, "iris")
+    reference = _eval_perturbed("pid")
+    assert pid["error"] == pytest.approx(sum(v[0] for v in reference["error"].values()))
+    for t in payload["trials"]:
+        p = t["perturbed"]
+        reference = _eval_perturbed(str(out / "runs" / t["trial"] / "policy.onnx"))
+        assert p["error"] == pytest.approx(sum(v[0] for v in reference["error"].values()))
+        assert p["success_pct"] == pytest.approx([v[0] for v in reference["success_pct"].values()])
+        assert t["perturbed_error_ratio"] == pytest.approx(p["error"] / pid["error"])
+        assert t["meets_perturbed"] == (p["error"] <= pid["error"] and min(p["success_pct"]) >= 99.0)
+
+
+def test_a_bad_perturbed_flight_fails_before_any_trial():
+    from fcemu.cli import build_parser
+    from training.cli import SWEEP_DEFAULTS
+    from training.sweep import spec_from_args
+
+    for bad in (["--perturb", "-1"], ["--perturb", "2", "--perturb-episodes", "0"],
+                ["--perturb", "2", "--randomize", "no_such_ranges"]):
+        with pytest.raises(ValueError, match=r"perturb|no_such_ranges"):
+            spec_from_args(build_parser().parse_args(["sweep", *bad]), SWEEP_DEFAULTS)
+    spec = spec_from_args(build_parser().parse_args(["sweep", *PERTURB]), SWEEP_DEFAULTS)
+    assert spec.perturb == {"airframes": 2, "seed": 5, "episodes": 2, "ranges": "iris"}
+    assert spec_from_args(build_parser().parse_args(["sweep"]), SWEEP_DEFAULTS).perturb == {}
 
 
 def test_the_best_trial_is_exported_and_flown(sweep):
