@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from training import sweep_perturbed
 from training.config import FIELDS, TrainConfig
 
 EXPERIMENT = "sweep"
@@ -35,7 +36,6 @@ EXPERIMENT = "sweep"
 class SweepError(RuntimeError):
     """Ray or the trials failed: `fcemu: error: ...`, exit status 1."""
 METRIC = "best_error_ratio"  # the in-training Error sum over the best PID's; lower is better
-BAR_COMMAND_SEED = 7  # issue 10's bar is flown on the commands of `fcemu eval --seed 7`
 
 
 # ── 1. The specification: seeds × search space, on top of `fcemu train` options ──────
@@ -136,44 +136,10 @@ def spec_from_args(args, defaults: dict[str, Any]) -> SweepSpec:
                          "of the best trial read the in-training evaluations")
     spec = SweepSpec(seeds, space, {k: v for k, v in dataclasses.asdict(cfg).items()
                                     if k not in ("seed", "out", "threads", "progress")},
-                     perturb_from_args(args, cfg))
+                     sweep_perturbed.perturb_from_args(args, cfg))
     for point in itertools.product(*space.values()):  # a bad value fails here, not in a trial
         spec.config(seeds[0], dict(zip(space, point, strict=True)), "unused", threads=1)
     return spec
-
-
-def perturb_from_args(args, cfg: TrainConfig) -> dict[str, Any]:
-    """--perturb N [--perturb-seed S --perturb-episodes E]: the trials' perturbed flight, checked
-    here (the ranges load) so a bad value fails before any trial starts."""
-    n = getattr(args, "perturb", 0) or 0
-    if n == 0:
-        return {}
-    seed, episodes = args.perturb_seed, args.perturb_episodes
-    if n < 0 or seed < 0 or episodes < 1:
-        raise ValueError(f"--perturb {n} --perturb-seed {seed} --perturb-episodes {episodes}: expected "
-                         "N >= 1 airframes, a seed >= 0 and at least one command")
-    from sim_bridge.randomization import load_randomization
-
-    ranges = cfg.randomize or "iris"
-    load_randomization(ranges)  # RandomizationError is a ValueError
-    return {"airframes": n, "seed": seed, "episodes": episodes, "ranges": ranges}
-
-
-def fly_perturbed_summary(controller: str, perturb: dict[str, Any]) -> dict[str, Any]:
-    """`fcemu eval --controller C --episodes E --seed 7 --perturb N --perturb-seed S`, pooled:
-    the Error summed over the axes, each axis's Success and the motors' smoothness."""
-    from evaluation.metrics import AXES
-    from evaluation.perturb import fly_perturbed, perturbed_airframes
-    from evaluation.runner import EvalConfig
-    from sim_bridge.randomization import load_randomization
-
-    ranges = load_randomization(perturb["ranges"])
-    airframes = perturbed_airframes(ranges, perturb["airframes"], perturb["seed"])
-    cfg = EvalConfig(episodes=perturb["episodes"], seed=BAR_COMMAND_SEED)
-    m = fly_perturbed(controller, cfg, airframes, perturb["seed"], ranges=str(ranges.path)).metrics
-    return {"error": float(sum(m.stat("error", a).mean for a in AXES)),
-            "success_pct": [float(m.stat("success_pct", a).mean) for a in AXES],
-            "smoothness": float(m.stat("smoothness", AXES[0]).mean)}
 
 
 # ── 2. One trial: one `fcemu train` run, its race against the PID reported to Tune ─────
@@ -221,7 +187,7 @@ def run_trial(point: dict[str, Any], spec: dict[str, Any], runs: str, threads: i
     final.update(finished=True, steps=summary["steps"], wall_s=summary["train_wall_s"],
                  steps_per_s=summary["steps_per_s"], exported=summary["exported"])
     if spec["perturb"]:
-        final["perturbed"] = fly_perturbed_summary(summary["export"]["out"], spec["perturb"])
+        final["perturbed"] = sweep_perturbed.fly_summary(summary["export"]["out"], spec["perturb"])
     tune.report(final)
 
 
@@ -345,22 +311,6 @@ def _cell(key: str, value: Any) -> str:
     return str(value)
 
 
-def judge_perturbed(rows: list[dict[str, Any]], perturb: dict[str, Any]) -> dict[str, Any]:
-    """The PID flown once on the trials' perturbed airframes; each trial judged against it by
-    issue 10's perturbed lines (Error ≤ the PID's, Success ≥ 99 % on every axis)."""
-    from training.quick_eval import PERTURBED_SUCCESS_BAR_PCT
-
-    print(f"fcemu sweep: flying pid on the {perturb['airframes']} perturbed airframes", file=sys.stderr)
-    pid = fly_perturbed_summary("pid", perturb)
-    for row in rows:
-        p = row["perturbed"]
-        row["perturbed_error_ratio"] = None if p is None else p["error"] / pid["error"]
-        row["perturbed_success_pct"] = None if p is None else p["success_pct"]
-        row["meets_perturbed"] = None if p is None else bool(
-            p["error"] <= pid["error"] and min(p["success_pct"]) >= PERTURBED_SUCCESS_BAR_PCT)
-    return pid
-
-
 def write_tables(rows: list[dict[str, Any]], out: Path, perturbed: bool = False) -> None:
     columns = COLUMNS + (PERTURBED_COLUMNS if perturbed else ())
     with (out / "results.csv").open("w", newline="") as f:
@@ -462,7 +412,7 @@ def run_sweep(spec: SweepSpec, out: Path, args) -> dict[str, Any] | None:
         if interrupted:
             return None
         rows = trial_rows(results)
-        pid = judge_perturbed(rows, spec.perturb) if spec.perturb else None
+        pid = sweep_perturbed.judge(rows, spec.perturb) if spec.perturb else None
         write_tables(rows, out, perturbed=pid is not None)
         best = export_best(rows, spec, out, args.best_episodes)
     finally:

@@ -1,0 +1,65 @@
+"""`fcemu sweep --perturb N`: each trial's policy on N perturbed airframes, judged against the PID.
+
+The same flight as `fcemu eval --controller P --episodes E --seed 7 --perturb N
+--perturb-seed S` (the bar's commands, airframes from the training ranges on a stream
+training never draws from), pooled over the airframes; the PID is flown once, after the
+trials, and each trial's row says whether it meets issue 10's perturbed lines.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+from training.config import TrainConfig
+from training.quick_eval import PERTURBED_SUCCESS_BAR_PCT
+
+BAR_COMMAND_SEED = 7  # issue 10's bar is flown on the commands of `fcemu eval --seed 7`
+
+
+def perturb_from_args(args, cfg: TrainConfig) -> dict[str, Any]:
+    """--perturb N [--perturb-seed S --perturb-episodes E]: the trials' perturbed flight, checked
+    here (the ranges load) so a bad value fails before any trial starts."""
+    n = getattr(args, "perturb", 0) or 0
+    if n == 0:
+        return {}
+    seed, episodes = args.perturb_seed, args.perturb_episodes
+    if n < 0 or seed < 0 or episodes < 1:
+        raise ValueError(f"--perturb {n} --perturb-seed {seed} --perturb-episodes {episodes}: expected "
+                         "N >= 1 airframes, a seed >= 0 and at least one command")
+    from sim_bridge.randomization import load_randomization
+
+    ranges = cfg.randomize or "iris"
+    load_randomization(ranges)  # RandomizationError is a ValueError
+    return {"airframes": n, "seed": seed, "episodes": episodes, "ranges": ranges}
+
+
+def fly_summary(controller: str, perturb: dict[str, Any]) -> dict[str, Any]:
+    """`fcemu eval --controller C --episodes E --seed 7 --perturb N --perturb-seed S`, pooled:
+    the Error summed over the axes, each axis's Success and the motors' smoothness."""
+    from evaluation.metrics import AXES
+    from evaluation.perturb import fly_perturbed, perturbed_airframes
+    from evaluation.runner import EvalConfig
+    from sim_bridge.randomization import load_randomization
+
+    ranges = load_randomization(perturb["ranges"])
+    airframes = perturbed_airframes(ranges, perturb["airframes"], perturb["seed"])
+    cfg = EvalConfig(episodes=perturb["episodes"], seed=BAR_COMMAND_SEED)
+    m = fly_perturbed(controller, cfg, airframes, perturb["seed"], ranges=str(ranges.path)).metrics
+    return {"error": float(sum(m.stat("error", a).mean for a in AXES)),
+            "success_pct": [float(m.stat("success_pct", a).mean) for a in AXES],
+            "smoothness": float(m.stat("smoothness", AXES[0]).mean)}
+
+
+def judge(rows: list[dict[str, Any]], perturb: dict[str, Any]) -> dict[str, Any]:
+    """The PID flown once on the trials' perturbed airframes; each trial judged against it by
+    issue 10's perturbed lines (Error ≤ the PID's, Success ≥ 99 % on every axis)."""
+    print(f"fcemu sweep: flying pid on the {perturb['airframes']} perturbed airframes", file=sys.stderr)
+    pid = fly_summary("pid", perturb)
+    for row in rows:
+        p = row["perturbed"]
+        row["perturbed_error_ratio"] = None if p is None else p["error"] / pid["error"]
+        row["perturbed_success_pct"] = None if p is None else p["success_pct"]
+        row["meets_perturbed"] = None if p is None else bool(
+            p["error"] <= pid["error"] and min(p["success_pct"]) >= PERTURBED_SUCCESS_BAR_PCT)
+    return pid
