@@ -374,7 +374,9 @@ def sweep_command(args) -> int:
         return user_error(str(exc))
     saved = out / "sweep.json"
     stored = json.dumps(dataclasses.asdict(spec), sort_keys=True, default=list)
-    if saved.is_file() and json.dumps(json.loads(saved.read_text()), sort_keys=True) != stored:
+    # A sweep saved before --perturb existed has no "perturb": the same as not flying them.
+    if saved.is_file() and json.dumps({"perturb": {}, **json.loads(saved.read_text())},
+                                      sort_keys=True) != stored:
         return user_error(f"{out} holds a different sweep (its spec: {saved}); choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     saved.write_text(json.dumps(dataclasses.asdict(spec), indent=2, default=list) + "\n")

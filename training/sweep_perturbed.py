@@ -34,9 +34,11 @@ def perturb_from_args(args, cfg: TrainConfig) -> dict[str, Any]:
     return {"airframes": n, "seed": seed, "episodes": episodes, "ranges": ranges}
 
 
-def fly_summary(controller: str, perturb: dict[str, Any]) -> dict[str, Any]:
+def fly_summary(controller: str, perturb: dict[str, Any], progress: bool = False) -> dict[str, Any]:
     """`fcemu eval --controller C --episodes E --seed 7 --perturb N --perturb-seed S`, pooled:
     the Error summed over the axes, each axis's Success and the motors' smoothness."""
+    from tqdm import tqdm
+
     from evaluation.metrics import AXES
     from evaluation.perturb import fly_perturbed, perturbed_airframes
     from evaluation.runner import EvalConfig
@@ -45,7 +47,10 @@ def fly_summary(controller: str, perturb: dict[str, Any]) -> dict[str, Any]:
     ranges = load_randomization(perturb["ranges"])
     airframes = perturbed_airframes(ranges, perturb["airframes"], perturb["seed"])
     cfg = EvalConfig(episodes=perturb["episodes"], seed=BAR_COMMAND_SEED)
-    m = fly_perturbed(controller, cfg, airframes, perturb["seed"], ranges=str(ranges.path)).metrics
+    with tqdm(total=len(airframes), desc=f"{controller} on perturbed airframes", unit="airframe",
+              file=sys.stderr, disable=not (progress and sys.stderr.isatty())) as bar:
+        m = fly_perturbed(controller, cfg, airframes, perturb["seed"], on_airframe=lambda _: bar.update(),
+                          ranges=str(ranges.path)).metrics
     return {"error": float(sum(m.stat("error", a).mean for a in AXES)),
             "success_pct": [float(m.stat("success_pct", a).mean) for a in AXES],
             "smoothness": float(m.stat("smoothness", AXES[0]).mean)}
@@ -54,8 +59,7 @@ def fly_summary(controller: str, perturb: dict[str, Any]) -> dict[str, Any]:
 def judge(rows: list[dict[str, Any]], perturb: dict[str, Any]) -> dict[str, Any]:
     """The PID flown once on the trials' perturbed airframes; each trial judged against it by
     issue 10's perturbed lines (Error ≤ the PID's, Success ≥ 99 % on every axis)."""
-    print(f"fcemu sweep: flying pid on the {perturb['airframes']} perturbed airframes", file=sys.stderr)
-    pid = fly_summary("pid", perturb)
+    pid = fly_summary("pid", perturb, progress=True)
     for row in rows:
         p = row["perturbed"]
         row["perturbed_error_ratio"] = None if p is None else p["error"] / pid["error"]
