@@ -12,7 +12,7 @@ import sys
 from typing import Any
 
 from training.config import TrainConfig
-from training.quick_eval import PERTURBED_SUCCESS_BAR_PCT
+from training.quick_eval import PERTURBED_SUCCESS_BAR_PCT, error_sum
 
 BAR_COMMAND_SEED = 7  # issue 10's bar is flown on the commands of `fcemu eval --seed 7`
 
@@ -51,7 +51,7 @@ def fly_summary(controller: str, perturb: dict[str, Any], progress: bool = False
               file=sys.stderr, disable=not (progress and sys.stderr.isatty())) as bar:
         m = fly_perturbed(controller, cfg, airframes, perturb["seed"], on_airframe=lambda _: bar.update(),
                           ranges=str(ranges.path)).metrics
-    return {"error": float(sum(m.stat("error", a).mean for a in AXES)),
+    return {"error": error_sum(m),
             "success_pct": [float(m.stat("success_pct", a).mean) for a in AXES],
             "smoothness": float(m.stat("smoothness", AXES[0]).mean)}
 
