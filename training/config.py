@@ -111,6 +111,9 @@ class TrainConfig:
     norm_reward: bool | None = option(None, "VecNormalize reward scaling (default: per algorithm)")
     norm_obs: bool = option(True, "VecNormalize observation normalisation (folded into the exported "
                                   "ONNX graph)")
+    obs_clip: float = option(10.0, "VecNormalize's clip of the normalised observation, in standard "
+                                   "deviations (SB3's 10); 0: none, so the export folds the "
+                                   "normalisation into the first layer (about 2 µs less per inference)")
     hp: dict[str, Any] = field(default_factory=dict, metadata={
         "help": "override algorithm hyper-parameters", "nargs": "*", "metavar": "KEY=VALUE",
         "parse": parse_hp})
@@ -163,6 +166,8 @@ class TrainConfig:
         if self.threads < 0:
             raise ValueError(f"--threads must be >= 0 (0: one per available CPU), got {self.threads}")
         self.threads = self.threads or available_cpus()
+        if not (math.isfinite(self.obs_clip) and self.obs_clip >= 0.0):
+            raise ValueError(f"--obs-clip must be finite and >= 0 (0: no clip), got {self.obs_clip}")
         if self.integral_leak != DEFAULT_LEAK and not self.integral:
             raise ValueError("--integral-leak sets the integral's leak: it needs --integral")
         if self.reward == "paper" and tuple(self.axis_weights) != (1.0, 1.0, 1.0):

@@ -203,7 +203,7 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
     (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
 
     venv = VecNormalize(make_vec_env(cfg), norm_obs=cfg.norm_obs, norm_reward=cfg.normalise_reward,
-                        clip_obs=10.0, gamma=cfg.hyper.get("gamma", 0.99))
+                        clip_obs=cfg.obs_clip or np.inf, gamma=cfg.hyper.get("gamma", 0.99))
     model = make_model(cfg, venv, out / "tb")
     callbacks: list[BaseCallback] = [
         RewardTermsCallback(),
