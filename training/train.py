@@ -166,7 +166,7 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
             "seed": cfg.seed, "trained_steps": 0, "fcemu_version": __version__,
             "env": cfg.env_kwargs(), "reward": cfg.reward, "axis_weights": list(cfg.axis_weights),
             "n_envs": cfg.n_envs,
-            "norm_reward": cfg.normalise_reward, "select": cfg.select,
+            "norm_reward": cfg.normalise_reward, "obs_clip": cfg.obs_clip, "select": cfg.select,
             "hyperparameters": json.loads(json.dumps(algo_hp, default=repr)),
             "torch_threads": cfg.threads, "command": " ".join(sys.argv),
             **({"caps": {"temporal": cfg.caps_temporal, "spatial": cfg.caps_spatial, "sigma": cfg.caps_sigma}}

@@ -36,6 +36,8 @@ def runs(tmp_path_factory) -> dict[str, Path]:
     off_policy = {"learning_starts": 64, "buffer_size": 10_000, "batch_size": 32}
     return {
         "ppo": _tiny_run(root, "ppo", 2, 1024, {"n_steps": 64, "batch_size": 64}),
+        "ppo_unclipped": _tiny_run(root / "unclipped", "ppo", 2, 1024, {"n_steps": 64, "batch_size": 64},
+                                   obs_clip=0.0),
         "ppo_squashed": _tiny_run(root / "squashed", "ppo", 1, 1024, {
             "n_steps": 64, "batch_size": 64,
             "policy_kwargs": {"net_arch": {"pi": [64, 64], "vf": [64, 64]}, "squash_output": True}}),
@@ -81,7 +83,7 @@ def test_parity_and_metadata_round_trip(runs, algo, tmp_path):
     assert ctrl.spec == spec and ctrl.action_mapping == "throttle"
 
 
-@pytest.mark.parametrize("algo", ["ppo", "ppo_squashed", "sac"])
+@pytest.mark.parametrize("algo", ["ppo", "ppo_unclipped", "ppo_squashed", "sac"])
 def test_onnx_is_the_normalised_deterministic_actor(runs, algo, tmp_path):
     """Independently of export's own check: ONNX(raw obs) == SB3 predict(VecNormalize(obs))."""
     import pickle
@@ -102,6 +104,20 @@ def test_onnx_is_the_normalised_deterministic_actor(runs, algo, tmp_path):
     inside = np.abs(got).max(axis=1) < 1.0  # predict clips to the action box; the ONNX output does not
     assert inside.sum() > 100
     np.testing.assert_allclose(got[inside], expected[inside], atol=1e-5)
+
+
+def test_without_an_observation_clip_the_normalisation_folds_into_the_first_layer(runs, tmp_path):
+    import onnx
+
+    def ops(run: Path) -> list[str]:
+        out = tmp_path / f"{run.name}.onnx"
+        export_policy(run, out)
+        return [n.op_type for n in onnx.load(str(out)).graph.node]
+
+    assert ops(runs["ppo_unclipped"]) == ["Gemm", "Tanh", "Gemm", "Tanh", "Gemm"]  # the bare MLP
+    clipped = ops(runs["ppo"])
+    assert clipped[:2] == ["Sub", "Mul"] and "Clip" in clipped  # the clip at 10 σ keeps the normalisation
+    assert json.loads((runs["ppo_unclipped"] / "config.json").read_text())["obs_clip"] == 0.0
 
 
 def test_checkpoint_zip_exports_with_its_own_normalisation(runs, tmp_path):

@@ -59,6 +59,11 @@ def test_the_command_line_builds_the_config():
         from_args(build_parser().parse_args([*argv.split(), "--integral", "--integral-leak", "1.0"]))
     with pytest.raises(ValueError, match="needs --integral"):  # would be ignored: no integral to leak
         from_args(build_parser().parse_args([*argv.split(), "--integral-leak", "0.9995"]))
+    assert cfg.obs_clip == 10.0
+    assert from_args(build_parser().parse_args([*argv.split(), "--obs-clip", "0"])).obs_clip == 0.0
+    for bad in ("-1", "inf", "nan"):
+        with pytest.raises(ValueError, match="obs-clip"):
+            from_args(build_parser().parse_args([*argv.split(), "--obs-clip", bad]))
     assert cfg.throttle == 0.7
     with pytest.raises(ValueError, match="squash"):
         from_args(build_parser().parse_args([*argv.split(), "--squash"]))  # SAC squashes already
