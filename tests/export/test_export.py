@@ -109,15 +109,29 @@ def test_onnx_is_the_normalised_deterministic_actor(runs, algo, tmp_path):
 def test_without_an_observation_clip_the_normalisation_folds_into_the_first_layer(runs, tmp_path):
     import onnx
 
-    def ops(run: Path) -> list[str]:
-        out = tmp_path / f"{run.name}.onnx"
-        export_policy(run, out)
+    def ops(name: str, folded: bool) -> list[str]:
+        out = tmp_path / f"{name}.onnx"
+        report = export_policy(runs[name], out)
+        assert report["parity_ok"] and report["normalisation"].startswith("folded" if folded else "in the")
         return [n.op_type for n in onnx.load(str(out)).graph.node]
 
-    assert ops(runs["ppo_unclipped"]) == ["Gemm", "Tanh", "Gemm", "Tanh", "Gemm"]  # the bare MLP
-    clipped = ops(runs["ppo"])
+    assert ops("ppo_unclipped", True) == ["Gemm", "Tanh", "Gemm", "Tanh", "Gemm"]  # the bare MLP
+    clipped = ops("ppo", False)
     assert clipped[:2] == ["Sub", "Mul"] and "Clip" in clipped  # the clip at 10 σ keeps the normalisation
     assert json.loads((runs["ppo_unclipped"] / "config.json").read_text())["obs_clip"] == 0.0
+
+
+def test_a_fold_that_loses_parity_falls_back_to_the_normalisation_in_the_graph(runs, tmp_path, monkeypatch):
+    import export.onnx_export as onnx_export
+
+    def off_by_a_little(actor):
+        folded = onnx_export.FoldedActor(actor)
+        folded.net[0].bias.data += 1e-3  # what float32 cancellation would do, only larger
+        return folded
+
+    monkeypatch.setattr(onnx_export, "graph_module", off_by_a_little)
+    report = export_policy(runs["ppo_unclipped"], tmp_path / "p.onnx")
+    assert report["parity_ok"] and report["normalisation"] == "in the graph"
 
 
 def test_checkpoint_zip_exports_with_its_own_normalisation(runs, tmp_path):
