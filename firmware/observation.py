@@ -9,8 +9,8 @@ does. Optional field `rate_error_rms` (3): the leaky root-mean-square of the sca
 error, R_k = √P_k with P_k = μ·P_{k−1} + (1 − μ)·e_k², over about one period of the
 limit cycles a fast policy can fall into on a slow airframe (17–60 Hz): a 16 ms history
 sees less than a period, and the integral averages an oscillation to zero, so without it
-a policy cannot tell that it rings. The spec travels in the model's metadata and the firmware refuses a model whose
-spec differs.
+a policy cannot tell that it rings. The spec travels in the model's metadata and the
+firmware refuses a model whose spec differs.
 
 `FIELD_DEFS` declares each field (its source signal, the spec's scale for it, whether it
 is integrated) and `ObservationSpec.column_sources`/`column_scales` flatten it per column;
@@ -178,9 +178,9 @@ class ObservationHistory:
     """The last `memory` steps, newest first, for one vehicle or a batch of them.
 
     With integrated fields in the spec it also keeps their integrator states, one per batch
-    row, and writes each (the root, for an RMS field) into each step it stores. `view` is the observation batch itself
-    (…, size), updated in place: flight binds it as the model's input; `reset` and `push`
-    return copies of it.
+    row, and writes each (the root, for an RMS field) into each step it stores. `view` is
+    the observation batch itself (…, size), updated in place: flight binds it as the model's
+    input; `reset` and `push` return copies of it.
     """
 
     def __init__(self, spec: ObservationSpec, batch_shape: tuple[int, ...] = ()) -> None:

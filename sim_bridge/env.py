@@ -31,7 +31,14 @@ import gymnasium as gym
 import numpy as np
 
 from firmware.action import ACTION_MAPPINGS, PWM_MIN, PWM_SPAN, action_to_pwm
-from firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK, FIELDS, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import (
+    DEFAULT_LEAK,
+    DEFAULT_RMS_LEAK,
+    FIELDS,
+    ObservationHistory,
+    ObservationSpec,
+    observe_step,
+)
 from sim_bridge.airframe import Airframe, load_airframe
 from sim_bridge.plant import SensorNoise
 from sim_bridge.randomization import Randomization, load_randomization

@@ -89,8 +89,8 @@ class TrainConfig:
                                    "(rate_error_integral)")
     integral_leak: float = option(DEFAULT_LEAK, "the integral's λ per step (time constant 1/(1 − λ) steps); "
                                          "λ → 1 approaches a true integrator")
-    error_rms: bool = option(False, "add the leaky RMS of the rate error to the observation (rate_error_rms): "
-                                    "what lets a policy see that it oscillates")
+    error_rms: bool = option(False, "add the leaky RMS of the rate error to the observation "
+                                    "(rate_error_rms): what lets a policy see that it oscillates")
     rms_leak: float = option(DEFAULT_RMS_LEAK, "the RMS's μ per step (time constant 1/(1 − μ) steps)")
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")

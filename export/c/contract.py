@@ -40,7 +40,8 @@ def c_float(x: float) -> str:
 _SOURCE_C = {"rate_error": "(setpoint[i] - gyro[i])", "rotor_speed": "rotor_speed[i]"}
 _SCALE_C = {"rate_scale": "FCEMU_RATE_SCALE", "rotor_speed_scale": "FCEMU_ROTOR_SPEED_SCALE"}
 # Per integrated field: its state member in `fcemu_policy_state` and its λ's constant.
-_STATE_C = {"integral_leak": ("integral", "FCEMU_INTEGRAL_LEAK"), "rms_leak": ("mean_square", "FCEMU_RMS_LEAK")}
+_STATE_C = {"integral_leak": ("integral", "FCEMU_INTEGRAL_LEAK"),
+            "rms_leak": ("mean_square", "FCEMU_RMS_LEAK")}
 
 
 def _field_code(name: str, k: int) -> str:

@@ -59,6 +59,13 @@ def test_the_command_line_builds_the_config():
         from_args(build_parser().parse_args([*argv.split(), "--integral", "--integral-leak", "1.0"]))
     with pytest.raises(ValueError, match="needs --integral"):  # would be ignored: no integral to leak
         from_args(build_parser().parse_args([*argv.split(), "--integral-leak", "0.9995"]))
+    rms = ["--integral", "--error-rms", "--rms-leak", "0.99"]
+    cfg = from_args(build_parser().parse_args([*argv.split(), *rms]))
+    assert cfg.obs_fields[-2:] == ("rate_error_integral", "rate_error_rms")
+    assert cfg.env_kwargs()["rms_leak"] == 0.99 == cfg.obs_leaks["rms_leak"]
+    with pytest.raises(ValueError, match="needs --error-rms"):
+        from_args(build_parser().parse_args([*argv.split(), "--rms-leak", "0.99"]))
+    cfg = from_args(build_parser().parse_args([*argv.split(), "--integral", "--throttle", "0.7"]))
     assert cfg.throttle == 0.7
     with pytest.raises(ValueError, match="squash"):
         from_args(build_parser().parse_args([*argv.split(), "--squash"]))  # SAC squashes already
