@@ -18,7 +18,7 @@ import numpy as np
 
 from firmware.action import ACTION_MAPPINGS
 from firmware.errors import UserError
-from firmware.observation import FIELD_DEFS, OBS_VERSION, ObservationSpec, observe_step
+from firmware.observation import FIELD_DEFS, LEAKS, OBS_VERSION, ObservationSpec, observe_step
 
 META_PREFIX = "fcemu."
 REQUIRED_META = ("observation", "action_mapping", "loop_rate_hz")
@@ -32,7 +32,7 @@ SCALED_RANGE = (1.0 / 20.0, 20.0)
 # Actions are in [-1, 1] and clipped there; a model answering ordinary observations with
 # outputs beyond this bound was not trained for this action space.
 OUTPUT_LIMIT = 100.0
-_SPEC_KEYS = {"memory", "rate_scale", "rotor_speed_scale", "fields", "version", "integral_leak"}
+_SPEC_KEYS = {"memory", "rate_scale", "rotor_speed_scale", "fields", "version", *LEAKS}
 
 
 class PolicyContractError(UserError, ValueError):
@@ -162,12 +162,15 @@ def _observation(text: str, where: str) -> ObservationSpec:
         if not lo <= value * physical <= hi:
             raise PolicyContractError(f"{where}: observation {key} {value:.3g} maps {physical:g} rad/s to "
                                       f"{value * physical:.3g}, outside [{lo:g}, {hi:g}] as trained")
-    leak = raw.get("integral_leak", defaults.integral_leak)
-    if not _finite(leak) or not 0.0 <= leak < 1.0:
-        raise PolicyContractError(f"{where}: observation integral_leak {_short(leak)} is not in [0, 1)")
+    leaks = {}
+    for key in sorted(LEAKS):
+        leak = raw.get(key, getattr(defaults, key))
+        if not _finite(leak) or not 0.0 <= leak < 1.0:
+            raise PolicyContractError(f"{where}: observation {key} {_short(leak)} is not in [0, 1)")
+        leaks[key] = float(leak)
     return ObservationSpec(memory=memory, rate_scale=float(raw.get("rate_scale", defaults.rate_scale)),
                            rotor_speed_scale=float(raw.get("rotor_speed_scale", defaults.rotor_speed_scale)),
-                           fields=tuple(fields), version=version, integral_leak=float(leak))
+                           fields=tuple(fields), version=version, **leaks)
 
 
 def _loop_rate(text: str, where: str) -> float:

@@ -5,8 +5,12 @@ speeds (4) for the last `memory` steps, newest first. Optional field
 `rate_error_integral` (3): a leaky integral of the scaled rate error,
 I_k = λ·I_{k−1} + (1 − λ)·e_k with I = (1 − λ)·e_0 at the episode start; a policy with
 m = 1 has no other memory, so it cannot remove a steady offset the way a PID's I term
-does. The spec travels in the model's metadata and the firmware refuses a model whose
-spec differs.
+does. Optional field `rate_error_rms` (3): the leaky root-mean-square of the scaled rate
+error, R_k = √P_k with P_k = μ·P_{k−1} + (1 − μ)·e_k², over about one period of the
+limit cycles a fast policy can fall into on a slow airframe (17–60 Hz): a 16 ms history
+sees less than a period, and the integral averages an oscillation to zero, so without it
+a policy cannot tell that it rings. The spec travels in the model's metadata and the
+firmware refuses a model whose spec differs.
 
 `FIELD_DEFS` declares each field (its source signal, the spec's scale for it, whether it
 is integrated) and `ObservationSpec.column_sources`/`column_scales` flatten it per column;
@@ -27,8 +31,10 @@ import numpy as np
 
 OBS_VERSION = 1
 DEFAULT_LEAK = 0.995  # λ per step: τ = 200 steps (0.2 s at 1 kHz)
+DEFAULT_RMS_LEAK = 0.98  # μ per step: τ = 50 steps, one period at 20 Hz
 FIELDS = ("rate_error", "rotor_speed")  # the default; the shipped policy's spec
 INTEGRAL = "rate_error_integral"
+RMS = "rate_error_rms"
 # The signals a field can read, as columns of one source vector: the rate error
 # setpoint − gyro (rad/s, FRD), then the rotor speeds (rad/s, motor order).
 SOURCE_COLUMNS = {"rate_error": (0, 1, 2), "rotor_speed": (3, 4, 5, 6)}
@@ -38,11 +44,20 @@ _FLOAT64 = np.dtype(np.float64)
 
 @dataclass(frozen=True)
 class FieldDef:
-    """One observation field: `source` times the spec's `scale` attribute, float32."""
+    """One observation field: `source` times the spec's `scale` attribute, float32.
+
+    With `leak` (the name of the spec's λ attribute) the field is leaky-integrated over
+    steps by `ObservationHistory`; with `rms` too, of its square, and stored as the root.
+    """
 
     source: str
     scale: str
-    integrated: bool = False  # leaky-integrated over steps by `ObservationHistory`
+    leak: str | None = None
+    rms: bool = False
+
+    @property
+    def integrated(self) -> bool:
+        return self.leak is not None
 
     @property
     def size(self) -> int:
@@ -52,8 +67,10 @@ class FieldDef:
 FIELD_DEFS: dict[str, FieldDef] = {
     "rate_error": FieldDef("rate_error", "rate_scale"),
     "rotor_speed": FieldDef("rotor_speed", "rotor_speed_scale"),
-    INTEGRAL: FieldDef("rate_error", "rate_scale", integrated=True),
+    INTEGRAL: FieldDef("rate_error", "rate_scale", leak="integral_leak"),
+    RMS: FieldDef("rate_error", "rate_scale", leak="rms_leak", rms=True),
 }
+LEAKS = frozenset(d.leak for d in FIELD_DEFS.values() if d.leak)  # the spec's λ attributes
 
 
 @dataclass(frozen=True)
@@ -64,6 +81,7 @@ class ObservationSpec:
     fields: tuple[str, ...] = FIELDS
     version: int = OBS_VERSION
     integral_leak: float = DEFAULT_LEAK  # only with INTEGRAL
+    rms_leak: float = DEFAULT_RMS_LEAK  # only with RMS
 
     def __post_init__(self) -> None:
         if self.memory < 1:
@@ -73,8 +91,9 @@ class ObservationSpec:
             raise ValueError(f"unknown observation fields {sorted(unknown)}")
         if len(set(self.fields)) != len(self.fields):
             raise ValueError(f"repeated observation fields {self.fields}")
-        if not 0.0 <= self.integral_leak < 1.0:
-            raise ValueError(f"integral_leak must be in [0, 1), got {self.integral_leak}")
+        for leak in LEAKS:
+            if not 0.0 <= getattr(self, leak) < 1.0:
+                raise ValueError(f"{leak} must be in [0, 1), got {getattr(self, leak)}")
 
     @property
     def step_size(self) -> int:
@@ -108,14 +127,16 @@ class ObservationSpec:
     def _pick_sources(self) -> itemgetter:
         return itemgetter(*self.column_sources)
 
-    def integral_slice(self) -> slice | None:
-        """The integral's columns within one step, or None without the field."""
-        return next((cols for cols, d, _ in self.layout if d.integrated), None)
+    @cached_property
+    def integrators(self) -> tuple[tuple[slice, float, bool], ...]:
+        """Per integrated field in order: its columns within one step, its λ, whether RMS."""
+        return tuple((cols, float(getattr(self, d.leak)), d.rms) for cols, d, _ in self.layout if d.leak)
 
     def to_json(self) -> str:
         raw = asdict(self)
-        if INTEGRAL not in self.fields:  # specs without the integral serialise without its leak
-            del raw["integral_leak"]
+        used = {FIELD_DEFS[f].leak for f in self.fields}
+        for leak in LEAKS - used:  # a spec serialises only the leaks of its fields (older readers)
+            del raw[leak]
         return json.dumps(raw, sort_keys=True)
 
     @classmethod
@@ -156,10 +177,10 @@ def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
 class ObservationHistory:
     """The last `memory` steps, newest first, for one vehicle or a batch of them.
 
-    With an integrated field in the spec it also keeps the integrator state, one per batch
-    row, and writes it into each step it stores. `view` is the observation batch itself
-    (…, size), updated in place: flight binds it as the model's input; `reset` and `push`
-    return copies of it.
+    With integrated fields in the spec it also keeps their integrator states, one per batch
+    row, and writes each (the root, for an RMS field) into each step it stores. `view` is
+    the observation batch itself (…, size), updated in place: flight binds it as the model's
+    input; `reset` and `push` return copies of it.
     """
 
     def __init__(self, spec: ObservationSpec, batch_shape: tuple[int, ...] = ()) -> None:
@@ -170,24 +191,23 @@ class ObservationHistory:
         # Where a caller may build the next step for `record`/`start` in place: with memory 1
         # the newest slot itself, so nothing is copied (a step not recorded is overwritten next).
         self.staging = self._newest if spec.memory == 1 else np.zeros_like(self._newest)
-        self._cols = spec.integral_slice()
-        self._integral = (None if self._cols is None else
-                          np.zeros((*batch_shape, self._cols.stop - self._cols.start), dtype=np.float32))
+        self._integrators = [(cols, np.float32(lam), rms,
+                              np.zeros((*batch_shape, cols.stop - cols.start), dtype=np.float32))
+                             for cols, lam, rms in spec.integrators]
 
     def start(self, step: np.ndarray, mask: np.ndarray | None = None) -> None:
         """Fill the whole history with one step (the episode start); `mask` picks batch rows."""
         if mask is not None:
             kept_steps = self._buf.copy()
-            kept_integral = None if self._integral is None else self._integral.copy()
+            kept_states = [state.copy() for *_, state in self._integrators]
             self.start(step)
             self._buf[~mask] = kept_steps[~mask]
-            if kept_integral is not None:
-                self._integral[~mask] = kept_integral[~mask]
+            for (*_, state), kept in zip(self._integrators, kept_states, strict=True):
+                state[~mask] = kept[~mask]
             return
         if step is not self._newest:
             self._newest[...] = step
-        if self._integral is not None:
-            self._integrate(restart=True)
+        self._integrate(restart=True)
         self._buf[..., 1:, :] = self._newest[..., None, :]
 
     def record(self, step: np.ndarray) -> None:
@@ -196,8 +216,7 @@ class ObservationHistory:
             self._buf[..., 1:, :] = self._buf[..., :-1, :]
         if step is not self._newest:
             self._newest[...] = step
-        if self._integral is not None:
-            self._integrate(restart=False)
+        self._integrate(restart=False)
 
     def reset(self, step: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
         self.start(step, mask)
@@ -211,8 +230,9 @@ class ObservationHistory:
         return self.view.copy()
 
     def _integrate(self, restart: bool) -> None:
-        """Advance the integrator with the newest step's input and store its state there."""
-        lam = np.float32(self.spec.integral_leak)
-        carried = np.float32(0.0) if restart else lam * self._integral
-        self._integral[...] = carried + (np.float32(1.0) - lam) * self._newest[..., self._cols]
-        self._newest[..., self._cols] = self._integral
+        """Advance each integrator with the newest step's input and store its output there."""
+        for cols, lam, rms, state in self._integrators:
+            x = self._newest[..., cols]
+            carried = np.float32(0.0) if restart else lam * state
+            state[...] = carried + (np.float32(1.0) - lam) * (x * x if rms else x)
+            self._newest[..., cols] = np.sqrt(state) if rms else state

@@ -31,7 +31,14 @@ import gymnasium as gym
 import numpy as np
 
 from firmware.action import ACTION_MAPPINGS, PWM_MIN, PWM_SPAN, action_to_pwm
-from firmware.observation import DEFAULT_LEAK, FIELDS, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import (
+    DEFAULT_LEAK,
+    DEFAULT_RMS_LEAK,
+    FIELDS,
+    ObservationHistory,
+    ObservationSpec,
+    observe_step,
+)
 from sim_bridge.airframe import Airframe, load_airframe
 from sim_bridge.plant import SensorNoise
 from sim_bridge.randomization import Randomization, load_randomization
@@ -74,6 +81,7 @@ class EnvConfig:
     reward: str = "paper"  # sim_bridge.reward.REWARDS
     axis_weights: tuple[float, float, float] = UNWEIGHTED  # roll, pitch, yaw error; unclipped only
     integral_leak: float = DEFAULT_LEAK  # λ of rate_error_integral, when it is a field
+    rms_leak: float = DEFAULT_RMS_LEAK  # μ of rate_error_rms, when it is a field
     randomize_share: float = 1.0  # with ranges: the share of episodes drawn from them, the rest nominal
     # the action-rate penalty only once the setpoint has been held this long (s): a settled
     # response must be quiet, a step may be sharp (0: every step, Neuroflight's penalty)
@@ -126,7 +134,7 @@ class EnvConfig:
     @property
     def observation_spec(self) -> ObservationSpec:
         return ObservationSpec(memory=self.memory, fields=tuple(self.obs_fields),
-                               integral_leak=self.integral_leak)
+                               integral_leak=self.integral_leak, rms_leak=self.rms_leak)
 
     @property
     def noisy(self) -> bool:
@@ -264,12 +272,12 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
                  render_mode: str | None = None, obs_fields: tuple[str, ...] = FIELDS,
                  reward: str = "paper", axis_weights: tuple[float, float, float] = UNWEIGHTED,
                  integral_leak: float = DEFAULT_LEAK, randomize_share: float = 1.0,
-                 action_rate_after_s: float = 0.0) -> None:
+                 action_rate_after_s: float = 0.0, rms_leak: float = DEFAULT_RMS_LEAK) -> None:
         self.config = EnvConfig(task, memory, action_mapping, throttle, episode_s, noise, randomize,
                                 omega_max, action_rate_penalty, airframe, dt, obs_fields=tuple(obs_fields),
                                 reward=reward, axis_weights=tuple(axis_weights),  # type: ignore[arg-type]
                                 integral_leak=integral_leak, randomize_share=randomize_share,
-                                action_rate_after_s=action_rate_after_s)
+                                action_rate_after_s=action_rate_after_s, rms_leak=rms_leak)
         self.obs_spec = self.config.observation_spec
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)

@@ -19,7 +19,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
-from firmware.observation import DEFAULT_LEAK
+from firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK
 from firmware.timing import available_cpus
 from sim_bridge.reward import REWARDS
 
@@ -89,6 +89,9 @@ class TrainConfig:
                                    "(rate_error_integral)")
     integral_leak: float = option(DEFAULT_LEAK, "the integral's λ per step (time constant 1/(1 − λ) steps); "
                                          "λ → 1 approaches a true integrator")
+    error_rms: bool = option(False, "add the leaky RMS of the rate error to the observation "
+                                    "(rate_error_rms): what lets a policy see that it oscillates")
+    rms_leak: float = option(DEFAULT_RMS_LEAK, "the RMS's μ per step (time constant 1/(1 − μ) steps)")
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")
     envs: int | None = option(None, "parallel twins (default: per algorithm)")
@@ -161,8 +164,9 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algorithm {self.algo!r}; choose one of {tuple(ALGOS)}")
-        if not 0.0 <= self.integral_leak < 1.0:
-            raise ValueError(f"--integral-leak must be in [0, 1), got {self.integral_leak}")
+        for flag, leak in (("--integral-leak", self.integral_leak), ("--rms-leak", self.rms_leak)):
+            if not 0.0 <= leak < 1.0:
+                raise ValueError(f"{flag} must be in [0, 1), got {leak}")
         if self.threads < 0:
             raise ValueError(f"--threads must be >= 0 (0: one per available CPU), got {self.threads}")
         self.threads = self.threads or available_cpus()
@@ -170,6 +174,8 @@ class TrainConfig:
             raise ValueError(f"--obs-clip must be finite and >= 0 (0: no clip), got {self.obs_clip}")
         if self.integral_leak != DEFAULT_LEAK and not self.integral:
             raise ValueError("--integral-leak sets the integral's leak: it needs --integral")
+        if self.rms_leak != DEFAULT_RMS_LEAK and not self.error_rms:
+            raise ValueError("--rms-leak sets the RMS's leak: it needs --error-rms")
         if self.reward == "paper" and tuple(self.axis_weights) != (1.0, 1.0, 1.0):
             raise ValueError("axis weights need --reward unclipped")
         if self.select not in SELECT:
@@ -228,9 +234,15 @@ class TrainConfig:
 
     @property
     def obs_fields(self) -> tuple[str, ...]:
-        from firmware.observation import FIELDS, INTEGRAL
+        from firmware.observation import FIELDS, INTEGRAL, RMS
 
-        return (*FIELDS, INTEGRAL) if self.integral else FIELDS
+        return (*FIELDS, *((INTEGRAL,) if self.integral else ()), *((RMS,) if self.error_rms else ()))
+
+    @property
+    def obs_leaks(self) -> dict[str, float]:
+        """The λ of each integrated field in the observation, as `EnvConfig` keywords."""
+        return {**({"integral_leak": self.integral_leak} if self.integral else {}),
+                **({"rms_leak": self.rms_leak} if self.error_rms else {})}
 
     @property
     def n_envs(self) -> int:
@@ -250,7 +262,7 @@ class TrainConfig:
 
     def env_kwargs(self) -> dict[str, Any]:
         return {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields,
-                **({"integral_leak": self.integral_leak} if self.integral else {}),
+                **self.obs_leaks,
                 "action_mapping": self.action_mapping, "throttle": self.throttle,
                 "reward": self.reward, "axis_weights": tuple(self.axis_weights),
                 "action_rate_penalty": self.action_rate_penalty,

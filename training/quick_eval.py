@@ -69,11 +69,13 @@ class BatchedEvaluator:
     action_mapping: str = "throttle"
     obs_fields: tuple[str, ...] = FIELDS
     airframe: str = "iris"
+    obs_leaks: dict[str, float] = field(default_factory=dict)  # EnvConfig's λ of integrated fields
     env: BatchedRateEnv = field(init=False)
 
     def __post_init__(self) -> None:
         self.env = BatchedRateEnv(self.n, task="episodic", memory=self.memory, obs_fields=self.obs_fields,
-                                  action_mapping=self.action_mapping, throttle=None, airframe=self.airframe)
+                                  action_mapping=self.action_mapping, throttle=None, airframe=self.airframe,
+                                  **self.obs_leaks)
 
     def traces(self, act, name: str = "policy") -> Traces:
         """`act(obs (n, size) float32) -> actions (n, 4)`; trace sample k is tick k, as in the runner."""

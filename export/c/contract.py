@@ -2,7 +2,8 @@
 
 `contract_sources` is the one place that turns the ONNX metadata (observation spec,
 action mapping, loop rate) into C: constants, the observation builder (rate error,
-rotor speeds, optional leaky integral; `memory` steps, newest first) and the
+rotor speeds, optional leaky integral and leaky RMS of the rate error; `memory` steps,
+newest first) and the
 action-to-PWM mapping. It mirrors `firmware.observation` and `firmware.action` in
 float32 — what a Cortex-M4F computes in hardware — so the host parity tests compare
 the two within float32 rounding.
@@ -38,16 +39,23 @@ def c_float(x: float) -> str:
 # table is the one definition; a new field there needs only these two maps to cover it.
 _SOURCE_C = {"rate_error": "(setpoint[i] - gyro[i])", "rotor_speed": "rotor_speed[i]"}
 _SCALE_C = {"rate_scale": "FCEMU_RATE_SCALE", "rotor_speed_scale": "FCEMU_ROTOR_SPEED_SCALE"}
+# Per integrated field: its state member in `fcemu_policy_state` and its λ's constant.
+_STATE_C = {"integral_leak": ("integral", "FCEMU_INTEGRAL_LEAK"),
+            "rms_leak": ("mean_square", "FCEMU_RMS_LEAK")}
 
 
 def _field_code(name: str, k: int) -> str:
     field = FIELD_DEFS[name]
     value = f"{_SOURCE_C[field.source]} * {_SCALE_C[field.scale]}"
-    if not field.integrated:
+    if not field.leak:
         return f"        step[{k} + i] = {value};"
-    return ("        float carried = s->fresh ? 0.0f : FCEMU_INTEGRAL_LEAK * s->integral[i];\n"
-            f"        s->integral[i] = carried + (1.0f - FCEMU_INTEGRAL_LEAK) * ({value});\n"
-            f"        step[{k} + i] = s->integral[i];")
+    state, leak = _STATE_C[field.leak]
+    update = "x * x" if field.rms else "x"
+    out = f"sqrtf(s->{state}[i])" if field.rms else f"s->{state}[i]"
+    return (f"        float x = {value};\n"
+            f"        float carried = s->fresh ? 0.0f : {leak} * s->{state}[i];\n"
+            f"        s->{state}[i] = carried + (1.0f - {leak}) * ({update});\n"
+            f"        step[{k} + i] = {out};")
 
 
 _ACTION_CODE = {
@@ -97,6 +105,7 @@ def contract_sources(contract: Contract) -> dict[str, str]:
         "FCEMU_RATE_SCALE": c_float(spec.rate_scale),
         "FCEMU_ROTOR_SPEED_SCALE": c_float(spec.rotor_speed_scale),
         "FCEMU_INTEGRAL_LEAK": c_float(spec.integral_leak),
+        "FCEMU_RMS_LEAK": c_float(spec.rms_leak),
         "FCEMU_DIFFERENTIAL_GAIN": c_float(DIFFERENTIAL_GAIN),
         "FCEMU_PWM_MIN": c_float(PWM_MIN),
         "FCEMU_PWM_SPAN": c_float(PWM_SPAN),
@@ -121,6 +130,7 @@ def contract_sources(contract: Contract) -> dict[str, str]:
 typedef struct {{
     float history[FCEMU_OBS_MEMORY][FCEMU_OBS_STEP_SIZE];
     float integral[3];
+    float mean_square[3];
     int fresh;
 }} fcemu_policy_state;
 

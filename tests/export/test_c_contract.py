@@ -1,5 +1,5 @@
 """The generated contract C against `firmware.observation` and `firmware.action`, compiled
-for the host: a spec with memory 3 and the leaky integral, both action mappings."""
+for the host: a spec with memory 3, the leaky integral and the leaky RMS, both action mappings."""
 
 from __future__ import annotations
 
@@ -15,10 +15,11 @@ from onnx import TensorProto, helper, numpy_helper
 from export.c.build import compile_host, export_c
 from export.c.contract import Contract, contract_sources
 from firmware.action import action_to_pwm
-from firmware.observation import INTEGRAL, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import INTEGRAL, RMS, ObservationHistory, ObservationSpec, observe_step
 from tests.export.mcu_tools import require_codegen
 
-SPEC = ObservationSpec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL), integral_leak=0.99)
+SPEC = ObservationSpec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL, RMS), integral_leak=0.99,
+                       rms_leak=0.95)
 F32P = ctypes.POINTER(ctypes.c_float)
 
 
@@ -65,7 +66,7 @@ def _ptr(a: np.ndarray):
     return a.ctypes.data_as(F32P)
 
 
-def test_observation_history_and_integral_match_python(libraries) -> None:
+def test_observation_history_integral_and_rms_match_python(libraries) -> None:
     lib = libraries["throttle"]
     state = ctypes.create_string_buffer(lib.fcemu_policy_state_bytes())
     rng = np.random.default_rng(0)

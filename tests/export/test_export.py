@@ -46,15 +46,16 @@ def runs(tmp_path_factory) -> dict[str, Path]:
     }
 
 
-def test_integral_observation_exports_and_flies(tmp_path):
+def test_integral_and_rms_observation_exports_and_flies(tmp_path):
     run = _tiny_run(tmp_path, "ppo", 1, 1024, {"n_steps": 64, "batch_size": 64}, integral=True,
-                    integral_leak=0.9995)
+                    integral_leak=0.9995, error_rms=True, rms_leak=0.99)
     info = export_policy(run, tmp_path / "p.onnx", parity_samples=10_000)
     assert info["parity_max_abs_diff"] <= 1e-5
     spec = ObservationSpec.from_json(read_metadata(tmp_path / "p.onnx")["observation"])
-    assert spec.fields[-1] == "rate_error_integral" and spec.size == 10
-    assert spec.integral_leak == 0.9995  # the leak trained with is the one the firmware flies
-    assert json.loads((run / "config.json").read_text())["env"]["integral_leak"] == 0.9995
+    assert spec.fields[-2:] == ("rate_error_integral", "rate_error_rms") and spec.size == 13
+    assert (spec.integral_leak, spec.rms_leak) == (0.9995, 0.99)  # the leaks trained with are the ones flown
+    env = json.loads((run / "config.json").read_text())["env"]
+    assert (env["integral_leak"], env["rms_leak"]) == (0.9995, 0.99)
     ctrl = NeuralRateController(tmp_path / "p.onnx")
     assert ctrl.spec == spec
 

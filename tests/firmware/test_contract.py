@@ -73,6 +73,7 @@ LIES = {
     "spec_not_object": ({"observation": "[1, 2]"}, "not understood"),
     "version_text": ({"observation": obs(version="1")}, "version"),
     "leak_one": ({"observation": obs(integral_leak=1.0)}, "integral_leak"),
+    "rms_leak_nan": ({"observation": obs(rms_leak=float("nan"))}, "rms_leak"),
     "no_mapping": ({"action_mapping": None}, "metadata lacks"),
 }
 

@@ -4,20 +4,22 @@ import pytest
 
 from firmware.controllers import DEFAULT_POLICY
 from firmware.neural import META_PREFIX
-from firmware.observation import FIELDS, INTEGRAL, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import FIELDS, INTEGRAL, RMS, ObservationHistory, ObservationSpec, observe_step
 
 
 def test_default_spec_serialises_exactly_as_the_shipped_policy_metadata():
     props = {p.key: p.value for p in onnx.load(str(DEFAULT_POLICY), load_external_data=False).metadata_props}
     assert ObservationSpec().to_json() == props[META_PREFIX + "observation"]
     assert "integral_leak" not in ObservationSpec().to_json()
+    assert "rms_leak" not in ObservationSpec().to_json()
 
 
 def test_integral_spec_round_trips_and_sizes():
     spec = ObservationSpec(memory=2, fields=(*FIELDS, INTEGRAL), integral_leak=0.99)
     assert ObservationSpec.from_json(spec.to_json()) == spec
     assert spec.step_size == 10 and spec.size == 20
-    assert spec.integral_slice() == slice(7, 10)
+    assert spec.integrators == ((slice(7, 10), 0.99, False),)
+    assert "rms_leak" not in spec.to_json()
     with pytest.raises(ValueError, match="integral_leak"):
         ObservationSpec(fields=(*FIELDS, INTEGRAL), integral_leak=1.0)
     with pytest.raises(ValueError, match="repeated"):
@@ -77,4 +79,39 @@ def test_the_field_table_flattens_to_one_source_column_and_scale_per_observation
     spec = ObservationSpec(fields=("rotor_speed", "rate_error", INTEGRAL))
     assert spec.column_sources == (3, 4, 5, 6, 0, 1, 2, 0, 1, 2)
     assert spec.column_scales == (spec.rotor_speed_scale,) * 4 + (spec.rate_scale,) * 6
-    assert spec.step_size == 10 and spec.integral_slice() == slice(7, 10)
+    assert spec.step_size == 10 and spec.integrators[0][0] == slice(7, 10)
+
+
+def test_rms_spec_round_trips_and_refuses_a_leak_out_of_range():
+    spec = ObservationSpec(memory=2, fields=(*FIELDS, INTEGRAL, RMS), integral_leak=0.99, rms_leak=0.9)
+    assert ObservationSpec.from_json(spec.to_json()) == spec
+    assert spec.step_size == 13 and spec.size == 26
+    assert spec.integrators == ((slice(7, 10), 0.99, False), (slice(10, 13), 0.9, True))
+    assert "integral_leak" not in ObservationSpec(fields=(*FIELDS, RMS)).to_json()
+    with pytest.raises(ValueError, match="rms_leak"):
+        ObservationSpec(fields=(*FIELDS, RMS), rms_leak=-0.1)
+
+
+def test_rms_is_the_root_of_the_leaky_mean_square_and_sees_an_oscillation_the_integral_does_not():
+    mu = 0.9
+    spec = ObservationSpec(fields=(RMS, INTEGRAL, "rate_error"), rms_leak=mu, integral_leak=mu)
+    hist = ObservationHistory(spec, (2,))
+    rotor = np.zeros((2, 4))
+
+    def step(err: np.ndarray) -> np.ndarray:
+        return observe_step(spec, np.stack([err / spec.rate_scale] * 3, axis=-1), np.zeros((2, 3)), rotor)
+
+    # row 0 oscillates ±0.5 every tick, row 1 holds 0.5: the same RMS, opposite integrals
+    errors = [np.array([0.5 * (-1) ** k, 0.5]) for k in range(200)]
+    obs = hist.reset(step(errors[0]))
+    np.testing.assert_allclose(obs[:, 0], np.sqrt(1 - mu) * 0.5, rtol=1e-6)  # P_0 = (1 − μ)·e_0²
+    mean_square = (1 - mu) * 0.25
+    for err in errors[1:]:
+        obs = hist.push(step(err))
+        mean_square = mu * mean_square + (1 - mu) * 0.25
+    np.testing.assert_allclose(obs[:, 0], np.sqrt(mean_square), rtol=1e-5)
+    assert obs[0, 0] > 0.49 and abs(obs[0, 3]) < 0.03 and obs[1, 3] > 0.49  # RMS ≈ 0.5 both; I ≈ 0 vs 0.5
+    np.testing.assert_allclose(obs[:, 6], [0.5 * (-1) ** 199, 0.5])
+    obs = hist.reset(step(np.array([0.0, 2.0])), np.array([False, True]))  # row 0 keeps its state
+    assert obs[0, 0] > 0.49
+    np.testing.assert_allclose(obs[1, 0], np.sqrt(1 - mu) * 2.0, rtol=1e-6)

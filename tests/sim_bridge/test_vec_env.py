@@ -21,6 +21,8 @@ CONFIGS = {
     # the integrator state lives in ObservationHistory: restarted per copy on auto-reset
     "integral-m2": dict(memory=2, obs_fields=("rate_error", "rotor_speed", "rate_error_integral"),
                         action_mapping="throttle", episode_s=0.05),
+    "rms-m2": dict(memory=2, obs_fields=("rate_error", "rotor_speed", "rate_error_rms"), rms_leak=0.9,
+                   action_mapping="throttle", episode_s=0.05),
 }
 
 

@@ -64,6 +64,13 @@ def test_the_command_line_builds_the_config():
     for bad in ("-1", "inf", "nan"):
         with pytest.raises(ValueError, match="obs-clip"):
             from_args(build_parser().parse_args([*argv.split(), "--obs-clip", bad]))
+    rms = ["--integral", "--error-rms", "--rms-leak", "0.99"]
+    cfg = from_args(build_parser().parse_args([*argv.split(), *rms]))
+    assert cfg.obs_fields[-2:] == ("rate_error_integral", "rate_error_rms")
+    assert cfg.env_kwargs()["rms_leak"] == 0.99 == cfg.obs_leaks["rms_leak"]
+    with pytest.raises(ValueError, match="needs --error-rms"):
+        from_args(build_parser().parse_args([*argv.split(), "--rms-leak", "0.99"]))
+    cfg = from_args(build_parser().parse_args([*argv.split(), "--integral", "--throttle", "0.7"]))
     assert cfg.throttle == 0.7
     with pytest.raises(ValueError, match="squash"):
         from_args(build_parser().parse_args([*argv.split(), "--squash"]))  # SAC squashes already

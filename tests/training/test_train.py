@@ -179,3 +179,15 @@ def test_the_race_flies_the_training_airframe():
     assert race.evaluator.env.config.randomize is None
     nominal = quick_eval.pid_references(("pid",), 2, 1)["pid"]
     assert quick_eval.error_sum(race.pids["pid"]) != quick_eval.error_sum(nominal)
+
+
+def test_the_batched_evaluator_observes_with_the_trained_leaks():
+    """The race scores a policy on the observation it was trained on, leaks included."""
+    from firmware.observation import FIELDS, INTEGRAL, RMS
+
+    fields = (*FIELDS, INTEGRAL, RMS)
+    evaluator = quick_eval.BatchedEvaluator(2, 3, memory=2, obs_fields=fields,
+                                            obs_leaks={"integral_leak": 0.99, "rms_leak": 0.9})
+    spec = evaluator.env.config.observation_spec
+    assert (spec.fields, spec.integral_leak, spec.rms_leak) == (fields, 0.99, 0.9)
+    evaluator.close()
