@@ -8,9 +8,9 @@ m = 1 has no other memory, so it cannot remove a steady offset the way a PID's I
 does. Optional field `rate_error_rms` (3): the leaky root-mean-square of the scaled rate
 error, R_k = √P_k with P_k = μ·P_{k−1} + (1 − μ)·e_k², over about one period of the
 limit cycles a fast policy can fall into on a slow airframe (17–60 Hz): a 16 ms history
-sees less than a period, and the integral averages an oscillation to zero, so without it
-a policy cannot tell that it rings. The spec travels in the model's metadata and the
-firmware refuses a model whose spec differs.
+sees less than a period, and the integral averages an oscillation to zero. (Trained with
+it, a policy softens its steps instead: docs/training_notes.md, Session 14.) The spec
+travels in the model's metadata and the firmware refuses a model whose spec differs.
 
 `FIELD_DEFS` declares each field (its source signal, the spec's scale for it, whether it
 is integrated) and `ObservationSpec.column_sources`/`column_scales` flatten it per column;
