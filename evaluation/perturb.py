@@ -16,12 +16,20 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.metrics import AXES, EvalMetrics, aggregate, pool_episode_metrics, traces_episode_metrics
+from evaluation.metrics import (
+    AXES,
+    EpisodeMetrics,
+    EvalMetrics,
+    aggregate,
+    pool_episode_metrics,
+    traces_episode_metrics,
+)
 from evaluation.runner import EvalConfig, run_controller
 from sim_bridge.airframe import Airframe
 from sim_bridge.randomization import Randomization
 
 PERTURB_STREAM = 0x70657274  # "pert": the spawn key that sets the evaluation's airframe stream apart
+DELAY_FACTORS = (("esc_delay_ticks", "ESC"), ("gyro_delay_ticks", "gyro"))  # Airframe.scaled keys
 
 
 @dataclass(frozen=True)
@@ -60,13 +68,47 @@ class PerturbedResult:
     airframes: tuple[PerturbedAirframe, ...]
     seed: int
     ranges: str | None = None  # the randomisation file the airframes were drawn from
+    parts: tuple[EpisodeMetrics, ...] = ()  # per airframe: its episodes' metrics, as pooled
+    unit: str = "episode"
+
+    def by_delay(self) -> list[DelayGroup]:
+        """The airframes grouped by each drawn loop delay (ESC, then gyro), each group pooled.
+
+        A network that reads the rotor speeds can ring on an ESC delay that a PID, which sees
+        only the total delay, holds (docs/training_notes.md, Session 16); pooled over every
+        airframe that is one failing group among many.
+        """
+        groups = []
+        for key, label in DELAY_FACTORS:
+            values = sorted({a.factors[key] for a in self.airframes if key in a.factors})
+            for v in values if self.parts else ():
+                members = [i for i, a in enumerate(self.airframes) if a.factors.get(key) == v]
+                pooled = aggregate(pool_episode_metrics([self.parts[i] for i in members]), unit=self.unit)
+                groups.append(DelayGroup(f"{label} {v}", len(members), pooled,
+                                         float(np.mean(self.error_sum[members]))))
+        return groups
 
     def details_json(self) -> dict[str, Any]:
         return {"airframes": len(self.airframes), "perturb_seed": self.seed, "ranges": self.ranges,
                 "error_sum_per_airframe": [float(v) for v in self.error_sum],
                 "success_min_pct_per_airframe": [float(v) for v in self.success_min],
                 "factors": [a.factors_json() for a in self.airframes],
+                "by_delay": {g.label: g.to_json() for g in self.by_delay()},
                 "n": self.metrics.n_episodes}
+
+
+@dataclass(frozen=True)
+class DelayGroup:
+    """The perturbed airframes that share one loop delay, e.g. "ESC 2 ticks"."""
+
+    label: str  # "ESC 2" or "gyro 1" (ticks)
+    airframes: int
+    metrics: EvalMetrics  # their episodes pooled
+    error_sum: float  # mean over them of each airframe's Error summed over the axes
+
+    def to_json(self) -> dict[str, Any]:
+        success = self.metrics.to_json()["success_pct"]
+        return {"airframes": self.airframes, "error_sum": self.error_sum, "success_pct": success}
 
 
 def fly_perturbed(spec: str, cfg: EvalConfig, airframes: Sequence[PerturbedAirframe], seed: int,
@@ -88,4 +130,4 @@ def fly_perturbed(spec: str, cfg: EvalConfig, airframes: Sequence[PerturbedAirfr
         if on_airframe is not None:
             on_airframe(a.index)
     return PerturbedResult(aggregate(pool_episode_metrics(parts), unit=unit), np.array(error_sum),
-                           np.array(success_min), tuple(airframes), seed, ranges)
+                           np.array(success_min), tuple(airframes), seed, ranges, tuple(parts), unit)

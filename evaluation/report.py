@@ -142,6 +142,25 @@ def robustness_table(results: Sequence[ControllerResult]) -> str:
     return "\n".join(lines)
 
 
+def delay_table(results: Sequence[ControllerResult]) -> str:
+    """The perturbed airframes grouped by loop delay, per controller ("" when no delay was drawn)."""
+    lines = ["| Controller | delay (ticks) | airframes | Success % r/p/y | Error Σ |",
+             "|---|---|---:|---:|---:|"]
+    for r in results:
+        for g in r.perturbed.by_delay() if r.perturbed is not None else ():
+            lines.append(f"| {_cell_name(r.name)} | {g.label} | {g.airframes} | "
+                         f"{_axes_cell(g.metrics, 'success_pct')} | {g.error_sum:.1f} |")
+    return "\n".join(lines) if len(lines) > 2 else ""
+
+
+def _delay_section(results: Sequence[ControllerResult]) -> list[str]:
+    table = delay_table(results)
+    if not table:
+        return []
+    return ["The same airframes grouped by each drawn loop delay (an airframe counts once under "
+            "its ESC delay and once under its gyro delay):", "", table, ""]
+
+
 def plot_robustness(results: Sequence[ControllerResult], path: str | os.PathLike[str]) -> Path:
     """Per-airframe Error Σ per controller (box and points), the nominal airframe's as a red diamond."""
     drawn = [r for r in results if r.perturbed is not None]
@@ -326,6 +345,7 @@ def write_report(
             "training never draws from; perturbed rows pool every airframe's episodes. Error Σ is "
             "the mean Error per command summed over the axes.", "",
             robustness_table(results), "",
+            *_delay_section(results),
             "![Error per perturbed airframe](robustness.png)", ""]
     if any(r.step is not None for r in results):
         plot_step_responses(results, out / "step_response.png", episode=step_episode)

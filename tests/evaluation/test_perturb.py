@@ -93,6 +93,25 @@ def test_perturbed_metrics_pool_every_airframes_episodes(small_run):
     assert result.metrics.to_json() != nominal.to_json()
 
 
+def test_perturbed_airframes_grouped_by_delay_pool_their_own_episodes(small_run):
+    _, airframes, result = small_run
+    groups = result.by_delay()
+    for prefix, key in (("ESC", "esc_delay_ticks"), ("gyro", "gyro_delay_ticks")):
+        mine = [g for g in groups if g.label.startswith(prefix + " ")]
+        assert sum(g.airframes for g in mine) == len(airframes)
+        assert {g.label for g in mine} == {f"{prefix} {a.factors[key]}" for a in airframes}
+    for g in groups:
+        members = [i for i, a in enumerate(airframes)
+                   if g.label == f"ESC {a.factors['esc_delay_ticks']}"
+                   or g.label == f"gyro {a.factors['gyro_delay_ticks']}"]
+        again = aggregate(pool_episode_metrics([result.parts[i] for i in members]))
+        assert g.metrics.to_json() == again.to_json()
+        assert g.error_sum == pytest.approx(result.error_sum[members].mean())
+    by_delay = result.details_json()["by_delay"]
+    assert set(by_delay) == {g.label for g in groups}
+    assert all(set(v["success_pct"]) == set(AXES) for v in by_delay.values())
+
+
 def test_the_report_has_a_robustness_table_and_plot(small_run, tmp_path):
     cfg, _, result = small_run
     nominal = compute_metrics(run_controller("pid", cfg, progress=False))
@@ -102,6 +121,8 @@ def test_the_report_has_a_robustness_table_and_plot(small_run, tmp_path):
     assert "| pid | nominal |" in section and "| pid | 2 perturbed |" in section
     assert "pid:paper" not in section  # flown on the nominal airframe only
     assert f"| {result.error_sum.max():.1f} |" in section  # the worst airframe
+    for g in result.by_delay():
+        assert f"| pid | {g.label} | {g.airframes} |" in section
     assert (tmp_path / "robustness.png").stat().st_size > 10_000
 
 
