@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from firmware.action import action_to_pwm
+from firmware.action import PWM_MIN, PWM_SPAN, action_to_pwm
 from firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
 from firmware.controller import RateSetpoint
 from firmware.observation import ObservationHistory, observe_step
@@ -79,6 +79,7 @@ class NeuralRateController:
         # history's buffer is bound as the model's input, so a tick allocates next to nothing.
         self._history = ObservationHistory(self.spec, (1,))
         self._fresh = True
+        self._motor_output: np.ndarray | None = None  # u of the previous tick, for a spec that reads it
         self._step = self._history.staging
         self._step_values = self._step.reshape(-1)  # a view of the same memory
         self._output = np.zeros((1, 4), dtype=np.float32)
@@ -107,6 +108,7 @@ class NeuralRateController:
 
     def reset(self) -> None:
         self._fresh = True
+        self._motor_output = None
 
     def infer(self, observation: np.ndarray) -> np.ndarray:
         """Raw policy output for one observation (no clipping, no checks); the history is kept."""
@@ -115,7 +117,8 @@ class NeuralRateController:
         return self._output[0]
 
     def update(self, setpoint: RateSetpoint, frame: SensorFrame, dt: float) -> np.ndarray:
-        observe_step(self.spec, setpoint.rates, frame.gyro, frame.rotor_speed, out=self._step_values)
+        observe_step(self.spec, setpoint.rates, frame.gyro, frame.rotor_speed, out=self._step_values,
+                     motor_output=self._motor_output)
         if not all(map(math.isfinite, self._step_values.tolist())):  # the step holds every input read
             raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
         if self._fresh:
@@ -127,4 +130,7 @@ class NeuralRateController:
         action = self._output[0]
         if not all(map(math.isfinite, action.tolist())):
             raise PolicyOutputError(f"policy output {action} is not finite")
-        return action_to_pwm(self.action_mapping, action, setpoint.throttle)
+        pwm = action_to_pwm(self.action_mapping, action, setpoint.throttle)
+        if self.spec.reads_motor_output:
+            self._motor_output = (np.asarray(pwm, dtype=np.float64) - PWM_MIN) / PWM_SPAN  # as training's
+        return pwm

@@ -9,7 +9,12 @@ does. Optional field `rate_error_rms` (3): the leaky root-mean-square of the sca
 error, R_k = √P_k with P_k = μ·P_{k−1} + (1 − μ)·e_k², over about one period of the
 limit cycles a fast policy can fall into on a slow airframe (17–60 Hz): a 16 ms history
 sees less than a period, and the integral averages an oscillation to zero. (Trained with
-it, a policy softens its steps instead: docs/training_notes.md, Session 14.) The spec
+it, a policy softens its steps instead: docs/training_notes.md, Session 14.) Optional field
+`motor_output` (4): the motor outputs u = (PWM − 1000) / 1000 the controller commanded on
+the previous tick. A penalty on |Δu| in the reward depends on them, and the rotor speeds
+show them only through the motors' lag; at a start there is no previous tick, and u is
+taken as the steady-state command of the rotors' speeds, clip(ω · rotor_speed_scale, 0, 1)
+(exact for the Iris, whose speed is linear in u up to 1100 rad/s). The spec
 travels in the model's metadata and the firmware refuses a model whose spec differs.
 
 `FIELD_DEFS` declares each field (its source signal, the spec's scale for it, whether it
@@ -35,23 +40,25 @@ DEFAULT_RMS_LEAK = 0.98  # μ per step: τ = 50 steps, one period at 20 Hz
 FIELDS = ("rate_error", "rotor_speed")  # the default; the shipped policy's spec
 INTEGRAL = "rate_error_integral"
 RMS = "rate_error_rms"
+MOTOR_OUTPUT = "motor_output"
 # The signals a field can read, as columns of one source vector: the rate error
-# setpoint − gyro (rad/s, FRD), then the rotor speeds (rad/s, motor order).
-SOURCE_COLUMNS = {"rate_error": (0, 1, 2), "rotor_speed": (3, 4, 5, 6)}
+# setpoint − gyro (rad/s, FRD), the rotor speeds (rad/s, motor order), the previous
+# tick's motor outputs (0..1, motor order).
+SOURCE_COLUMNS = {"rate_error": (0, 1, 2), "rotor_speed": (3, 4, 5, 6), "motor_output": (7, 8, 9, 10)}
 
 _FLOAT64 = np.dtype(np.float64)
 
 
 @dataclass(frozen=True)
 class FieldDef:
-    """One observation field: `source` times the spec's `scale` attribute, float32.
+    """One observation field: `source` times the spec's `scale` attribute (None: 1), float32.
 
     With `leak` (the name of the spec's λ attribute) the field is leaky-integrated over
     steps by `ObservationHistory`; with `rms` too, of its square, and stored as the root.
     """
 
     source: str
-    scale: str
+    scale: str | None
     leak: str | None = None
     rms: bool = False
 
@@ -69,6 +76,7 @@ FIELD_DEFS: dict[str, FieldDef] = {
     "rotor_speed": FieldDef("rotor_speed", "rotor_speed_scale"),
     INTEGRAL: FieldDef("rate_error", "rate_scale", leak="integral_leak"),
     RMS: FieldDef("rate_error", "rate_scale", leak="rms_leak", rms=True),
+    MOTOR_OUTPUT: FieldDef("motor_output", None),
 }
 LEAKS = frozenset(d.leak for d in FIELD_DEFS.values() if d.leak)  # the spec's λ attributes
 
@@ -109,7 +117,8 @@ class ObservationSpec:
         out, start = [], 0
         for name in self.fields:
             d = FIELD_DEFS[name]
-            out.append((slice(start, start + d.size), d, float(getattr(self, d.scale))))
+            scale = 1.0 if d.scale is None else float(getattr(self, d.scale))
+            out.append((slice(start, start + d.size), d, scale))
             start += d.size
         return tuple(out)
 
@@ -126,6 +135,10 @@ class ObservationSpec:
     @cached_property
     def _pick_sources(self) -> itemgetter:
         return itemgetter(*self.column_sources)
+
+    @cached_property
+    def reads_motor_output(self) -> bool:
+        return any(d.source == "motor_output" for _, d, _ in self.layout)
 
     @cached_property
     def integrators(self) -> tuple[tuple[slice, float, bool], ...]:
@@ -146,27 +159,39 @@ class ObservationSpec:
         return cls(**raw)
 
 
+def start_motor_output(spec: ObservationSpec, rotor_speed: np.ndarray) -> np.ndarray:
+    """The previous output where there is none (a start): the rotors' steady-state command."""
+    return np.clip(np.asarray(rotor_speed, dtype=np.float64) * spec.rotor_speed_scale, 0.0, 1.0)
+
+
 def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
-                 rotor_speed: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+                 rotor_speed: np.ndarray, out: np.ndarray | None = None,
+                 motor_output: np.ndarray | None = None) -> np.ndarray:
     """One step's features, (..., step_size) float32, into `out` if given (any shape that
     holds them, e.g. a batch of one): each field's source times its scale, in the inputs'
     precision. An integrated field holds the integrator's input, the scaled error;
-    `ObservationHistory` integrates it.
+    `ObservationHistory` integrates it. `motor_output` is the previous tick's u (0..1),
+    read only by a spec with that field; None at a start (`start_motor_output`).
 
     One float64 vehicle runs on plain floats, column by column from the flattened table
     (numpy's per-call overhead on 3-vectors would cost more than the model each tick);
     anything else runs on arrays, field by field. The products are the same either way.
     """
+    if spec.reads_motor_output and motor_output is None:
+        motor_output = start_motor_output(spec, rotor_speed)
     # `is`: numpy's float64 descriptor is one object; an equal one that is not takes the array path.
     if setpoint.dtype is gyro.dtype is rotor_speed.dtype is _FLOAT64 and setpoint.ndim == gyro.ndim == 1:
         s, g = setpoint.tolist(), gyro.tolist()
         sources = [s[0] - g[0], s[1] - g[1], s[2] - g[2], *rotor_speed.tolist()]
+        if motor_output is not None:
+            sources += np.asarray(motor_output, dtype=np.float64).tolist()
         values = list(map(mul, spec._pick_sources(sources), spec.column_scales))  # loops in C
         if out is None:
             return np.array(values, dtype=np.float32)
         out[...] = values  # rounds each float64 to float32, as astype does
         return out
-    sources = {"rate_error": np.subtract(setpoint, gyro), "rotor_speed": rotor_speed}
+    sources = {"rate_error": np.subtract(setpoint, gyro), "rotor_speed": rotor_speed,
+               "motor_output": motor_output}
     values = np.concatenate([sources[d.source] * scale for _, d, scale in spec.layout], axis=-1)
     if out is None:
         return values.astype(np.float32)

@@ -240,13 +240,13 @@ class RateTask:
              pwm: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         """(observation, reward, info) after the physics step: `rate` is what the reward judges."""
         pwm = np.asarray(pwm, dtype=float)  # float32 actions give float32 PWM; Δu is float64
-        u = (pwm - PWM_MIN) / PWM_SPAN
+        u = (pwm - PWM_MIN) / PWM_SPAN  # also the next observation's motor_output, as in flight
         if self._any_first:  # a first step has no Δu: its previous output is its own
             np.copyto(self._previous_u, u, where=self._first[..., None])
             self._first[...], self._any_first = False, False
         reward, terms = self.reward(setpoint, rate, u, self._previous_u, self._settled(setpoint))
         self._previous_u = u
-        obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed))
+        obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed, motor_output=u))
         return obs, reward, {"setpoint": setpoint, "rate": rate, "gyro": gyro, "pwm": pwm, **terms}
 
 

@@ -92,6 +92,8 @@ class TrainConfig:
     error_rms: bool = option(False, "add the leaky RMS of the rate error to the observation "
                                     "(rate_error_rms): what lets a policy see that it oscillates")
     rms_leak: float = option(DEFAULT_RMS_LEAK, "the RMS's μ per step (time constant 1/(1 − μ) steps)")
+    motor_output: bool = option(False, "add the previous tick's motor outputs to the observation "
+                                       "(motor_output): what --action-rate-penalty's |Δu| depends on")
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")
     envs: int | None = option(None, "parallel twins (default: per algorithm)")
@@ -234,9 +236,10 @@ class TrainConfig:
 
     @property
     def obs_fields(self) -> tuple[str, ...]:
-        from firmware.observation import FIELDS, INTEGRAL, RMS
+        from firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS
 
-        return (*FIELDS, *((INTEGRAL,) if self.integral else ()), *((RMS,) if self.error_rms else ()))
+        return (*FIELDS, *((INTEGRAL,) if self.integral else ()), *((RMS,) if self.error_rms else ()),
+                *((MOTOR_OUTPUT,) if self.motor_output else ()))
 
     @property
     def obs_leaks(self) -> dict[str, float]:

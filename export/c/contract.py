@@ -2,8 +2,8 @@
 
 `contract_sources` is the one place that turns the ONNX metadata (observation spec,
 action mapping, loop rate) into C: constants, the observation builder (rate error,
-rotor speeds, optional leaky integral and leaky RMS of the rate error; `memory` steps,
-newest first) and the
+rotor speeds, optional leaky integral and leaky RMS of the rate error and the previous
+tick's motor outputs; `memory` steps, newest first) and the
 action-to-PWM mapping. It mirrors `firmware.observation` and `firmware.action` in
 float32 — what a Cortex-M4F computes in hardware — so the host parity tests compare
 the two within float32 rounding.
@@ -37,7 +37,9 @@ def c_float(x: float) -> str:
 
 # C for each source signal and scale named in firmware.observation.FIELD_DEFS: the field
 # table is the one definition; a new field there needs only these two maps to cover it.
-_SOURCE_C = {"rate_error": "(setpoint[i] - gyro[i])", "rotor_speed": "rotor_speed[i]"}
+_SOURCE_C = {"rate_error": "(setpoint[i] - gyro[i])", "rotor_speed": "rotor_speed[i]",
+             "motor_output": "(s->fresh ? clampf(rotor_speed[i] * FCEMU_ROTOR_SPEED_SCALE, 0.0f, 1.0f)"
+                             " : s->motor_output[i])"}
 _SCALE_C = {"rate_scale": "FCEMU_RATE_SCALE", "rotor_speed_scale": "FCEMU_ROTOR_SPEED_SCALE"}
 # Per integrated field: its state member in `fcemu_policy_state` and its λ's constant.
 _STATE_C = {"integral_leak": ("integral", "FCEMU_INTEGRAL_LEAK"),
@@ -46,7 +48,7 @@ _STATE_C = {"integral_leak": ("integral", "FCEMU_INTEGRAL_LEAK"),
 
 def _field_code(name: str, k: int) -> str:
     field = FIELD_DEFS[name]
-    value = f"{_SOURCE_C[field.source]} * {_SCALE_C[field.scale]}"
+    value = _SOURCE_C[field.source] + ("" if field.scale is None else f" * {_SCALE_C[field.scale]}")
     if not field.leak:
         return f"        step[{k} + i] = {value};"
     state, leak = _STATE_C[field.leak]
@@ -131,6 +133,7 @@ typedef struct {{
     float history[FCEMU_OBS_MEMORY][FCEMU_OBS_STEP_SIZE];
     float integral[3];
     float mean_square[3];
+    float motor_output[4];  /* the last tick's PWM as 0..1, for a motor_output field */
     int fresh;
 }} fcemu_policy_state;
 
@@ -216,6 +219,7 @@ int fcemu_policy_step(fcemu_policy_state *s, const float setpoint[3], const floa
     for (int i = 0; i < FCEMU_ACTION_SIZE; ++i)
         if (!isfinite(action[i])) return FCEMU_NONFINITE_OUTPUT;
     fcemu_action_to_pwm(action, throttle, pwm);
+    for (int i = 0; i < 4; ++i) s->motor_output[i] = (pwm[i] - FCEMU_PWM_MIN) / FCEMU_PWM_SPAN;
     return FCEMU_OK;
 }}
 

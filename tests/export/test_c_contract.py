@@ -1,5 +1,6 @@
 """The generated contract C against `firmware.observation` and `firmware.action`, compiled
-for the host: a spec with memory 3, the leaky integral and the leaky RMS, both action mappings."""
+for the host: a spec with memory 3, the leaky integral and the leaky RMS, both action mappings;
+one with the previous tick's motor outputs, flown against the ONNX policy."""
 
 from __future__ import annotations
 
@@ -15,7 +16,11 @@ from onnx import TensorProto, helper, numpy_helper
 from export.c.build import compile_host, export_c
 from export.c.contract import Contract, contract_sources
 from firmware.action import action_to_pwm
-from firmware.observation import INTEGRAL, RMS, ObservationHistory, ObservationSpec, observe_step
+from firmware.c_policy import CPolicyController
+from firmware.controller import RateSetpoint
+from firmware.neural import NeuralRateController
+from firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS, ObservationHistory, ObservationSpec, observe_step
+from firmware.sensors import SensorFrame
 from tests.export.mcu_tools import require_codegen
 
 SPEC = ObservationSpec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL, RMS), integral_leak=0.99,
@@ -97,3 +102,24 @@ def test_action_to_pwm_matches_python(libraries, mapping: str) -> None:
     expected = action_to_pwm(mapping, actions.astype(np.float64), throttles.astype(np.float64))
     np.testing.assert_allclose(ours, expected, atol=1e-3)  # µs; float32 against float64
     assert ours.min() >= 1000.0 and ours.max() <= 2000.0
+
+
+@pytest.mark.parametrize("mapping", ["throttle", "gymfc"])
+def test_motor_output_field_feeds_back_the_last_pwm_as_the_onnx_policy_does(tmp_path, mapping: str) -> None:
+    """`fcemu_policy_step` keeps the tick's PWM for the next observation; at a reset the rotors'
+    steady-state command. Fed back through the network, any difference grows: 400 ticks agree."""
+    require_codegen()
+    spec = ObservationSpec(memory=3, fields=(*FIELDS, MOTOR_OUTPUT))
+    _policy(tmp_path / "p.onnx", spec, mapping)
+    export_c(tmp_path / "p.onnx", tmp_path / "c", parity_samples=200)
+    ours, theirs = CPolicyController(tmp_path / "c"), NeuralRateController(tmp_path / "p.onnx")
+    rng = np.random.default_rng(7)
+    worst = 0.0
+    for k in range(400):
+        if k == 200:
+            ours.reset()
+            theirs.reset()
+        setpoint = RateSetpoint(rng.uniform(-3, 3, 3), float(rng.uniform(0.2, 0.8)))
+        frame = SensorFrame(k * 1000, rng.uniform(-3, 3, 3), np.array([0.0, 0.0, -9.81]), rng.uniform(0, 1100, 4))
+        worst = max(worst, float(np.abs(ours.update(setpoint, frame, 1e-3) - theirs.update(setpoint, frame, 1e-3)).max()))
+    assert worst < 0.05  # µs

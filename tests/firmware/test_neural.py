@@ -11,9 +11,10 @@ from firmware.action import action_to_pwm, gymfc_pwm, throttle_pwm
 from firmware.controller import RateSetpoint
 from firmware.loop import FlightLoop, ScriptedCommander
 from firmware.neural import META_PREFIX, NeuralRateController, PolicyContractError, PolicyOutputError
-from firmware.observation import FIELDS, INTEGRAL, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, ObservationHistory, ObservationSpec, observe_step
 from firmware.sensors import SensorFrame
 from firmware.timing import LockstepClock
+from sim_bridge.env import EnvConfig, RateTask
 from sim_bridge.twin import Twin
 
 
@@ -185,3 +186,31 @@ def test_flight_feeds_the_model_bit_for_bit_what_training_builds(tmp_path, mappi
         assert np.array_equal(ctl._history.view[0], obs[0])
         action = np.stack([ctl.infer(obs[0]).copy()] * 2)
         np.testing.assert_array_equal(pwm, action_to_pwm(mapping, action, np.full(2, sp.throttle))[0])
+
+
+@pytest.mark.parametrize("mapping", ["throttle", "gymfc"])
+def test_motor_output_in_flight_is_what_training_observes_after_the_same_outputs(tmp_path, mapping):
+    """The controller's own previous PWM, as training's RateTask sees the PWM it applied; a
+    reset starts again from the rotors' steady-state command."""
+    spec = ObservationSpec(memory=2, fields=(*FIELDS, MOTOR_OUTPUT))
+    weight = np.random.default_rng(2).uniform(-0.5, 0.5, (spec.size, 4))
+    ctl = NeuralRateController(linear_policy(tmp_path / "p.onnx", weight, np.array([0.3, -0.1, 0.05, 0.2]),
+                                             meta(mapping=mapping, spec=spec)))
+    task = RateTask(EnvConfig(memory=2, action_mapping=mapping, obs_fields=spec.fields))
+    assert task.spec == spec
+    rng = np.random.default_rng(6)
+    pwm = None
+    for i in range(300):
+        if i == 150:
+            ctl.reset()
+        sp = RateSetpoint(rng.uniform(-6, 6, 3), float(rng.uniform(0.1, 0.9)))
+        f = frame(rng.uniform(-8, 8, 3), rng.uniform(0, 1100, 4))
+        if i in (0, 150):
+            obs = task.reset(sp.rates, f.gyro, f.rotor_speed)
+        else:
+            obs = task.step(sp.rates, f.gyro, f.gyro, f.rotor_speed, pwm)[0]
+        new = ctl.update(sp, f, 0.001)
+        assert np.array_equal(ctl._history.view[0], obs)
+        if i not in (0, 150):
+            np.testing.assert_allclose(obs[7:11], (pwm - 1000.0) / 1000.0, atol=1e-7)
+        pwm = new

@@ -4,7 +4,15 @@ import pytest
 
 from firmware.controllers import DEFAULT_POLICY
 from firmware.neural import META_PREFIX
-from firmware.observation import FIELDS, INTEGRAL, RMS, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import (
+    FIELDS,
+    INTEGRAL,
+    MOTOR_OUTPUT,
+    RMS,
+    ObservationHistory,
+    ObservationSpec,
+    observe_step,
+)
 
 
 def test_default_spec_serialises_exactly_as_the_shipped_policy_metadata():
@@ -115,3 +123,24 @@ def test_rms_is_the_root_of_the_leaky_mean_square_and_sees_an_oscillation_the_in
     obs = hist.reset(step(np.array([0.0, 2.0])), np.array([False, True]))  # row 0 keeps its state
     assert obs[0, 0] > 0.49
     np.testing.assert_allclose(obs[1, 0], np.sqrt(1 - mu) * 2.0, rtol=1e-6)
+
+
+def test_motor_output_is_the_previous_output_and_at_a_start_the_rotors_steady_state_command():
+    spec = ObservationSpec(fields=(*FIELDS, MOTOR_OUTPUT))
+    assert spec.step_size == 11 and spec.reads_motor_output and not ObservationSpec().reads_motor_output
+    assert ObservationSpec.from_json(spec.to_json()) == spec
+    rng = np.random.default_rng(5)
+    setpoint, gyro = rng.uniform(-9, 9, (2, 200, 3))
+    rotor = rng.uniform(0, 1300, (200, 4))  # beyond the Iris' 1100 rad/s: the start's u clips at 1
+    u = rng.uniform(0, 1, (200, 4))
+    given = observe_step(spec, setpoint, gyro, rotor, motor_output=u)
+    np.testing.assert_array_equal(given[:, 7:], u.astype(np.float32))
+    start = observe_step(spec, setpoint, gyro, rotor)
+    np.testing.assert_array_equal(start[:, 7:], np.clip(rotor / 1100.0, 0, 1).astype(np.float32))
+    assert start[:, 7:].max() == 1.0 and start[:, 7:].min() >= 0.0
+    out = np.zeros((1, spec.step_size), dtype=np.float32)
+    for i in range(200):  # one float64 vehicle takes the plain-float path: the same values
+        observe_step(spec, setpoint[i], gyro[i], rotor[i], out=out, motor_output=u[i])
+        assert np.array_equal(out[0], given[i])
+        observe_step(spec, setpoint[i], gyro[i], rotor[i], out=out)
+        assert np.array_equal(out[0], start[i])

@@ -23,6 +23,9 @@ CONFIGS = {
                         action_mapping="throttle", episode_s=0.05),
     "rms-m2": dict(memory=2, obs_fields=("rate_error", "rotor_speed", "rate_error_rms"), rms_leak=0.9,
                    action_mapping="throttle", episode_s=0.05),
+    # each copy's previous output, from the rotors at its (auto-)reset
+    "motor-output-m2": dict(memory=2, obs_fields=("rate_error", "rotor_speed", "motor_output"),
+                            action_mapping="throttle", episode_s=0.05, action_rate_penalty=0.5),
 }
 
 
