@@ -19,7 +19,15 @@ from firmware.action import action_to_pwm
 from firmware.c_policy import CPolicyController
 from firmware.controller import RateSetpoint
 from firmware.neural import NeuralRateController
-from firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import (
+    FIELDS,
+    INTEGRAL,
+    MOTOR_OUTPUT,
+    RMS,
+    ObservationHistory,
+    ObservationSpec,
+    observe_step,
+)
 from firmware.sensors import SensorFrame
 from tests.export.mcu_tools import require_codegen
 
@@ -120,6 +128,8 @@ def test_motor_output_field_feeds_back_the_last_pwm_as_the_onnx_policy_does(tmp_
             ours.reset()
             theirs.reset()
         setpoint = RateSetpoint(rng.uniform(-3, 3, 3), float(rng.uniform(0.2, 0.8)))
-        frame = SensorFrame(k * 1000, rng.uniform(-3, 3, 3), np.array([0.0, 0.0, -9.81]), rng.uniform(0, 1100, 4))
-        worst = max(worst, float(np.abs(ours.update(setpoint, frame, 1e-3) - theirs.update(setpoint, frame, 1e-3)).max()))
+        frame = SensorFrame(k * 1000, rng.uniform(-3, 3, 3), np.array([0.0, 0.0, -9.81]),
+                            rng.uniform(0, 1100, 4))
+        gap = ours.update(setpoint, frame, 1e-3) - theirs.update(setpoint, frame, 1e-3)
+        worst = max(worst, float(np.abs(gap).max()))
     assert worst < 0.05  # µs

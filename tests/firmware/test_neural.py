@@ -11,7 +11,14 @@ from firmware.action import action_to_pwm, gymfc_pwm, throttle_pwm
 from firmware.controller import RateSetpoint
 from firmware.loop import FlightLoop, ScriptedCommander
 from firmware.neural import META_PREFIX, NeuralRateController, PolicyContractError, PolicyOutputError
-from firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, ObservationHistory, ObservationSpec, observe_step
+from firmware.observation import (
+    FIELDS,
+    INTEGRAL,
+    MOTOR_OUTPUT,
+    ObservationHistory,
+    ObservationSpec,
+    observe_step,
+)
 from firmware.sensors import SensorFrame
 from firmware.timing import LockstepClock
 from sim_bridge.env import EnvConfig, RateTask
