@@ -75,8 +75,8 @@ class PerturbedResult:
         """The airframes grouped by each drawn loop delay (ESC, then gyro), each group pooled.
 
         A network that reads the rotor speeds can ring on an ESC delay that a PID, which sees
-        only the total delay, holds (docs/training_notes.md, Session 16); pooled over every
-        airframe that is one failing group among many.
+        only the total delay, holds (docs/training_notes.md, Session 16). Pooled over all the
+        airframes, such a group hides among the rest.
         """
         groups = []
         for key, label in DELAY_FACTORS:
@@ -99,7 +99,7 @@ class PerturbedResult:
 
 @dataclass(frozen=True)
 class DelayGroup:
-    """The perturbed airframes that share one loop delay, e.g. "ESC 2 ticks"."""
+    """The perturbed airframes that share one loop delay, e.g. an ESC delay of 2 ticks."""
 
     label: str  # "ESC 2" or "gyro 1" (ticks)
     airframes: int
