@@ -78,12 +78,18 @@ def throttle_pwm(action: np.ndarray, throttle: np.ndarray | float,
     return np.stack(pwm, axis=-1)
 
 
+def motor_output(pwm: np.ndarray) -> np.ndarray:
+    """u = (PWM − 1000) / 1000 ∈ [0, 1] in float64: the motor output the reward's |Δu| and the
+    `motor_output` observation field read, one definition for training and flight."""
+    return (np.asarray(pwm, dtype=np.float64) - PWM_MIN) / PWM_SPAN
+
+
 def pwm_to_action(mapping: str, pwm: np.ndarray) -> np.ndarray:
     """The action whose mapping gives `pwm` (..., 4) where one does, else the nearest in
     [-1, 1]: for a controller's output as a policy's label. ``throttle``: a = (u − ū)/gain
     with zero mean (the mapping ignores a's mean; the collective comes from the outer
     loop), exact while the mix fits the output range; ``gymfc``: a = 2u − 1."""
-    u = (np.asarray(pwm, dtype=np.float64) - PWM_MIN) / PWM_SPAN
+    u = motor_output(pwm)
     if mapping == "gymfc":
         return np.clip(2.0 * u - 1.0, -1.0, 1.0)
     if mapping == "throttle":

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from firmware.action import PWM_MIN, PWM_SPAN, action_to_pwm
+from firmware.action import action_to_pwm, motor_output
 from firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
 from firmware.controller import RateSetpoint
 from firmware.observation import ObservationHistory, observe_step
@@ -132,5 +132,5 @@ class NeuralRateController:
             raise PolicyOutputError(f"policy output {action} is not finite")
         pwm = action_to_pwm(self.action_mapping, action, setpoint.throttle)
         if self.spec.reads_motor_output:
-            self._motor_output = (np.asarray(pwm, dtype=np.float64) - PWM_MIN) / PWM_SPAN  # as training's
+            self._motor_output = motor_output(pwm)
         return pwm

@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from firmware.action import ACTION_MAPPINGS, PWM_MIN, PWM_SPAN, action_to_pwm
+from firmware.action import ACTION_MAPPINGS, action_to_pwm, motor_output
 from firmware.observation import (
     DEFAULT_LEAK,
     DEFAULT_RMS_LEAK,
@@ -240,7 +240,7 @@ class RateTask:
              pwm: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         """(observation, reward, info) after the physics step: `rate` is what the reward judges."""
         pwm = np.asarray(pwm, dtype=float)  # float32 actions give float32 PWM; Δu is float64
-        u = (pwm - PWM_MIN) / PWM_SPAN  # also the next observation's motor_output, as in flight
+        u = motor_output(pwm)  # also the next observation's motor_output, as in flight
         if self._any_first:  # a first step has no Δu: its previous output is its own
             np.copyto(self._previous_u, u, where=self._first[..., None])
             self._first[...], self._any_first = False, False
