@@ -148,6 +148,10 @@ class TrainConfig:
               "with DAgger rounds) and the critic to their returns (training.warm_start): pid, pid:paper, or "
               "schedule:NAME|FILE, presets by each drawn airframe's loop delay (training/teachers/)",
         metavar="PRESET")
+    init: str | None = option(
+        None, "fine-tune: start from a trained run's networks, optimiser state and normalisation statistics "
+              "instead of fresh ones: a run directory (its final model) or one checkpoint .zip of the same "
+              "algorithm, observation and network sizes (training.train.start_from)", metavar="RUN|ZIP")
     warm_start_rounds: int = option(WARM_START_ROUNDS, "warm start: rounds of flights and fits (the first "
                                                        "flown by the teacher, the others by the network)")
     warm_start_steps: int = option(WARM_START_STEPS, "warm start: steps per environment copy in each round")
@@ -199,6 +203,9 @@ class TrainConfig:
             from training.warm_start_teacher import check_teacher
 
             check_teacher(self.warm_start)
+        if self.init is not None and self.warm_start is not None:
+            raise ValueError("--init starts from a trained network; --warm-start would fit a fresh one to a "
+                             "teacher first: give one of them")
         if self.warm_start_rounds < 1 or self.warm_start_steps < 1:
             raise ValueError(f"--warm-start-rounds and --warm-start-steps must be >= 1, got "
                              f"{self.warm_start_rounds} and {self.warm_start_steps}")

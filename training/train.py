@@ -195,6 +195,43 @@ def _observation_spec(cfg: TrainConfig):
     return EnvConfig(**cfg.env_kwargs()).observation_spec
 
 
+class InitError(ValueError):
+    """`--init` names a run this one cannot start from."""
+
+
+def start_from(model, venv: VecNormalize, target: str, config: dict[str, Any]) -> str:
+    """Fine-tuning (`--init`): load a trained run's networks and optimiser state into `model` and
+    its observation and return statistics into `venv`; returns the model file loaded.
+
+    The run must have been trained on the same observation (fields, memory, leaks, scales) by
+    the same algorithm: a network is only meaningful on the inputs it was trained on, so a
+    mismatch is an error here rather than a run that learns from scratch on garbage.
+    """
+    import pickle
+
+    from export.onnx_export import ExportError, find_checkpoint
+
+    try:
+        checkpoint = find_checkpoint(target)
+    except ExportError as exc:
+        raise InitError(f"--init {target}: {exc}") from None
+    theirs = checkpoint.config
+    if theirs.get("algo") != config["algo"]:
+        raise InitError(f"--init {target}: trained by {theirs.get('algo')!r}, this run is {config['algo']!r}")
+    if theirs.get("observation") != config["observation"]:
+        raise InitError(f"--init {target}: its observation {theirs.get('observation')} is not this run's "
+                         f"{config['observation']} (give the same --memory, --integral, --error-rms, ...)")
+    try:
+        model.set_parameters(str(checkpoint.model_path), exact_match=True, device="cpu")
+    except (RuntimeError, ValueError, KeyError) as exc:  # torch's size mismatch, SB3's missing keys
+        raise InitError(f"--init {target}: its networks do not fit this run's ({exc})") from None
+    if checkpoint.vecnormalize_path is not None:
+        with open(checkpoint.vecnormalize_path, "rb") as fh:
+            saved = pickle.load(fh)
+        venv.obs_rms, venv.ret_rms = saved.obs_rms, saved.ret_rms
+    return str(checkpoint.model_path)
+
+
 def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, Any]:
     """Train, save, export, evaluate; returns the summary (also in runs/NAME/summary.json)."""
     torch.set_num_threads(cfg.threads)
@@ -206,6 +243,9 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
     venv = VecNormalize(make_vec_env(cfg), norm_obs=cfg.norm_obs, norm_reward=cfg.normalise_reward,
                         clip_obs=cfg.obs_clip or np.inf, gamma=cfg.hyper.get("gamma", 0.99))
     model = make_model(cfg, venv, out / "tb")
+    if cfg.init:
+        config["init"] = start_from(model, venv, cfg.init, config)
+        (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
     callbacks: list[BaseCallback] = [
         RewardTermsCallback(),
         CheckpointCallback(max(1, cfg.checkpoint_every // cfg.n_envs), str(out / "checkpoints"),
@@ -314,7 +354,10 @@ def train_command(args) -> int:
         cfg = from_args(args)
     except ValueError as exc:
         return user_error(str(exc))
-    summary = train(cfg)
+    try:
+        summary = train(cfg)
+    except InitError as exc:
+        return user_error(str(exc))
     if args.json:
         print(json.dumps(summary, default=float))
     else:

@@ -181,3 +181,8 @@ def test_the_penalty_gate_goes_to_the_env_and_needs_the_penalty():
         TrainConfig(action_rate_after=0.2)
     with pytest.raises(ValueError, match="action_rate_after_s"):
         TrainConfig(action_rate_penalty=1.0, action_rate_after=-0.2)
+
+
+def test_init_and_warm_start_exclude_each_other():
+    with pytest.raises(ValueError, match="--init"):
+        TrainConfig(warm_start="pid", init="runs/ppo")

@@ -191,3 +191,44 @@ def test_the_batched_evaluator_observes_with_the_trained_leaks():
     spec = evaluator.env.config.observation_spec
     assert (spec.fields, spec.integral_leak, spec.rms_leak) == (fields, 0.99, 0.9)
     evaluator.close()
+
+
+def test_init_fine_tunes_the_trained_networks_and_statistics(run, tmp_path):
+    import pickle
+
+    from stable_baselines3 import PPO
+
+    src, _ = run
+    cfg = TrainConfig(algo="ppo", steps=1024, seed=5, out=str(tmp_path / "ft"), envs=8,
+                      checkpoint_every=10**9, eval_episodes=0, action_rate_penalty=0.1, progress=False,
+                      init=str(src),
+                      hp={"n_steps": 128, "batch_size": 256, "learning_rate": 0.0})
+    train(cfg)
+    config = json.loads((tmp_path / "ft" / "config.json").read_text())
+    assert config["init"] == str(src / "model.zip") and config["trained_steps"] == 1024
+    before = PPO.load(src / "model.zip", device="cpu").policy.state_dict()
+    after = PPO.load(tmp_path / "ft" / "model.zip", device="cpu").policy.state_dict()
+    assert before.keys() == after.keys()
+    for key in before:  # learning rate 0: the loaded networks, unchanged by the updates
+        assert np.array_equal(before[key].numpy(), after[key].numpy()), key
+    with open(src / "vecnormalize.pkl", "rb") as fh:
+        then = pickle.load(fh).obs_rms
+    with open(tmp_path / "ft" / "vecnormalize.pkl", "rb") as fh:
+        now = pickle.load(fh).obs_rms
+    # the statistics went on from the run's: 1024 steps and each of the 8 twins' first observation
+    assert now.count == pytest.approx(then.count + 1024 + 8)
+
+
+def test_init_refuses_a_run_of_another_observation_or_algorithm(run, tmp_path):
+    from training.train import InitError
+
+    src, _ = run
+    base = dict(steps=128, seed=5, envs=8, eval_episodes=0, progress=False,
+                hp={"n_steps": 16, "batch_size": 128})
+    with pytest.raises(InitError, match="observation"):
+        train(TrainConfig(algo="ppo", memory=2, out=str(tmp_path / "m2"), init=str(src), **base))
+    with pytest.raises(InitError, match="trained by 'ppo'"):
+        train(TrainConfig(algo="trpo", out=str(tmp_path / "trpo"), init=str(src), **base))
+    with pytest.raises(InitError, match="no such checkpoint"):
+        missing = src / "checkpoints" / "ppo_1_steps.zip"
+        train(TrainConfig(algo="ppo", out=str(tmp_path / "none"), init=str(missing), **base))
