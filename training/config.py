@@ -46,7 +46,7 @@ ALGOS: dict[str, dict[str, Any]] = {
     "td3": {"envs": 8, "norm_reward": False, "hp": _OFF_POLICY},
     "sac": {"envs": 8, "norm_reward": False, "hp": {**_OFF_POLICY, "ent_coef": "auto", "use_sde": True}},
 }
-# After a warm start PPO refines a network that already flies: its advantages are mostly
+# After a warm start (or from --init) PPO refines a network that already flies: its advantages are mostly
 # noise, and five full epochs per rollout walk the fitted actor away from the PID's Error
 # before the signal accumulates. A KL limit (TRPO's target) stops an update's epochs early.
 WARM_START_ROUNDS = 3
@@ -260,7 +260,8 @@ class TrainConfig:
 
     @property
     def hyper(self) -> dict[str, Any]:
-        warm = {"target_kl": WARM_START_TARGET_KL} if self.warm_start and self.algo == "ppo" else {}
+        refining = (self.warm_start or self.init) and self.algo == "ppo"  # a network that already flies
+        warm = {"target_kl": WARM_START_TARGET_KL} if refining else {}
         hp = copy.deepcopy({**ALGOS[self.algo]["hp"], **warm, **self.hp})  # SB3 writes into policy_kwargs
         if self.squash:
             hp["policy_kwargs"] = {**hp.get("policy_kwargs", {}), "squash_output": True}

@@ -186,3 +186,4 @@ def test_the_penalty_gate_goes_to_the_env_and_needs_the_penalty():
 def test_init_and_warm_start_exclude_each_other():
     with pytest.raises(ValueError, match="--init"):
         TrainConfig(warm_start="pid", init="runs/ppo")
+    assert TrainConfig(init="runs/ppo").hyper["target_kl"] == WARM_START_TARGET_KL  # refining, as after one
