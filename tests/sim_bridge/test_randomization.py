@@ -230,3 +230,14 @@ def test_a_share_of_episodes_flies_the_nominal_airframe():
             EnvConfig(randomize=ranges, randomize_share=bad)
     with pytest.raises(ValueError, match="needs randomisation ranges"):
         EnvConfig(randomize={"mass": 0.1}, randomize_share=0.5)
+
+
+def test_the_fine_tuning_ranges_are_the_shipped_ones_with_the_esc_delay_at_its_top():
+    full, esc2 = load_randomization("iris"), load_randomization("iris_esc2")
+    assert esc2.airframe == full.airframe and list(esc2) == list(full)
+    for p, q in zip(full.parameters, esc2.parameters, strict=True):
+        assert p.key == q.key and p.nominal == q.nominal
+        if p.key == "esc_delay_ticks":
+            assert (q.lo, q.hi) == (p.hi, p.hi) == (2, 2)
+        else:
+            assert (q.lo, q.hi) == (p.lo, p.hi), p.key
