@@ -18,7 +18,7 @@ def test_there_are_shipped_policies():
     assert {p.name for p in POLICIES} >= {"iris_rate_ppo.onnx", "iris_rate_ppo_smooth.onnx",
                                           "iris_rate_ppo_robust.onnx", "iris_rate_ppo_quiet.onnx",
                                           "iris_rate_ppo_quiet64.onnx", "iris_rate_ppo_quiet64_roll.onnx",
-                                          "iris_rate_ppo_rms64.onnx"}
+                                          "iris_rate_ppo_rms64.onnx", "iris_rate_ppo_rms64_ft.onnx"}
 
 
 @pytest.mark.parametrize("path", POLICIES, ids=lambda p: p.name)
@@ -54,6 +54,7 @@ def test_the_64_wide_policies_have_the_actor_their_inference_budget_rests_on():
     assert widths("iris_rate_ppo_quiet64.onnx") == [64, 64, 4]
     assert widths("iris_rate_ppo_quiet64_roll.onnx") == [64, 64, 4]  # its 256-wide critic is not exported
     assert widths("iris_rate_ppo_rms64.onnx") == [64, 64, 4]
+    assert widths("iris_rate_ppo_rms64_ft.onnx") == [64, 64, 4]  # its normalisation unfolded: Sub, Mul first
     assert widths("iris_rate_ppo_quiet.onnx") == [128, 128, 4]
 
 
