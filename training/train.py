@@ -199,16 +199,13 @@ class InitError(ValueError):
     """`--init` names a run this one cannot start from."""
 
 
-def start_from(model, venv: VecNormalize, target: str, config: dict[str, Any]) -> str:
-    """Fine-tuning (`--init`): load a trained run's networks and optimiser state into `model` and
-    its observation and return statistics into `venv`; returns the model file loaded.
+def init_checkpoint(target: str, config: dict[str, Any]):
+    """The run `--init` names, checked against this run's `config` before anything is built.
 
-    The run must have been trained on the same observation (fields, memory, leaks, scales) by
-    the same algorithm: a network is only meaningful on the inputs it was trained on, so a
+    It must have been trained on the same observation (fields, memory, leaks, scales) by the
+    same algorithm: a network is only meaningful on the inputs it was trained on, so a
     mismatch is an error here rather than a run that learns from scratch on garbage.
     """
-    import pickle
-
     from export.onnx_export import ExportError, find_checkpoint
 
     try:
@@ -220,16 +217,24 @@ def start_from(model, venv: VecNormalize, target: str, config: dict[str, Any]) -
         raise InitError(f"--init {target}: trained by {theirs.get('algo')!r}, this run is {config['algo']!r}")
     if theirs.get("observation") != config["observation"]:
         raise InitError(f"--init {target}: its observation {theirs.get('observation')} is not this run's "
-                         f"{config['observation']} (give the same --memory, --integral, --error-rms, ...)")
+                        f"{config['observation']} (give the same --memory, --integral, --error-rms, ...)")
+    return checkpoint
+
+
+def start_from(model, venv: VecNormalize, checkpoint) -> None:
+    """Fine-tuning (`--init`): the checkpoint's networks and Adam state into `model`, its
+    observation and return statistics into `venv` (they go on updating)."""
+    import pickle
+
     try:
         model.set_parameters(str(checkpoint.model_path), exact_match=True, device="cpu")
     except (RuntimeError, ValueError, KeyError) as exc:  # torch's size mismatch, SB3's missing keys
-        raise InitError(f"--init {target}: its networks do not fit this run's ({exc})") from None
+        raise InitError(f"--init {checkpoint.model_path}: its networks do not fit this run's "
+                        f"({exc})") from None
     if checkpoint.vecnormalize_path is not None:
         with open(checkpoint.vecnormalize_path, "rb") as fh:
             saved = pickle.load(fh)
         venv.obs_rms, venv.ret_rms = saved.obs_rms, saved.ret_rms
-    return str(checkpoint.model_path)
 
 
 def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, Any]:
@@ -238,14 +243,20 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
     out = Path(cfg.out)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     config = run_config(cfg)
+    init = init_checkpoint(cfg.init, config) if cfg.init else None
+    if init is not None:
+        config["init"] = str(init.model_path)
     (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
 
     venv = VecNormalize(make_vec_env(cfg), norm_obs=cfg.norm_obs, norm_reward=cfg.normalise_reward,
                         clip_obs=cfg.obs_clip or np.inf, gamma=cfg.hyper.get("gamma", 0.99))
     model = make_model(cfg, venv, out / "tb")
-    if cfg.init:
-        config["init"] = start_from(model, venv, cfg.init, config)
-        (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
+    if init is not None:
+        try:
+            start_from(model, venv, init)
+        except InitError:
+            venv.close()
+            raise
     callbacks: list[BaseCallback] = [
         RewardTermsCallback(),
         CheckpointCallback(max(1, cfg.checkpoint_every // cfg.n_envs), str(out / "checkpoints"),
