@@ -46,9 +46,10 @@ ALGOS: dict[str, dict[str, Any]] = {
     "td3": {"envs": 8, "norm_reward": False, "hp": _OFF_POLICY},
     "sac": {"envs": 8, "norm_reward": False, "hp": {**_OFF_POLICY, "ent_coef": "auto", "use_sde": True}},
 }
-# After a warm start (or from --init) PPO refines a network that already flies: its advantages are mostly
-# noise, and five full epochs per rollout walk the fitted actor away from the PID's Error
-# before the signal accumulates. A KL limit (TRPO's target) stops an update's epochs early.
+# After a warm start (or from --init) PPO refines a network that already flies: its
+# advantages are mostly noise, and five full epochs per rollout walk the fitted actor away
+# from the PID's Error before the signal accumulates. A KL limit (TRPO's target) stops an
+# update's epochs early.
 WARM_START_ROUNDS = 3
 WARM_START_STEPS = 1500  # per environment copy and round
 WARM_START_TARGET_KL = 0.01

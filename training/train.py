@@ -241,11 +241,11 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
     """Train, save, export, evaluate; returns the summary (also in runs/NAME/summary.json)."""
     torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
-    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     config = run_config(cfg)
-    init = init_checkpoint(cfg.init, config) if cfg.init else None
+    init = init_checkpoint(cfg.init, config) if cfg.init else None  # refused: nothing written
     if init is not None:
         config["init"] = str(init.model_path)
+    (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
 
     venv = VecNormalize(make_vec_env(cfg), norm_obs=cfg.norm_obs, norm_reward=cfg.normalise_reward,

@@ -227,6 +227,7 @@ def test_init_refuses_a_run_of_another_observation_or_algorithm(run, tmp_path):
                 hp={"n_steps": 16, "batch_size": 128})
     with pytest.raises(InitError, match="observation"):
         train(TrainConfig(algo="ppo", memory=2, out=str(tmp_path / "m2"), init=str(src), **base))
+    assert not (tmp_path / "m2").exists()  # refused before anything was written
     with pytest.raises(InitError, match="trained by 'ppo'"):
         train(TrainConfig(algo="trpo", out=str(tmp_path / "trpo"), init=str(src), **base))
     with pytest.raises(InitError, match="no such checkpoint"):
