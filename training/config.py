@@ -152,7 +152,8 @@ class TrainConfig:
     init: str | None = option(
         None, "fine-tune: start from a trained run's networks, optimiser state and normalisation statistics "
               "instead of fresh ones: a run directory (its final model) or one checkpoint .zip of the same "
-              "algorithm, observation and network sizes (training.train.start_from)", metavar="RUN|ZIP")
+              "algorithm and network sizes, and the same observation or one this run adds fields to "
+              "(their inputs start at zero weight: training.init)", metavar="RUN|ZIP")
     warm_start_rounds: int = option(WARM_START_ROUNDS, "warm start: rounds of flights and fits (the first "
                                                        "flown by the teacher, the others by the network)")
     warm_start_steps: int = option(WARM_START_STEPS, "warm start: steps per environment copy in each round")

@@ -28,9 +28,10 @@ from evaluation.metrics import compute_metrics
 from fcemu import __version__
 from training import quick_eval
 from training.config import ALGOS, TrainConfig, parse_hp
+from training.init import InitError, init_checkpoint, start_from
 
 # ── 1. Defaults per algorithm (ALGOS) and 2. the configuration (TrainConfig): training.config ──
-__all__ = ["ALGOS", "PID_PRESETS", "TrainConfig", "parse_hp", "train"]
+__all__ = ["ALGOS", "PID_PRESETS", "InitError", "TrainConfig", "parse_hp", "train"]
 PID_PRESETS = ("pid", "pid:paper")  # the bar compares with the best of these
 NOISE_STD = 0.1  # DDPG/TD3 Gaussian exploration noise on actions in [-1, 1]
 
@@ -195,48 +196,6 @@ def _observation_spec(cfg: TrainConfig):
     return EnvConfig(**cfg.env_kwargs()).observation_spec
 
 
-class InitError(ValueError):
-    """`--init` names a run this one cannot start from."""
-
-
-def init_checkpoint(target: str, config: dict[str, Any]):
-    """The run `--init` names, checked against this run's `config` before anything is built.
-
-    It must have been trained on the same observation (fields, memory, leaks, scales) by the
-    same algorithm: a network is only meaningful on the inputs it was trained on, so a
-    mismatch is an error here rather than a run that learns from scratch on garbage.
-    """
-    from export.onnx_export import ExportError, find_checkpoint
-
-    try:
-        checkpoint = find_checkpoint(target)
-    except ExportError as exc:
-        raise InitError(f"--init {target}: {exc}") from None
-    theirs = checkpoint.config
-    if theirs.get("algo") != config["algo"]:
-        raise InitError(f"--init {target}: trained by {theirs.get('algo')!r}, this run is {config['algo']!r}")
-    if theirs.get("observation") != config["observation"]:
-        raise InitError(f"--init {target}: its observation {theirs.get('observation')} is not this run's "
-                        f"{config['observation']} (give the same --memory, --integral, --error-rms, ...)")
-    return checkpoint
-
-
-def start_from(model, venv: VecNormalize, checkpoint) -> None:
-    """Fine-tuning (`--init`): the checkpoint's networks and Adam state into `model`, its
-    observation and return statistics into `venv` (they go on updating)."""
-    import pickle
-
-    try:
-        model.set_parameters(str(checkpoint.model_path), exact_match=True, device="cpu")
-    except (RuntimeError, ValueError, KeyError) as exc:  # torch's size mismatch, SB3's missing keys
-        raise InitError(f"--init {checkpoint.model_path}: its networks do not fit this run's "
-                        f"({exc})") from None
-    if checkpoint.vecnormalize_path is not None:
-        with open(checkpoint.vecnormalize_path, "rb") as fh:
-            saved = pickle.load(fh)
-        venv.obs_rms, venv.ret_rms = saved.obs_rms, saved.ret_rms
-
-
 def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, Any]:
     """Train, save, export, evaluate; returns the summary (also in runs/NAME/summary.json)."""
     torch.set_num_threads(cfg.threads)
@@ -244,7 +203,9 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
     config = run_config(cfg)
     init = init_checkpoint(cfg.init, config) if cfg.init else None  # refused: nothing written
     if init is not None:
-        config["init"] = str(init.model_path)
+        config["init"] = str(init.checkpoint.model_path)
+        if init.added:
+            config["init_added_fields"] = list(init.added)
     (out / "checkpoints").mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
 

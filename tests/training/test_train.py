@@ -219,6 +219,37 @@ def test_init_fine_tunes_the_trained_networks_and_statistics(run, tmp_path):
     assert now.count == pytest.approx(then.count + 1024 + 8)
 
 
+def test_init_adds_an_observation_field_at_zero_weight(run, tmp_path):
+    """A fine-tune with --motor-output from a run without it: the loaded networks compute what
+    they did (the new inputs' weights are zero), and the new inputs are normalised from flight."""
+    import pickle
+
+    from stable_baselines3 import PPO
+
+    src, _ = run
+    out = tmp_path / "widened"
+    train(TrainConfig(algo="ppo", steps=1024, seed=5, out=str(out), envs=8, checkpoint_every=10**9,
+                      eval_episodes=0, action_rate_penalty=0.1, progress=False, init=str(src),
+                      motor_output=True, hp={"n_steps": 128, "batch_size": 256, "learning_rate": 0.0}))
+    config = json.loads((out / "config.json").read_text())
+    assert config["init_added_fields"] == ["motor_output"]
+    assert config["observation"]["fields"] == ["rate_error", "rotor_speed", "motor_output"]
+    before = PPO.load(src / "model.zip", device="cpu").policy.state_dict()
+    after = PPO.load(out / "model.zip", device="cpu").policy.state_dict()
+    for key in before:
+        if key.endswith("_net.0.weight"):  # the actor's and the critic's input layers: 7 columns → 11
+            assert after[key].shape == (before[key].shape[0], 11), key
+            assert np.array_equal(after[key][:, :7].numpy(), before[key].numpy()), key
+            assert not after[key][:, 7:].any(), key
+        else:
+            assert np.array_equal(before[key].numpy(), after[key].numpy()), key
+    with open(out / "vecnormalize.pkl", "rb") as fh:
+        rms = pickle.load(fh).obs_rms
+    assert rms.mean.shape == (11,)
+    assert (0.0 < rms.mean[7:]).all() and (rms.mean[7:] < 1.0).all() and (rms.var[7:] > 0.0).all()
+    assert json.loads((out / "summary.json").read_text())["export"]["parity_ok"]
+
+
 def test_init_refuses_a_run_of_another_observation_or_algorithm(run, tmp_path):
     from training.train import InitError
 
