@@ -18,7 +18,8 @@ def test_there_are_shipped_policies():
     assert {p.name for p in POLICIES} >= {"iris_rate_ppo.onnx", "iris_rate_ppo_smooth.onnx",
                                           "iris_rate_ppo_robust.onnx", "iris_rate_ppo_quiet.onnx",
                                           "iris_rate_ppo_quiet64.onnx", "iris_rate_ppo_quiet64_roll.onnx",
-                                          "iris_rate_ppo_rms64.onnx", "iris_rate_ppo_rms64_ft.onnx"}
+                                          "iris_rate_ppo_rms64.onnx", "iris_rate_ppo_rms64_ft.onnx",
+                                          "iris_rate_ppo_rms64_mo.onnx"}
 
 
 @pytest.mark.parametrize("path", POLICIES, ids=lambda p: p.name)
@@ -55,6 +56,7 @@ def test_the_64_wide_policies_have_the_actor_their_inference_budget_rests_on():
     assert widths("iris_rate_ppo_quiet64_roll.onnx") == [64, 64, 4]  # its 256-wide critic is not exported
     assert widths("iris_rate_ppo_rms64.onnx") == [64, 64, 4]
     assert widths("iris_rate_ppo_rms64_ft.onnx") == [64, 64, 4]  # its normalisation unfolded: Sub, Mul first
+    assert widths("iris_rate_ppo_rms64_mo.onnx") == [64, 64, 4]  # unfolded too; 272 inputs (motor_output)
     assert widths("iris_rate_ppo_quiet.onnx") == [128, 128, 4]
 
 
@@ -67,3 +69,18 @@ def test_a_committed_sweep_config_is_a_valid_sweep(path: Path):
 
     spec = spec_from_args(build_parser().parse_args(["sweep", "--config", str(path)]), SWEEP_DEFAULTS)
     assert len(spec.seeds) >= 4 and spec.train["algo"] == "ppo"
+
+
+def test_the_motor_output_policy_observes_its_own_commands():
+    """rms64_mo is rms64_ft's start fine-tuned with its previous motor outputs added to what it sees."""
+    import onnx
+
+    from firmware.contract import META_PREFIX, PolicyContract
+
+    model = onnx.load(str(POLICY_DIR / "iris_rate_ppo_rms64_mo.onnx"))
+    meta = {p.key.removeprefix(META_PREFIX): p.value
+            for p in model.metadata_props if p.key.startswith(META_PREFIX)}
+    spec = PolicyContract.from_metadata(meta).observation
+    assert spec.fields == ("rate_error", "rotor_speed", "rate_error_integral", "rate_error_rms",
+                           "motor_output")
+    assert spec.memory == 16 and spec.size == 272
