@@ -113,30 +113,43 @@ class DeterministicActor(nn.Module):
 
 class FoldedActor(nn.Module):
     """A flat on-policy actor without a clip, its normalisation folded into the first layer:
-    W' = W·diag(1/σ), b' = b − W'·μ (in float64, then float32), the rest of the layers as trained."""
+    W' = W·diag(1/σ), b' = b − W'·μ (in float64, then float32), the rest of the layers as trained.
+    `centred`: only 1/σ is folded and μ is subtracted in the graph, so W'·(x − μ) does not
+    cancel against a large b' in float32 (one graph node, where the unfolded actor has two)."""
 
-    def __init__(self, actor: DeterministicActor) -> None:
+    def __init__(self, actor: DeterministicActor, centred: bool = False) -> None:
         super().__init__()
         layers = [*actor.policy.mlp_extractor.policy_net, actor.policy.action_net]
         first = layers[0]
         folded = nn.Linear(first.in_features, first.out_features)
         w = first.weight.detach().double() * actor.inv_std.double()[None, :]
         folded.weight.data = w.float()
-        folded.bias.data = (first.bias.detach().double() - w @ actor.mean.double()).float()
+        folded.bias.data = first.bias.detach().clone() if centred \
+            else (first.bias.detach().double() - w @ actor.mean.double()).float()
+        self.register_buffer("mean", actor.mean.clone() if centred else None)
         self.net = nn.Sequential(folded, *layers[1:])
         self.squash = actor.squash
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        mean = self.net(obs)
+        mean = self.net(obs if self.mean is None else obs - self.mean)
         return torch.tanh(mean) if self.squash else mean
 
 
-def graph_module(actor: DeterministicActor) -> nn.Module:
-    """What is exported: the folded actor where the normalisation folds, else the actor itself."""
+FOLDED, CENTRED, UNFOLDED = ("folded into the first layer",
+                             "1/σ folded into the first layer, μ subtracted in the graph", "in the graph")
+
+
+def graph_modules(actor: DeterministicActor) -> list[tuple[str, nn.Module]]:
+    """What may be exported, cheapest graph first; `export_policy` writes the first that keeps
+    parity: the folds where the normalisation folds, the actor itself always last."""
+    candidates = [(UNFOLDED, actor)]
     if not (actor.on_policy and actor.flat and not np.isfinite(actor.clip_obs)):
-        return actor
+        return candidates
     first = next(iter(actor.policy.mlp_extractor.policy_net), actor.policy.action_net)
-    return FoldedActor(actor).eval() if isinstance(first, nn.Linear) else actor
+    if not isinstance(first, nn.Linear):
+        return candidates
+    return [(FOLDED, FoldedActor(actor).eval()), (CENTRED, FoldedActor(actor, centred=True).eval()),
+            *candidates]
 
 
 def _is_sac(policy) -> bool:
@@ -195,13 +208,12 @@ def export_policy(target: str | Path, out: str | Path, parity_samples: int = 10_
     obs = parity_observations(spec, max(parity_samples, 1))
     with torch.no_grad():
         expected = actor(torch.as_tensor(obs)).numpy()
-    module = graph_module(actor)
-    max_diff = _write_graph(module, spec.size, out, obs, expected)
-    folded = module is not actor
-    if folded and max_diff > PARITY_TOLERANCE:
-        # The fold's W'·x and b' = −W'·μ cancel in float32 where μ/σ is large; the unfolded
-        # graph subtracts μ first. Rare, and then two graph nodes are the price of parity.
-        max_diff, folded = _write_graph(actor, spec.size, out, obs, expected), False
+    for label, module in graph_modules(actor):
+        # The full fold's W'·x and b' = −W'·μ cancel in float32 where μ/σ is large; the
+        # centred fold and the unfolded graph subtract μ first.
+        normalisation, max_diff = label, _write_graph(module, spec.size, out, obs, expected)
+        if max_diff <= PARITY_TOLERANCE:
+            break
     steps = int(getattr(model, "num_timesteps", 0) or cfg.get("trained_steps", 0))  # a checkpoint's own
     metadata = {
         "observation": spec.to_json(),
@@ -225,7 +237,7 @@ def export_policy(target: str | Path, out: str | Path, parity_samples: int = 10_
     report = {"out": str(out), "bytes": out.stat().st_size, "parity_max_abs_diff": max_diff,
               "parity_samples": len(obs), "parity_ok": max_diff <= PARITY_TOLERANCE, **{
                   k: metadata[k] for k in ("algorithm", "training_steps", "seed", "action_mapping")},
-              "normalisation": "folded into the first layer" if folded else "in the graph"}
+              "normalisation": normalisation}
     out.with_suffix(".parity.json").write_text(json.dumps(report, indent=2) + "\n")
     if not report["parity_ok"]:
         raise ExportError(f"parity check failed: max |onnx - torch| = {max_diff:.3e} > {PARITY_TOLERANCE}")

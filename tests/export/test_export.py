@@ -122,17 +122,26 @@ def test_without_an_observation_clip_the_normalisation_folds_into_the_first_laye
     assert json.loads((runs["ppo_unclipped"] / "config.json").read_text())["obs_clip"] == 0.0
 
 
-def test_a_fold_that_loses_parity_falls_back_to_the_normalisation_in_the_graph(runs, tmp_path, monkeypatch):
+@pytest.mark.parametrize("spoilt, normalisation, ops", [
+    ((False,), "1/σ folded into the first layer, μ subtracted in the graph", ["Sub", "Gemm"]),
+    ((False, True), "in the graph", ["Sub", "Mul", "Gemm"]),
+])
+def test_a_fold_that_loses_parity_falls_back_to_a_cheaper_one_then_to_the_graph(runs, tmp_path, monkeypatch,
+                                                                                 spoilt, normalisation, ops):
+    import onnx
+
     import export.onnx_export as onnx_export
 
-    def off_by_a_little(actor):
-        folded = onnx_export.FoldedActor(actor)
-        folded.net[0].bias.data += 1e-3  # what float32 cancellation would do, only larger
-        return folded
+    class OffByALittle(onnx_export.FoldedActor):
+        def __init__(self, actor, centred: bool = False) -> None:
+            super().__init__(actor, centred)
+            if centred in spoilt:
+                self.net[0].bias.data += 1e-3  # what float32 cancellation would do, only larger
 
-    monkeypatch.setattr(onnx_export, "graph_module", off_by_a_little)
+    monkeypatch.setattr(onnx_export, "FoldedActor", OffByALittle)
     report = export_policy(runs["ppo_unclipped"], tmp_path / "p.onnx")
-    assert report["parity_ok"] and report["normalisation"] == "in the graph"
+    assert report["parity_ok"] and report["normalisation"] == normalisation
+    assert [n.op_type for n in onnx.load(str(tmp_path / "p.onnx")).graph.node][:len(ops)] == ops
 
 
 def test_checkpoint_zip_exports_with_its_own_normalisation(runs, tmp_path):
