@@ -56,7 +56,7 @@ def test_the_64_wide_policies_have_the_actor_their_inference_budget_rests_on():
     assert widths("iris_rate_ppo_quiet64_roll.onnx") == [64, 64, 4]  # its 256-wide critic is not exported
     assert widths("iris_rate_ppo_rms64.onnx") == [64, 64, 4]
     assert widths("iris_rate_ppo_rms64_ft.onnx") == [64, 64, 4]  # its normalisation unfolded: Sub, Mul first
-    assert widths("iris_rate_ppo_rms64_mo.onnx") == [64, 64, 4]  # unfolded too; 272 inputs (motor_output)
+    assert widths("iris_rate_ppo_rms64_mo.onnx") == [64, 64, 4]  # 1/σ folded, μ a Sub; 272 inputs
     assert widths("iris_rate_ppo_quiet.onnx") == [128, 128, 4]
 
 
@@ -84,3 +84,4 @@ def test_the_motor_output_policy_observes_its_own_commands():
     assert spec.fields == ("rate_error", "rotor_speed", "rate_error_integral", "rate_error_rms",
                            "motor_output")
     assert spec.memory == 16 and spec.size == 272
+    assert [n.op_type for n in model.graph.node][:2] == ["Sub", "Gemm"]  # the export's centred fold
