@@ -1,8 +1,8 @@
 """Fine-tuning (`fcemu train --init RUN|ZIP`): start from a trained run instead of fresh networks.
 
-The run's networks, Adam state and VecNormalize statistics are loaded into the new model. Its
-observation must be this run's, or this run's with fields taken away: a fine-tune may *add*
-fields (e.g. `--motor-output` to a policy trained without it). An added field's columns get
+The run's networks, Adam state and VecNormalize statistics are loaded into the new model. The
+run must have observed what this one does, less any fields this one adds: a fine-tune may
+*add* fields (e.g. `--motor-output` to a policy trained without it). An added field's columns get
 zero input weights, so the loaded policy and critic compute exactly what they did, and PPO
 learns from there whether to use them. Their normalisation statistics are measured on the
 loaded policy's own flights before training (its actions do not depend on them, the weights
