@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import argparse
 
-from sitl.cli import loop_rate, seconds
-from training import config
-from training.cli import BENCH_DEFAULTS
+from fcemu.sitl.cli import loop_rate, seconds
+from fcemu.training import config
+from fcemu.training.cli import BENCH_DEFAULTS
 
 
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
@@ -18,7 +18,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     sim.add_argument("--seconds", type=float, default=2.0, help="time per measurement")
     sim.add_argument("--envs", type=int, default=256, help="batch size for the vectorised env")
     sim.add_argument("--json", action="store_true")
-    sim.set_defaults(handler="benchmarks.sim:bench_sim")
+    sim.set_defaults(handler="fcemu.benchmarks.sim:bench_sim")
 
     loop = bench_sub.add_parser("loop", help="real-time loop timing: period error, compute, misses")
     loop.add_argument("--controller", default=None, help="pid, pid:<preset> or a policy .onnx")
@@ -29,13 +29,13 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     loop.add_argument("--mavlink", action="store_true",
                       help="also run with MAVLink telemetry streaming and a peer sending setpoints at 100 Hz")
     loop.add_argument("--json", action="store_true")
-    loop.set_defaults(handler="benchmarks.loop:bench_loop")
+    loop.set_defaults(handler="fcemu.benchmarks.loop:bench_loop")
 
     inference = bench_sub.add_parser("inference", help="ONNX policy inference time per tick")
     inference.add_argument("--model", default=None, help="a policy .onnx (default: the shipped policy)")
     inference.add_argument("--samples", type=int, default=20_000)
     inference.add_argument("--json", action="store_true")
-    inference.set_defaults(handler="benchmarks.inference:bench_inference")
+    inference.set_defaults(handler="fcemu.benchmarks.inference:bench_inference")
 
     p = bench_sub.add_parser("train", help="training steps/s and wall time until the policy beats the PID")
     config.add_arguments(p, exclude=("eval_seed", "export", "progress"), defaults=BENCH_DEFAULTS)
@@ -43,4 +43,4 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--target", choices=("beat", "bar"), default="beat",
                    help="stop when the Error sum beats the PID's (beat) or meets issue 5's bar (bar)")
     p.add_argument("--json", action="store_true")
-    p.set_defaults(handler="benchmarks.train:bench_train")
+    p.set_defaults(handler="fcemu.benchmarks.train:bench_train")

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from sim_bridge.env import RateControlEnv
-from sim_bridge.vec_env import BatchedRateEnv
+from fcemu.sim_bridge.env import RateControlEnv
+from fcemu.sim_bridge.vec_env import BatchedRateEnv
 
 _ACTION_SETS = 8
 

@@ -7,9 +7,9 @@ import time
 
 import numpy as np
 
-from firmware.controller import RateSetpoint
-from firmware.neural import NeuralRateController
-from firmware.sensors import SensorFrame
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.neural import NeuralRateController
+from fcemu.firmware.sensors import SensorFrame
 
 
 def measure_inference(model: str, n: int = 20_000, warmup: int = 2_000) -> dict:
@@ -39,7 +39,7 @@ def measure_inference(model: str, n: int = 20_000, warmup: int = 2_000) -> dict:
 
 
 def bench_inference(args) -> int:
-    from firmware.controllers import default_controller
+    from fcemu.firmware.controllers import default_controller
 
     model = args.model or default_controller()
     if not model.endswith(".onnx"):

@@ -7,8 +7,8 @@ import socket
 import subprocess
 import sys
 
-from firmware.timing import give_loop_a_core
-from sitl.sitl import build_sitl, flying_line, load_controllers
+from fcemu.firmware.timing import give_loop_a_core
+from fcemu.sitl.sitl import build_sitl, flying_line, load_controllers
 
 
 def _free_port() -> int:
@@ -31,14 +31,15 @@ def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "ri
             release_core()
         extra = {}
     else:
-        from firmware.mavlink.bridge import MavlinkConfig, PeerConfig
-        from sitl.sitl import start_vehicle_sitl
+        from fcemu.firmware.mavlink.bridge import MavlinkConfig, PeerConfig
+        from fcemu.sitl.sitl import start_vehicle_sitl
 
         gcs, offboard = _free_port(), _free_port()
         config = MavlinkConfig(peers=[PeerConfig("gcs", "127.0.0.1", gcs),
                                       PeerConfig("offboard", "127.0.0.1", offboard)], params_file=None)
         vs = start_vehicle_sitl(controller, rig, rate_hz, 1.0, config)
-        peer = subprocess.Popen([sys.executable, "-m", "firmware.mavlink.loadpeer", str(gcs), str(offboard)])
+        peer = subprocess.Popen([sys.executable, "-m", "fcemu.firmware.mavlink.loadpeer",
+                                 str(gcs), str(offboard)])
         sitl = vs.sitl
         release_core = give_loop_a_core((vs.proc.pid, peer.pid))
         try:
@@ -69,7 +70,7 @@ def _line(r: dict, tag: str = "         ") -> str:
 def bench_loop(args) -> int:
     """One JSON object per run: the loop's figures, and with --mavlink the same figures measured
     with MAVLink under "mavlink" (with the link's counters); several --rate: {"runs": [...]}."""
-    from firmware.controllers import default_controller
+    from fcemu.firmware.controllers import default_controller
 
     controller = args.controller or default_controller()
     rates = args.rate or [1000.0]

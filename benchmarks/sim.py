@@ -18,9 +18,9 @@ from typing import TypeVar
 import numpy as np
 from tqdm import tqdm
 
-from sim_bridge.airframe import load_airframe
-from sim_bridge.link import UdpTwinClient, spawn_server
-from sim_bridge.twin import Twin
+from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.link import UdpTwinClient, spawn_server
+from fcemu.sim_bridge.twin import Twin
 
 T = TypeVar("T")
 _CHUNK = 256  # calls between clock reads and progress updates
@@ -74,22 +74,22 @@ def udp_steps_per_s(args: argparse.Namespace) -> float:
 
 def env_steps_per_s(args: argparse.Namespace) -> float:
     """RateControlEnv.step, one Gymnasium environment (episodic task)"""
-    from benchmarks.env import env_steps_per_s as measure
+    from fcemu.benchmarks.env import env_steps_per_s as measure
 
     return measure(seconds=args.seconds)
 
 
 def vec_env_steps_per_s(args: argparse.Namespace) -> float:
     """BatchedRateEnv, aggregate environment steps over --envs twins in one call"""
-    from benchmarks.env import vec_env_steps_per_s as measure
+    from fcemu.benchmarks.env import vec_env_steps_per_s as measure
 
     return measure(n_envs=args.envs, seconds=args.seconds)
 
 
 def sitl_lockstep_ticks_per_s(args: argparse.Namespace) -> float:
     """firmware loop ticks (PID + mixer + twin) in lockstep, as `fcemu sitl --speed max`"""
-    from firmware.loop import ScriptedCommander
-    from sitl.sitl import build_sitl
+    from fcemu.firmware.loop import ScriptedCommander
+    from fcemu.sitl.sitl import build_sitl
 
     sitl = build_sitl("pid", rig="rig", realtime=False,
                       commander=ScriptedCommander([(0.0, (1.0, -1.0, 0.5), 0.7)], controller="pid"))

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from training.train import PidRaceCallback, TrainConfig, train
+from fcemu.training.train import PidRaceCallback, TrainConfig, train
 
 
 class _CappedRace(PidRaceCallback):
@@ -47,8 +47,8 @@ class _CappedRace(PidRaceCallback):
 
 
 def bench_train(args) -> int:
-    from training.cli import user_error
-    from training.config import from_args
+    from fcemu.training.cli import user_error
+    from fcemu.training.config import from_args
 
     with tempfile.TemporaryDirectory(prefix="fcemu-bench-train-") as tmp:
         # --steps sets the learning-rate schedule (decay over the run, as `fcemu train`);

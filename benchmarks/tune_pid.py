@@ -41,11 +41,11 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.metrics import episode_metrics
-from firmware.controller import RateSetpoint
-from firmware.pid_controller import PIDRateController, load_preset
-from sim_bridge.tasks import OMEGA_MAX
-from sim_bridge.twin import SensorNoise, Twin
+from fcemu.evaluation.metrics import episode_metrics
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.pid_controller import PIDRateController, load_preset
+from fcemu.sim_bridge.tasks import OMEGA_MAX
+from fcemu.sim_bridge.twin import SensorNoise, Twin
 
 AXES = ("roll", "pitch", "yaw")
 MARGIN = 0.98  # each metric should be at least 2% better than the paper preset's

@@ -22,21 +22,21 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from evaluation.metrics import AXES, EvalMetrics, compute_metrics
-from evaluation.runner import TraceRecorder
-from firmware.controller import RateSetpoint
-from firmware.controllers import load_controller
-from firmware.loop import Command, FlightLoop
-from firmware.mixer import BETAFLIGHT_QUAD_X
-from firmware.sensors import SensorFrame
-from firmware.timing import LockstepClock
-from sim_bridge.airframe import load_airframe
-from sim_bridge.link import InProcessLink
-from sim_bridge.tasks import episodic_commands
-from sim_bridge.twin import Twin
-from sitl.betaflight import BetaflightFlight, RcMap
-from sitl.betaflight_process import BetaflightError
-from sitl.traces import Traces, save_traces
+from fcemu.evaluation.metrics import AXES, EvalMetrics, compute_metrics
+from fcemu.evaluation.runner import TraceRecorder
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.controllers import load_controller
+from fcemu.firmware.loop import Command, FlightLoop
+from fcemu.firmware.mixer import BETAFLIGHT_QUAD_X
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.timing import LockstepClock
+from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.link import InProcessLink
+from fcemu.sim_bridge.tasks import episodic_commands
+from fcemu.sim_bridge.twin import Twin
+from fcemu.sitl.betaflight import BetaflightFlight, RcMap
+from fcemu.sitl.betaflight_process import BetaflightError
+from fcemu.sitl.traces import Traces, save_traces
 
 FCEMU_PRESET = "pid:betaflight"
 _AT_REST, _NO_ROTORS = np.array([0.0, 0.0, -9.80665]), np.zeros(4)
@@ -246,7 +246,7 @@ def _run(args) -> int:
 
 def _run_free(args, rc: RcMap) -> int:
     """The free rig: take-off, doublets on each axis, descent (`fcemu sitl --no-mavlink`'s script)."""
-    from firmware.sitl import scripted_flight
+    from fcemu.firmware.sitl import scripted_flight
 
     if args.crosscheck:
         raise BetaflightError("--crosscheck flies the rig (ball joint); drop --rig free")

@@ -47,12 +47,12 @@ from scipy import sparse
 from scipy.optimize import linprog
 from tqdm import tqdm
 
-from evaluation.rate_boxes import GYRO_PAIRS, Boxes, RateBoxes, gyro_coefficients
-from firmware.errors import UserError
-from firmware.timing import available_cpus
-from sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
-from sim_bridge.tasks import episodic_commands
-from sim_bridge.twin import Twin
+from fcemu.evaluation.rate_boxes import GYRO_PAIRS, Boxes, RateBoxes, gyro_coefficients
+from fcemu.firmware.errors import UserError
+from fcemu.firmware.timing import available_cpus
+from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
+from fcemu.sim_bridge.tasks import episodic_commands
+from fcemu.sim_bridge.twin import Twin
 
 HORIZON = 400  # steps: the error left after 0.4 s is a few % of an episode's
 OTHERS_HORIZON = 150  # steps of the programmes that bound two axes' Error for the rate boxes
@@ -351,8 +351,8 @@ def bound_command(args) -> int:
     """`fcemu bound`: the bound on the evaluator's commands, and each --controller's Error against it."""
     import sys
 
-    from evaluation.metrics import AXES, compute_metrics
-    from evaluation.runner import EvalConfig, run_controller
+    from fcemu.evaluation.metrics import AXES, compute_metrics
+    from fcemu.evaluation.runner import EvalConfig, run_controller
 
     if args.episodes < 1 or args.horizon < 3 or args.gyro_passes < 0 or args.jobs < 0:
         raise UserError("bound: --episodes must be ≥ 1, --horizon ≥ 3, --gyro-passes and --jobs ≥ 0")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from sim_bridge.tasks import EVAL_TASKS
+from fcemu.sim_bridge.tasks import EVAL_TASKS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="seed of the perturbed airframes (a stream training never draws from)")
     p.add_argument("--ranges", default="iris", metavar="NAME|FILE",
                    help="randomisation ranges for --perturb: a shipped name or a file (default: iris)")
-    p.set_defaults(handler="evaluation.evaluate:eval_command")
+    p.set_defaults(handler="fcemu.evaluation.evaluate:eval_command")
     register_bound(sub)
 
 
@@ -52,4 +52,4 @@ def register_bound(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--controller", action="append", default=None,
                    help="also fly pid, pid:<preset> or FILE.onnx on the same commands and compare")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.set_defaults(handler="evaluation.bound:bound_command")
+    p.set_defaults(handler="fcemu.evaluation.bound:bound_command")

@@ -10,12 +10,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from evaluation.metrics import AXES, EvalMetrics, compute_metrics
-from evaluation.perturb import PerturbedAirframe, PerturbedResult, fly_perturbed, perturbed_airframes
-from evaluation.report import ControllerResult, write_report
-from evaluation.runner import EvalConfig, run_controller
-from sim_bridge.randomization import RandomizationError, load_randomization
-from sitl.traces import Traces, save_traces
+from fcemu.evaluation.metrics import AXES, EvalMetrics, compute_metrics
+from fcemu.evaluation.perturb import PerturbedAirframe, PerturbedResult, fly_perturbed, perturbed_airframes
+from fcemu.evaluation.report import ControllerResult, write_report
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.sim_bridge.randomization import RandomizationError, load_randomization
+from fcemu.sitl.traces import Traces, save_traces
 
 REPORT_CONTINUOUS_S = 10.0
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from sitl.traces import Traces
+from fcemu.sitl.traces import Traces
 
 AXES = ("roll", "pitch", "yaw")
 METRIC_KEYS = ("success_pct", "failure_pct", "rise_ms", "peak_pct", "error", "stability", "smoothness")

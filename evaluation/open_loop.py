@@ -16,9 +16,9 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import linprog
 
-from evaluation.bound import RigConstants
-from evaluation.rate_boxes import GYRO_PAIRS, gyro_coefficients
-from sim_bridge.twin import Twin
+from fcemu.evaluation.bound import RigConstants
+from fcemu.evaluation.rate_boxes import GYRO_PAIRS, gyro_coefficients
+from fcemu.sim_bridge.twin import Twin
 
 
 def pwm_for_speeds(c: RigConstants, speeds: np.ndarray, pwm_min: float = 1000.0,

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.metrics import (
+from fcemu.evaluation.metrics import (
     AXES,
     EpisodeMetrics,
     EvalMetrics,
@@ -24,9 +24,9 @@ from evaluation.metrics import (
     pool_episode_metrics,
     traces_episode_metrics,
 )
-from evaluation.runner import EvalConfig, run_controller
-from sim_bridge.airframe import Airframe
-from sim_bridge.randomization import Randomization
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.sim_bridge.airframe import Airframe
+from fcemu.sim_bridge.randomization import Randomization
 
 PERTURB_STREAM = 0x70657274  # "pert": the spawn key that sets the evaluation's airframe stream apart
 DELAY_FACTORS = (("esc_delay_ticks", "ESC"), ("gyro_delay_ticks", "gyro"))  # Airframe.scaled keys

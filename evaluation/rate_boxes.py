@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from evaluation.bound import RigConstants
+    from fcemu.evaluation.bound import RigConstants
 
 GYRO_PAIRS = ((1, 2), (0, 2), (0, 1))  # g_roll ∝ q·r, g_pitch ∝ p·r, g_yaw ∝ p·q
 HUGE = 1e6  # rad/s: stands for "unbounded" in interval arithmetic (its square stays finite)

@@ -19,11 +19,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from evaluation.metrics import AXES, MIN_E0, SETTLE_S, EvalMetrics, Stat
-from sitl.traces import Traces
+from fcemu.evaluation.metrics import AXES, MIN_E0, SETTLE_S, EvalMetrics, Stat
+from fcemu.sitl.traces import Traces
 
 if TYPE_CHECKING:
-    from evaluation.perturb import PerturbedResult
+    from fcemu.evaluation.perturb import PerturbedResult
 
 PAPER_COLUMNS = ("PPO m=1", "PID")
 CONTINUOUS_SECONDS = 10.0
@@ -56,7 +56,7 @@ class ControllerResult:
 
 def load_paper_tables() -> dict[str, Any]:
     """The paper's result tables as shipped in `evaluation/data/paper_tables.json`."""
-    text = resources.files("evaluation").joinpath("data/paper_tables.json").read_text(encoding="utf-8")
+    text = resources.files("fcemu.evaluation").joinpath("data/paper_tables.json").read_text(encoding="utf-8")
     return json.loads(text)
 
 

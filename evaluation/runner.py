@@ -20,18 +20,18 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from firmware.action import PWM_MIN, PWM_SPAN
-from firmware.controller import RateSetpoint
-from firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
-from firmware.controllers import load_controller
-from firmware.loop import Command, FlightLoop, TickSample
-from firmware.sensors import SensorFrame
-from firmware.timing import LockstepClock
-from sim_bridge.airframe import Airframe, load_airframe
-from sim_bridge.link import InProcessLink
-from sim_bridge.tasks import EVAL_TASKS, INFLIGHT_WARMUP_S, continuous_schedule, episodic_commands
-from sim_bridge.twin import Twin, TwinState
-from sitl.traces import Traces
+from fcemu.firmware.action import PWM_MIN, PWM_SPAN
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
+from fcemu.firmware.controllers import load_controller
+from fcemu.firmware.loop import Command, FlightLoop, TickSample
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.timing import LockstepClock
+from fcemu.sim_bridge.airframe import Airframe, load_airframe
+from fcemu.sim_bridge.link import InProcessLink
+from fcemu.sim_bridge.tasks import EVAL_TASKS, INFLIGHT_WARMUP_S, continuous_schedule, episodic_commands
+from fcemu.sim_bridge.twin import Twin, TwinState
+from fcemu.sitl.traces import Traces
 
 TASKS = EVAL_TASKS
 NOISE_STREAM = 0x6e6f6973  # "nois": the twin's sensor-noise seeds, a stream apart from the commands'

@@ -2,18 +2,16 @@
 """Take off, hover, flip, land over MAVLink with pymavlink: the script `fcemu demo` flies.
 
 It ships inside fcemu as `sitl/demo_flight.py` (read it there); this file runs it from a
-checkout. With fcemu installed, `python -m sitl.demo_flight` does the same.
+checkout (`make demo` installs fcemu in `.venv`).
+With fcemu installed, `python -m fcemu.sitl.demo_flight` does the same.
 
     fcemu sitl --controller pid            # in one terminal
     python examples/pymavlink_flip.py      # in another
 """
 
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from sitl.demo_flight import main
+from fcemu.sitl.demo_flight import main
 
 if __name__ == "__main__":
     sys.exit(main())

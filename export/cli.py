@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--parity-samples", type=int, default=10_000)
     _add_tanh(p)
     p.add_argument("--json", action="store_true")
-    p.set_defaults(handler="export.cli:export_command")
+    p.set_defaults(handler="fcemu.export.cli:export_command")
 
 
 def _add_tanh(p: argparse.ArgumentParser) -> None:
@@ -33,7 +33,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None, help="keep the exported sources and the firmware image here")
     _add_tanh(p)
     p.add_argument("--json", action="store_true")
-    p.set_defaults(handler="export.cli:bench_mcu_command")
+    p.set_defaults(handler="fcemu.export.cli:bench_mcu_command")
 
 
 def _error(exc: Exception) -> int:
@@ -50,7 +50,7 @@ def _print_report(args, report: dict, summary: str) -> int:
 def export_command(args) -> int:
     if getattr(args, "target", "onnx") == "c":
         return _export_c(args)
-    from export.onnx_export import ExportError, export_policy
+    from fcemu.export.onnx_export import ExportError, export_policy
 
     try:
         report = export_policy(args.checkpoint, args.out, args.parity_samples)
@@ -64,7 +64,7 @@ def export_command(args) -> int:
 
 
 def _export_c(args) -> int:
-    from export.c.build import CExportError, export_c
+    from fcemu.export.c.build import CExportError, export_c
 
     try:
         report = export_c(args.checkpoint, args.out, args.parity_samples, args.tanh)
@@ -78,8 +78,8 @@ def _export_c(args) -> int:
 
 
 def bench_mcu_command(args) -> int:
-    from export.c.build import CExportError
-    from export.c.target import REPORT_KEYS, bench_mcu, budget_verdict
+    from fcemu.export.c.build import CExportError
+    from fcemu.export.c.target import REPORT_KEYS, bench_mcu, budget_verdict
 
     try:
         details = bench_mcu(args.model, args.out, tanh=args.tanh)

@@ -25,8 +25,8 @@ from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
 
 from fcemu import __version__
-from firmware.neural import META_PREFIX, NeuralRateController
-from firmware.observation import ObservationSpec, observe_step
+from fcemu.firmware.neural import META_PREFIX, NeuralRateController
+from fcemu.firmware.observation import ObservationSpec, observe_step
 
 ALGORITHMS = ("ppo", "trpo", "ddpg", "td3", "sac")
 PARITY_TOLERANCE = 1e-5

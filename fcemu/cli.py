@@ -17,8 +17,8 @@ from typing import NoReturn
 from fcemu import __version__
 
 # Packages that contribute commands, in the order `fcemu --help` lists them.
-_COMMAND_MODULES = ("sitl.cli", "benchmarks.cli", "sim_bridge.cli", "training.cli", "export.cli",
-                    "evaluation.cli")
+_COMMAND_MODULES = ("fcemu.sitl.cli", "fcemu.benchmarks.cli", "fcemu.sim_bridge.cli", "fcemu.training.cli",
+                    "fcemu.export.cli", "fcemu.evaluation.cli")
 
 
 USAGE_ERROR = 2
@@ -58,7 +58,7 @@ def _one_line(exc: BaseException) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from firmware.errors import UserError
+    from fcemu.firmware.errors import UserError
 
     args = build_parser().parse_args(argv)
     module_name, func_name = args.handler.split(":")

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware.contract import PolicyContract
-from firmware.controller import RateSetpoint
-from firmware.neural import PolicyContractError, PolicyOutputError
-from firmware.sensors import SensorFrame
+from fcemu.firmware.contract import PolicyContract
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.neural import PolicyContractError, PolicyOutputError
+from fcemu.firmware.sensors import SensorFrame
 
 LIBRARY = "libfcemu_policy.so"
 CONTRACT = "contract.json"

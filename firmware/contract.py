@@ -16,9 +16,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from firmware.action import ACTION_MAPPINGS
-from firmware.errors import UserError
-from firmware.observation import FIELD_DEFS, LEAKS, OBS_VERSION, ObservationSpec, observe_step
+from fcemu.firmware.action import ACTION_MAPPINGS
+from fcemu.firmware.errors import UserError
+from fcemu.firmware.observation import FIELD_DEFS, LEAKS, OBS_VERSION, ObservationSpec, observe_step
 
 META_PREFIX = "fcemu."
 REQUIRED_META = ("observation", "action_mapping", "loop_rate_hz")

@@ -6,7 +6,7 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from firmware.sensors import SensorFrame
+from fcemu.firmware.sensors import SensorFrame
 
 PWM_MIN = 1000.0
 PWM_MAX = 2000.0

@@ -5,11 +5,11 @@ from __future__ import annotations
 from importlib.resources import files
 from pathlib import Path
 
-from firmware.controller import RateController
-from firmware.errors import UserError
+from fcemu.firmware.controller import RateController
+from fcemu.firmware.errors import UserError
 
 # Package data, so an installed wheel flies it as a checkout does.
-DEFAULT_POLICY = Path(str(files("firmware") / "policies" / "iris_rate_ppo.onnx"))
+DEFAULT_POLICY = Path(str(files("fcemu.firmware") / "policies" / "iris_rate_ppo.onnx"))
 FALLBACK_CONTROLLER = "pid"  # what flies when a policy faults, and in LAND and HOLD
 
 
@@ -24,7 +24,7 @@ def default_controller() -> str:
 
 def is_policy(spec: str) -> bool:
     """A learned policy (flown as CTRL_SEL `neural`): an ONNX file or an exported C policy directory."""
-    from firmware.c_policy import is_c_policy_dir
+    from fcemu.firmware.c_policy import is_c_policy_dir
 
     return spec.endswith(".onnx") or is_c_policy_dir(spec)
 
@@ -32,17 +32,17 @@ def is_policy(spec: str) -> bool:
 def load_controller(spec: str, loop_rate_hz: float | None = None) -> RateController:
     """`loop_rate_hz`: the rate the loop will run it at; a policy trained for another rate is refused."""
     if spec == "pid" or spec.startswith("pid:"):
-        from firmware.pid_controller import PIDRateController
+        from fcemu.firmware.pid_controller import PIDRateController
 
         try:
             return PIDRateController.from_preset(spec.partition(":")[2] or "iris")
         except (ValueError, KeyError, TypeError) as exc:  # an unknown preset or a preset file that is not one
             raise ControllerSpecError(f"controller {spec!r}: {exc}") from exc
     if spec.endswith(".onnx"):
-        from firmware.neural import NeuralRateController
+        from fcemu.firmware.neural import NeuralRateController
 
         return NeuralRateController(spec, loop_rate_hz=loop_rate_hz)
-    from firmware.c_policy import CPolicyController, is_c_policy_dir
+    from fcemu.firmware.c_policy import CPolicyController, is_c_policy_dir
 
     if is_c_policy_dir(spec):  # a directory written by `fcemu export --target c`
         return CPolicyController(spec, loop_rate_hz=loop_rate_hz)

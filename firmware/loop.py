@@ -15,9 +15,9 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from firmware.controller import PWM_MAX, PWM_MIN, RateController, RateSetpoint
-from firmware.sensors import SensorFrame
-from firmware.timing import Clock, TimingStats
+from fcemu.firmware.controller import PWM_MAX, PWM_MIN, RateController, RateSetpoint
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.timing import Clock, TimingStats
 
 DISARMED_PWM = np.full(4, PWM_MIN)
 # Garbage collection runs only in a tick's slack, and only when at least this much is left.

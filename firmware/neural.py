@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from firmware.action import action_to_pwm, motor_output
-from firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
-from firmware.controller import RateSetpoint
-from firmware.observation import ObservationHistory, observe_step
-from firmware.sensors import SensorFrame
+from fcemu.firmware.action import action_to_pwm, motor_output
+from fcemu.firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.observation import ObservationHistory, observe_step
+from fcemu.firmware.sensors import SensorFrame
 
 __all__ = ["META_PREFIX", "NeuralRateController", "PolicyContractError", "PolicyOutputError", "read_metadata"]
 

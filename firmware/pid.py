@@ -35,7 +35,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-from firmware.filters import LOWPASS_TYPES, PT1Filter, make_lowpass
+from fcemu.firmware.filters import LOWPASS_TYPES, PT1Filter, make_lowpass
 
 GAIN_SCALE = math.degrees(1.0) / 1000.0  # demand per (gain · rad/s): GymFC's deg/s over PID_MIXER_SCALING
 RELAX_MODES = ("off", "rp", "rpy", "rp_inc", "rpy_inc")

@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from firmware.controller import RateSetpoint
-from firmware.mixer import QuadXMixer
-from firmware.pid import PIDGains, RatePID
-from firmware.sensors import SensorFrame
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.mixer import QuadXMixer
+from fcemu.firmware.pid import PIDGains, RatePID
+from fcemu.firmware.sensors import SensorFrame
 
 PRESETS = ("pid_iris", "pid_paper", "pid_betaflight", "pid_iris_robust")
 DEFAULT_PRESET = "pid_iris"
@@ -35,7 +35,7 @@ def preset_path(name: str) -> Path:
     stem = name if name.startswith("pid_") else f"pid_{name}"
     if stem not in PRESETS:
         raise ValueError(f"unknown PID preset {name!r}; shipped presets: {', '.join(PRESETS)}")
-    return Path(str(resources.files("firmware") / "presets" / f"{stem}.json"))
+    return Path(str(resources.files("fcemu.firmware") / "presets" / f"{stem}.json"))
 
 
 def load_preset(name: str) -> dict[str, Any]:

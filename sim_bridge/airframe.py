@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware.action import PWM_MIN, PWM_SPAN
+from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 
 AIRFRAME_DIR = Path(__file__).parent / "airframes"
 FLU_FROM_FRD = np.array([1.0, -1.0, -1.0])  # also NED <-> (north, west, up)

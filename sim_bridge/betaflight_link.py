@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from firmware.sensors import SensorFrame
+from fcemu.firmware.sensors import SensorFrame
 
 FDM_PORT = 9003
 RC_PORT = 9004

@@ -15,9 +15,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument("--rig", choices=("rig", "free"), default="rig")
     serve.add_argument("--airframe", default="iris", help="airframe name or JSON file")
     serve.add_argument("--quiet", action="store_true", help="no periodic status line")
-    serve.set_defaults(handler="sim_bridge.twin_server:serve_command")
+    serve.set_defaults(handler="fcemu.sim_bridge.twin_server:serve_command")
 
     demo = twin_sub.add_parser("demo", help="open-loop showcase: hover, then roll/pitch/yaw")
     demo.add_argument("--out", default="out/twin_demo.png", help="where to write the plot")
-    demo.set_defaults(handler="sim_bridge.showcase:main")
+    demo.set_defaults(handler="fcemu.sim_bridge.showcase:main")
 

@@ -30,8 +30,8 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from firmware.action import ACTION_MAPPINGS, action_to_pwm, motor_output
-from firmware.observation import (
+from fcemu.firmware.action import ACTION_MAPPINGS, action_to_pwm, motor_output
+from fcemu.firmware.observation import (
     DEFAULT_LEAK,
     DEFAULT_RMS_LEAK,
     FIELDS,
@@ -39,11 +39,11 @@ from firmware.observation import (
     ObservationSpec,
     observe_step,
 )
-from sim_bridge.airframe import Airframe, load_airframe
-from sim_bridge.plant import SensorNoise
-from sim_bridge.randomization import Randomization, load_randomization
-from sim_bridge.reward import UNWEIGHTED, RateReward
-from sim_bridge.tasks import (
+from fcemu.sim_bridge.airframe import Airframe, load_airframe
+from fcemu.sim_bridge.plant import SensorNoise
+from fcemu.sim_bridge.randomization import Randomization, load_randomization
+from fcemu.sim_bridge.reward import UNWEIGHTED, RateReward
+from fcemu.sim_bridge.tasks import (
     HOLD_S,
     OMEGA_MAX,
     REST_S,
@@ -52,7 +52,7 @@ from sim_bridge.tasks import (
     episodic_setpoint,
     pulse_schedule,
 )
-from sim_bridge.twin import Twin
+from fcemu.sim_bridge.twin import Twin
 
 TASKS = TRAINING_TASKS
 RANDOMIZE_KEYS = ("mass", "inertia", "kf", "km")  # also the draw order
@@ -332,7 +332,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         return self._twin.clean_gyro() if self._noisy else gyro
 
 
-gym.register("fcemu/RateEpisodic-v0", entry_point="sim_bridge.env:RateControlEnv",
+gym.register("fcemu/RateEpisodic-v0", entry_point="fcemu.sim_bridge.env:RateControlEnv",
              kwargs={"task": "episodic"})
-gym.register("fcemu/RateContinuous-v0", entry_point="sim_bridge.env:RateControlEnv",
+gym.register("fcemu/RateContinuous-v0", entry_point="fcemu.sim_bridge.env:RateControlEnv",
              kwargs={"task": "continuous"})

@@ -24,8 +24,8 @@ from typing import Protocol, TypeVar
 
 import numpy as np
 
-from firmware.sensors import SensorFrame
-from sim_bridge.protocol import (
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.protocol import (
     FRAME_MSG,
     HEADER,
     MAGIC,
@@ -42,7 +42,7 @@ from sim_bridge.protocol import (
     frame_from_buffer,
     pack_pwm_into,
 )
-from sim_bridge.twin import Twin, TwinState
+from fcemu.sim_bridge.twin import Twin, TwinState
 
 log = logging.getLogger(__name__)
 R = TypeVar("R")

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_bridge.airframe import Airframe, MotorSpec
+from fcemu.sim_bridge.airframe import Airframe, MotorSpec
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from firmware.sensors import SensorFrame
-from sim_bridge.twin import TwinState
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.twin import TwinState
 
 MAGIC = b"FCTW"
 VERSION = 1

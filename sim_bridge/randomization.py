@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from sim_bridge.airframe import AIRFRAME_DIR, Airframe, load_airframe
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR, Airframe, load_airframe
 
 SUFFIX = ".randomization.json"
 NOMINAL_RTOL = 1e-9

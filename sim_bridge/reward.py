@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from sim_bridge.tasks import OMEGA_MAX, rate_reward
+from fcemu.sim_bridge.tasks import OMEGA_MAX, rate_reward
 
 REWARDS = ("paper", "unclipped")
 REWARD_TERMS = ("reward_tracking", "reward_action_rate", "paper_reward", "action_rate")  # info keys

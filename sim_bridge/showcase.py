@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_bridge.twin import Twin
+from fcemu.sim_bridge.twin import Twin
 
 AXES = ("roll", "pitch", "yaw")
 # Motor differentials (Betaflight order: RR, FR, RL, FL) that push each FRD axis positive.

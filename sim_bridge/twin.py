@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from firmware.sensors import SensorFrame
-from sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf, load_airframe
-from sim_bridge.plant import AirframeEffects, MotorModel, SensorModel, SensorNoise
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf, load_airframe
+from fcemu.sim_bridge.plant import AirframeEffects, MotorModel, SensorModel, SensorNoise
 
 
 @dataclass(frozen=True)

@@ -17,8 +17,8 @@ import sys
 import threading
 import time
 
-from sim_bridge.link import _DONTWAIT, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
-from sim_bridge.protocol import (
+from fcemu.sim_bridge.link import _DONTWAIT, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
+from fcemu.sim_bridge.protocol import (
     FRAME_MSG,
     MAGIC,
     MAX_DATAGRAM,
@@ -36,7 +36,7 @@ from sim_bridge.protocol import (
     encode_error,
     pack_frame_into,
 )
-from sim_bridge.twin import Twin
+from fcemu.sim_bridge.twin import Twin
 
 log = logging.getLogger(__name__)
 

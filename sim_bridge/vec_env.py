@@ -31,10 +31,10 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from mujoco import rollout
 
-from sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf
-from sim_bridge.env import EnvConfig, RateTask, draw_episode
-from sim_bridge.plant import AirframeEffects, MotorModel, NoiseStreams, SensorModel
-from sim_bridge.twin import Twin
+from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf
+from fcemu.sim_bridge.env import EnvConfig, RateTask, draw_episode
+from fcemu.sim_bridge.plant import AirframeEffects, MotorModel, NoiseStreams, SensorModel
+from fcemu.sim_bridge.twin import Twin
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
 NOISE_BLOCK = 256  # steps of sensor noise drawn at a time per copy

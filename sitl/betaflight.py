@@ -26,9 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_bridge.betaflight_link import BetaflightBridge
-from sitl.betaflight_process import BetaflightError, BetaflightMsp, BetaflightSitl
-from sitl.traces import Traces
+from fcemu.sim_bridge.betaflight_link import BetaflightBridge
+from fcemu.sitl.betaflight_process import BetaflightError, BetaflightMsp, BetaflightSitl
+from fcemu.sitl.traces import Traces
 
 ARM_CH_US = 1900
 DISARM_CH_US = 1000

@@ -21,7 +21,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from sim_bridge.betaflight_link import CLI_PORT
+from fcemu.sim_bridge.betaflight_link import CLI_PORT
 
 SITL_NAME = "betaflight_4.6.0_SITL"
 PROMPT = b"\r\n# "

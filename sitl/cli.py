@@ -40,13 +40,13 @@ def _accepted_by(check: Callable[[str], object]) -> Callable[[str], str]:
 
 
 def _check_speed(text: str) -> None:
-    from sitl.sitl import parse_speed
+    from fcemu.sitl.sitl import parse_speed
 
     parse_speed(text)
 
 
 def _check_peer(text: str) -> None:
-    from firmware.mavlink.bridge import parse_peer
+    from fcemu.firmware.mavlink.bridge import parse_peer
 
     parse_peer(text, "peer")
 
@@ -99,14 +99,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     sitl.add_argument("--quiet", action="store_true", help="no live status line")
     sitl.add_argument("--no-mavlink", action="store_true", help="fly the scripted doublets, no MAVLink")
     add_mavlink_options(sitl)
-    sitl.set_defaults(handler="sitl.sitl:sitl_command")
+    sitl.set_defaults(handler="fcemu.sitl.sitl:sitl_command")
 
     demo = sub.add_parser("demo", help="SITL flown by the bundled pymavlink script: take-off, flip, land")
     demo.add_argument("--controller", default=None, help="pid, pid:<preset> or a policy .onnx")
     demo.add_argument("--speed", type=_speed, default="3", help="N× real time (default 3)")
     demo.add_argument("--out", default="runs/demo", help="where the plot, tlog and summary go")
     demo.add_argument("--json", action="store_true")
-    demo.set_defaults(handler="sitl.demo:demo_command")
+    demo.set_defaults(handler="fcemu.sitl.demo:demo_command")
 
     p = sub.add_parser("betaflight", help="real Betaflight 4.6 SITL flies seeded rate steps on the rig "
                                           "(--crosscheck: against fcemu's pid:betaflight)")
@@ -128,4 +128,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None, help="--crosscheck: write the report (Markdown, JSON, plot) here")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save Betaflight's traces (fcemu eval's format)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.set_defaults(handler="evaluation.betaflight_crosscheck:betaflight_command")
+    p.set_defaults(handler="fcemu.evaluation.betaflight_crosscheck:betaflight_command")

@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-FLIGHT_SCRIPT = "sitl.demo_flight"
+FLIGHT_SCRIPT = "fcemu.sitl.demo_flight"
 
 
 def _free_port() -> int:
@@ -52,9 +52,9 @@ def plot_flight(log_path: Path, out_png: Path, title: str) -> None:
 
 
 def run_demo(controller: str, speed: float, out: Path, timeout_s: float = 150.0) -> dict:
-    from firmware.mavlink.bridge import MavlinkConfig, PeerConfig
-    from firmware.timing import give_loop_a_core
-    from sitl.sitl import flying_line, start_vehicle_sitl
+    from fcemu.firmware.mavlink.bridge import MavlinkConfig, PeerConfig
+    from fcemu.firmware.timing import give_loop_a_core
+    from fcemu.sitl.sitl import flying_line, start_vehicle_sitl
 
     out.mkdir(parents=True, exist_ok=True)
     gcs, offboard = _free_port(), _free_port()
@@ -101,8 +101,8 @@ def run_demo(controller: str, speed: float, out: Path, timeout_s: float = 150.0)
 
 
 def demo_command(args) -> int:
-    from firmware.controllers import default_controller
-    from sitl.sitl import parse_speed
+    from fcemu.firmware.controllers import default_controller
+    from fcemu.sitl.sitl import parse_speed
 
     controller = args.controller or default_controller()
     speed = parse_speed(args.speed) or 3.0

@@ -8,7 +8,7 @@ FRD, and thrust 0..1) in PX4 OFFBOARD mode. It runs on the vehicle's clock (time
 so it flies the same whether the SITL runs in real time or N× faster.
 
     fcemu sitl --controller pid            # in one terminal
-    python -m sitl.demo_flight             # in another (examples/pymavlink_flip.py in a checkout)
+    python -m fcemu.sitl.demo_flight             # in another (examples/pymavlink_flip.py in a checkout)
 
 Options: --connect (default udpin:0.0.0.0:14550, where the SITL sends to a GCS),
 --altitude, --log FILE.npz (the flight, for plotting), --summary FILE.json.

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
-from firmware.controllers import load_controller
-from firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
-from firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, prioritize_loop
+from fcemu.firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
+from fcemu.firmware.controllers import load_controller
+from fcemu.firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
+from fcemu.firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, prioritize_loop
 
 # A loop that shares its CPU sleeps between ticks and spins only this last stretch (time.sleep
 # overshoots): spinning through the period would starve the MAVLink processes beside it.
@@ -91,7 +91,7 @@ def parse_speed(text: str) -> float | None:
 
 def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
     """What `fcemu sitl --no-mavlink` flies: rate doublets on each axis in turn."""
-    from sim_bridge.airframe import load_airframe
+    from fcemu.sim_bridge.airframe import load_airframe
 
     hover = load_airframe().hover_throttle()
     climb = min(1.0, hover + 0.08) if rig == "free" else hover
@@ -111,7 +111,7 @@ def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
 
 def flying_line(controller: str) -> str:
     """One line for the console saying which controller flies and from where."""
-    from firmware.controllers import DEFAULT_POLICY, is_policy
+    from fcemu.firmware.controllers import DEFAULT_POLICY, is_policy
 
     if is_policy(controller):
         kind = "neural" if controller.endswith(".onnx") else "c_policy"
@@ -123,7 +123,7 @@ def flying_line(controller: str) -> str:
 
 def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
     """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks."""
-    from firmware.controllers import is_policy
+    from fcemu.firmware.controllers import is_policy
 
     if is_policy(controller):
         return {"neural": load_controller(controller, rate_hz), FALLBACK: load_controller(FALLBACK)}, "neural"
@@ -134,8 +134,8 @@ def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, real
                commander: Commander | None = None, sinks: Sequence[TelemetrySink] = (),
                twin_address: tuple[str, int] | None = None, speed: float = 1.0,
                spin_us: int | None = None) -> Sitl:
-    from sim_bridge.link import InProcessLink, UdpTwinClient
-    from sim_bridge.twin import Twin
+    from fcemu.sim_bridge.link import InProcessLink, UdpTwinClient
+    from fcemu.sim_bridge.twin import Twin
 
     controllers, selected = load_controllers(controller, rate_hz)
     if twin_address is None:
@@ -203,7 +203,7 @@ class VehicleSitl:
     params_file: str | None = None
 
     def stop(self) -> dict:
-        from firmware.mavlink.bridge import stop_mavlink
+        from fcemu.firmware.mavlink.bridge import stop_mavlink
 
         stop_mavlink(self.proc, self.linked.sock, self.linked)
         return self.linked.mavlink_stats
@@ -212,10 +212,10 @@ class VehicleSitl:
 def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float | None, config,
                        explicit_controller: bool = True, spin_us: int | None = None) -> VehicleSitl:
     """Build the loop with a `Vehicle` commander and start its MAVLink process (`config`)."""
-    from firmware.mavlink.bridge import LinkedVehicle, start_mavlink
-    from firmware.params import ParamTable
-    from firmware.vehicle import Vehicle, param_adapter
-    from sim_bridge.airframe import load_airframe
+    from fcemu.firmware.mavlink.bridge import LinkedVehicle, start_mavlink
+    from fcemu.firmware.params import ParamTable
+    from fcemu.firmware.vehicle import Vehicle, param_adapter
+    from fcemu.sim_bridge.airframe import load_airframe
 
     sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0,
                       spin_us=spin_us)
@@ -239,7 +239,7 @@ def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float |
 
 
 def mavlink_config_from_args(args):
-    from firmware.mavlink.bridge import MavlinkConfig, parse_peer
+    from fcemu.firmware.mavlink.bridge import MavlinkConfig, parse_peer
 
     instance = getattr(args, "instance", 0)
     peers = [parse_peer(args.gcs or f"127.0.0.1:{GCS_PORT}", "gcs"),
@@ -270,7 +270,7 @@ def stop_on_sigint() -> None:
 
 
 def sitl_command(args) -> int:
-    from firmware.controllers import default_controller
+    from fcemu.firmware.controllers import default_controller
 
     stop_on_sigint()
 
@@ -287,7 +287,7 @@ def sitl_command(args) -> int:
                                 explicit_controller=args.controller is not None, spin_us=spin_us)
         sitl = vs.sitl
         if vs.param_problems:
-            from firmware.params import load_warning
+            from fcemu.firmware.params import load_warning
 
             print(load_warning(vs.params_file, vs.param_problems), file=sys.stderr)
     print(flying_line(controller), file=sys.stderr)

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from sim_bridge.tasks import EVAL_TASKS
+from fcemu.sim_bridge.tasks import EVAL_TASKS
 
 TASKS = EVAL_TASKS
 _T_EPS = 1e-9  # s

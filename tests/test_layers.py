@@ -39,8 +39,18 @@ def imports_of(path: Path, package: str) -> list[tuple[int, str]]:
         if isinstance(node, ast.Import):
             found += [(node.lineno, alias.name) for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
-            found.append((node.lineno, package if node.level else node.module or ""))
+            found.append((node.lineno, f"fcemu.{package}" if node.level else node.module or ""))
     return found
+
+
+def layer_of(module: str, layers: dict[str, set[str]]) -> str | None:
+    """The layer an absolute module name belongs to (`fcemu.sitl.demo` → sitl), None if not ours."""
+    parts = module.split(".")
+    if parts[0] != "fcemu":
+        return None
+    if len(parts) > 1 and parts[1] in layers and parts[1] != "fcemu":
+        return parts[1]
+    return "fcemu"
 
 
 def violations(root: Path = ROOT, layers: dict[str, set[str]] = ALLOWED) -> list[str]:
@@ -50,8 +60,8 @@ def violations(root: Path = ROOT, layers: dict[str, set[str]] = ALLOWED) -> list
         assert sources, f"no sources in {package}/"
         for path in sources:
             for line, module in imports_of(path, package):
-                top = module.split(".")[0]
-                if top == package or top not in layers:
+                top = layer_of(module, layers)
+                if top is None or top == package:
                     continue
                 if top not in allowed:
                     bad.append(f"{path.relative_to(root)}:{line}: {package} imports {module}")
@@ -73,24 +83,25 @@ def test_imports_point_downwards() -> None:
 def test_the_checker_sees_function_level_imports(tmp_path) -> None:
     module = tmp_path / "firmware" / "late.py"
     module.parent.mkdir()
-    module.write_text("def f():\n    from sim_bridge.twin import Twin\n    return Twin\n")
-    assert imports_of(module, "firmware") == [(2, "sim_bridge.twin")]
+    module.write_text("def f():\n    from fcemu.sim_bridge.twin import Twin\n    return Twin\n")
+    assert imports_of(module, "firmware") == [(2, "fcemu.sim_bridge.twin")]
     (tmp_path / "sim_bridge").mkdir()
-    (tmp_path / "sim_bridge" / "twin.py").write_text("from firmware.sensors import SensorFrame\n")
+    (tmp_path / "sim_bridge" / "twin.py").write_text("from fcemu.firmware.sensors import SensorFrame\n")
     layers = {"firmware": set(), "sim_bridge": {"firmware"}}
-    assert violations(tmp_path, layers) == ["firmware/late.py:2: firmware imports sim_bridge.twin"]
+    assert violations(tmp_path, layers) == ["firmware/late.py:2: firmware imports fcemu.sim_bridge.twin"]
 
 
 @pytest.mark.timeout(120)
 def test_the_firmware_loads_without_the_twin() -> None:
     """Every firmware module imported: no MuJoCo, nothing of the layers above."""
     code = (
-        "import importlib, pkgutil, sys, firmware\n"
-        "import firmware.controllers, firmware.vehicle\n"
+        "import importlib, pkgutil, sys\n"
+        "import fcemu.firmware as firmware, fcemu.firmware.controllers, fcemu.firmware.vehicle\n"
         "assert 'mujoco' not in sys.modules, 'controllers/vehicle load mujoco'\n"
-        "for m in pkgutil.walk_packages(firmware.__path__, 'firmware.'):\n"
+        "for m in pkgutil.walk_packages(firmware.__path__, 'fcemu.firmware.'):\n"
         "    importlib.import_module(m.name)\n"
-        "above = sorted(n for n in sys.modules if n.split('.')[0] in "
+        "ours = lambda n: n.split('.')[1] if n.startswith('fcemu.') else n.split('.')[0]\n"
+        "above = sorted(n for n in sys.modules if ours(n) in "
         "('mujoco', 'sim_bridge', 'sitl', 'training', 'export', 'evaluation', 'benchmarks', 'torch'))\n"
         "assert not above, above\n"
     )

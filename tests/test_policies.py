@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from evaluation.metrics import AXES, compute_metrics
-from evaluation.runner import EvalConfig, run_controller
-from firmware.controllers import load_controller
+from fcemu.evaluation.metrics import AXES, compute_metrics
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.firmware.controllers import load_controller
 
 POLICY_DIR = Path(__file__).parents[1] / "policies"
 POLICIES = sorted(POLICY_DIR.glob("*.onnx"))
@@ -64,8 +64,8 @@ def test_the_64_wide_policies_have_the_actor_their_inference_budget_rests_on():
 def test_a_committed_sweep_config_is_a_valid_sweep(path: Path):
     """The reliability runs in policies/README.md come from these files: they must still parse."""
     from fcemu.cli import build_parser
-    from training.cli import SWEEP_DEFAULTS
-    from training.sweep import spec_from_args
+    from fcemu.training.cli import SWEEP_DEFAULTS
+    from fcemu.training.sweep import spec_from_args
 
     spec = spec_from_args(build_parser().parse_args(["sweep", "--config", str(path)]), SWEEP_DEFAULTS)
     assert len(spec.seeds) >= 4 and spec.train["algo"] == "ppo"
@@ -75,7 +75,7 @@ def test_the_motor_output_policy_observes_its_own_commands():
     """rms64_mo is rms64_ft's start fine-tuned with its previous motor outputs added to what it sees."""
     import onnx
 
-    from firmware.contract import META_PREFIX, PolicyContract
+    from fcemu.firmware.contract import META_PREFIX, PolicyContract
 
     model = onnx.load(str(POLICY_DIR / "iris_rate_ppo_rms64_mo.onnx"))
     meta = {p.key.removeprefix(META_PREFIX): p.value

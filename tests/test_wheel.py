@@ -104,7 +104,7 @@ def clean_env() -> dict[str, str]:
 
 
 def test_the_installed_wheel_has_no_dev_extras(installed: Path, tmp_path: Path) -> None:
-    code = ("import importlib.util as u, firmware, sitl; "
+    code = ("import importlib.util as u, fcemu.firmware as firmware, fcemu.sitl; "
             "print(firmware.__file__); print([m for m in ('torch', 'stable_baselines3') if u.find_spec(m)])")
     out = subprocess.run([str(installed / "python"), "-c", code], cwd=tmp_path, env=clean_env(),
                          capture_output=True, text=True, check=True).stdout.splitlines()
@@ -122,3 +122,18 @@ def test_fcemu_demo_flies_the_shipped_policy_from_the_wheel(installed: Path, tmp
     result = json.loads((tmp_path / "runs" / "demo" / "demo.json").read_text())
     assert result["flight"]["completed"] and result["controller"] == str(policy)
     assert (tmp_path / "runs" / "demo" / "flight.png").stat().st_size > 0
+
+
+def test_the_wheel_installs_one_top_level_package(installed: Path) -> None:
+    site = next((installed.parent / "lib").glob("python*/site-packages"))
+    ours = {line.strip() for dist in site.glob("fcemu-*.dist-info") for line in
+            (dist / "RECORD").read_text().splitlines() if line and not line.startswith(("fcemu-", "../"))}
+    assert {entry.split("/")[0] for entry in ours} == {"fcemu"}
+
+
+def test_a_users_training_folder_does_not_shadow_ours(installed: Path, tmp_path: Path) -> None:
+    (tmp_path / "training").mkdir()
+    (tmp_path / "training" / "__init__.py").write_text("raise SystemExit('the user\\'s training package')\n")
+    done = subprocess.run([str(installed / "python"), "-m", "fcemu", "train", "--help"], cwd=tmp_path,
+                          env=clean_env(), capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "usage: fcemu train" in done.stdout, done.stdout + done.stderr

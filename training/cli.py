@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from training import config
+from fcemu.training import config
 
 # What `fcemu bench train` runs unless told otherwise: the shipped run's length (it sets
 # the learning-rate decay; the race usually ends first), evaluations every 250 k steps,
@@ -22,7 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="RL training of a rate controller (SB3 / sb3-contrib)")
     config.add_arguments(p)
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
-    p.set_defaults(handler="training.train:train_command")
+    p.set_defaults(handler="fcemu.training.train:train_command")
 
     p = sub.add_parser("sweep", help="many training runs over seeds and settings on Ray Tune, "
                                      "locally or on a cluster")
@@ -57,7 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     config.add_arguments(p, exclude=("seed", "out", "hp", "threads", "progress"), defaults=SWEEP_DEFAULTS,
                          only_given=True)
     p.add_argument("--json", action="store_true", help="print one JSON object: trials and the best")
-    p.set_defaults(handler="training.sweep:sweep_command")
+    p.set_defaults(handler="fcemu.training.sweep:sweep_command")
 
 
 def user_error(message: str) -> int:

@@ -19,9 +19,9 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
-from firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK
-from firmware.timing import available_cpus
-from sim_bridge.reward import REWARDS
+from fcemu.firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK
+from fcemu.firmware.timing import available_cpus
+from fcemu.sim_bridge.reward import REWARDS
 
 # ── Defaults per algorithm ─────────────────────────────────────────────────────────────
 # 1 ms steps and 1000-step episodes: a horizon of ~100 ms (γ 0.99, λ 0.95: a yaw rise
@@ -202,7 +202,7 @@ class TrainConfig:
         if self.warm_start is not None:
             if self.algo not in ("ppo", "trpo"):
                 raise ValueError(f"--warm-start is for PPO and TRPO (actor-critic), not {self.algo.upper()}")
-            from training.warm_start_teacher import check_teacher
+            from fcemu.training.warm_start_teacher import check_teacher
 
             check_teacher(self.warm_start)
         if self.init is not None and self.warm_start is not None:
@@ -227,8 +227,8 @@ class TrainConfig:
         if self.caps and self.algo != "ppo":
             raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
         if self.randomize is not None:
-            from sim_bridge.airframe import load_airframe
-            from sim_bridge.randomization import load_randomization
+            from fcemu.sim_bridge.airframe import load_airframe
+            from fcemu.sim_bridge.randomization import load_randomization
 
             try:
                 airframe = load_airframe(self.airframe)
@@ -245,7 +245,7 @@ class TrainConfig:
 
     @property
     def obs_fields(self) -> tuple[str, ...]:
-        from firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS
+        from fcemu.firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS
 
         return (*FIELDS, *((INTEGRAL,) if self.integral else ()), *((RMS,) if self.error_rms else ()),
                 *((MOTOR_OUTPUT,) if self.motor_output else ()))

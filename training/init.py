@@ -23,8 +23,8 @@ from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.vec_env import VecNormalize
 
-from export.onnx_export import Checkpoint, ExportError, find_checkpoint
-from firmware.observation import ObservationSpec
+from fcemu.export.onnx_export import Checkpoint, ExportError, find_checkpoint
+from fcemu.firmware.observation import ObservationSpec
 
 MEASURE_STEPS = 500  # per twin: the flights an added field's statistics are measured on
 

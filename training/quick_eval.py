@@ -19,12 +19,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from evaluation.metrics import AXES, EvalMetrics, compute_metrics
-from evaluation.runner import EvalConfig, run_controller
-from firmware.observation import FIELDS
-from sim_bridge.vec_env import BatchedRateEnv
-from sitl.traces import Traces
-from training.config import SELECT
+from fcemu.evaluation.metrics import AXES, EvalMetrics, compute_metrics
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.firmware.observation import FIELDS
+from fcemu.sim_bridge.vec_env import BatchedRateEnv
+from fcemu.sitl.traces import Traces
+from fcemu.training.config import SELECT
 
 
 def error_sum(metrics: EvalMetrics) -> float:

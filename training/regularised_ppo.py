@@ -25,7 +25,7 @@ import numpy as np
 import torch as th
 from stable_baselines3 import PPO
 
-from training.caps import consecutive_pairs, mean_action, spatial_smoothness, temporal_smoothness
+from fcemu.training.caps import consecutive_pairs, mean_action, spatial_smoothness, temporal_smoothness
 
 
 class RegularisedPPO(PPO):

@@ -27,8 +27,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from training import sweep_perturbed
-from training.config import FIELDS, TrainConfig
+from fcemu.training import sweep_perturbed
+from fcemu.training.config import FIELDS, TrainConfig
 
 EXPERIMENT = "sweep"
 
@@ -146,7 +146,7 @@ def spec_from_args(args, defaults: dict[str, Any]) -> SweepSpec:
 def _race_reporting_to_tune(cfg: TrainConfig):
     from ray import tune
 
-    from training.train import PidRaceCallback
+    from fcemu.training.train import PidRaceCallback
 
     class TuneRace(PidRaceCallback):
         """The in-training race; each evaluation goes to Tune, which may stop the trial there."""
@@ -177,7 +177,7 @@ def trial_metrics(history: list[dict[str, Any]], best_path: Path | None) -> dict
 def run_trial(point: dict[str, Any], spec: dict[str, Any], runs: str, threads: int) -> None:
     from ray import tune
 
-    from training.train import train
+    from fcemu.training.train import train
 
     trial = tune.get_context().get_trial_id()
     cfg = SweepSpec(**spec).config(point["seed"], point["settings"], str(Path(runs) / trial), threads)
@@ -329,8 +329,8 @@ def write_tables(rows: list[dict[str, Any]], out: Path, perturbed: bool = False)
 def export_best(rows: list[dict[str, Any]], spec: SweepSpec, out: Path, episodes: int) -> dict[str, Any]:
     """The best trial's exported checkpoint → OUT/best/policy.onnx, flown against the PID; trials
     rank as the race ranks evaluations (`quick_eval.selection_key`)."""
-    from export.onnx_export import export_policy
-    from training.train import evaluate_run
+    from fcemu.export.onnx_export import export_policy
+    from fcemu.training.train import evaluate_run
 
     ranked = [r for r in rows if r["best_error_ratio"] is not None and r["best_checkpoint"]]
     if not ranked:
@@ -365,7 +365,7 @@ def stdout_to_stderr():
 
 
 def sweep_command(args) -> int:
-    from training.cli import SWEEP_DEFAULTS, user_error
+    from fcemu.training.cli import SWEEP_DEFAULTS, user_error
 
     out = Path(args.out or "runs/sweep")
     try:

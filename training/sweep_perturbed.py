@@ -11,8 +11,8 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-from training.config import TrainConfig
-from training.quick_eval import PERTURBED_SUCCESS_BAR_PCT, error_sum
+from fcemu.training.config import TrainConfig
+from fcemu.training.quick_eval import PERTURBED_SUCCESS_BAR_PCT, error_sum
 
 BAR_COMMAND_SEED = 7  # issue 10's bar is flown on the commands of `fcemu eval --seed 7`
 
@@ -27,7 +27,7 @@ def perturb_from_args(args, cfg: TrainConfig) -> dict[str, Any]:
     if n < 0 or seed < 0 or episodes < 1:
         raise ValueError(f"--perturb {n} --perturb-seed {seed} --perturb-episodes {episodes}: expected "
                          "N >= 1 airframes, a seed >= 0 and at least one command")
-    from sim_bridge.randomization import load_randomization
+    from fcemu.sim_bridge.randomization import load_randomization
 
     ranges = cfg.randomize or "iris"
     load_randomization(ranges)  # RandomizationError is a ValueError
@@ -39,10 +39,10 @@ def fly_summary(controller: str, perturb: dict[str, Any], progress: bool = False
     the Error summed over the axes, each axis's Success and the motors' smoothness."""
     from tqdm import tqdm
 
-    from evaluation.metrics import AXES
-    from evaluation.perturb import fly_perturbed, perturbed_airframes
-    from evaluation.runner import EvalConfig
-    from sim_bridge.randomization import load_randomization
+    from fcemu.evaluation.metrics import AXES
+    from fcemu.evaluation.perturb import fly_perturbed, perturbed_airframes
+    from fcemu.evaluation.runner import EvalConfig
+    from fcemu.sim_bridge.randomization import load_randomization
 
     ranges = load_randomization(perturb["ranges"])
     airframes = perturbed_airframes(ranges, perturb["airframes"], perturb["seed"])

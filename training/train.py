@@ -24,11 +24,11 @@ import torch
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList, CheckpointCallback
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
-from evaluation.metrics import compute_metrics
 from fcemu import __version__
-from training import quick_eval
-from training.config import ALGOS, TrainConfig, parse_hp
-from training.init import InitError, init_checkpoint, start_from
+from fcemu.evaluation.metrics import compute_metrics
+from fcemu.training import quick_eval
+from fcemu.training.config import ALGOS, TrainConfig, parse_hp
+from fcemu.training.init import InitError, init_checkpoint, start_from
 
 # ── 1. Defaults per algorithm (ALGOS) and 2. the configuration (TrainConfig): training.config ──
 __all__ = ["ALGOS", "PID_PRESETS", "InitError", "TrainConfig", "parse_hp", "train"]
@@ -42,7 +42,7 @@ def make_vec_env(cfg: TrainConfig) -> VecEnv:
     The reward is the env's own (`sim_bridge.reward`), built from `cfg.env_kwargs()`:
     training only chooses the weights, so `gym.make(..., **env_kwargs)` gives the same reward.
     """
-    from sim_bridge.vec_env import make_sb3_vec_env
+    from fcemu.sim_bridge.vec_env import make_sb3_vec_env
 
     return VecMonitor(make_sb3_vec_env(cfg.n_envs, seed=cfg.seed, **cfg.env_kwargs()))
 
@@ -65,7 +65,7 @@ def make_model(cfg: TrainConfig, venv: VecEnv, tb_dir: Path):
 
         hp["action_noise"] = NormalActionNoise(np.zeros(4), NOISE_STD * np.ones(4))
     if cfg.caps or cfg.anchor:
-        from training.regularised_ppo import RegularisedPPO as Algo
+        from fcemu.training.regularised_ppo import RegularisedPPO as Algo
 
         hp.update(caps_temporal=cfg.caps_temporal, caps_spatial=cfg.caps_spatial, caps_sigma=cfg.caps_sigma,
                   anchor=cfg.anchor)
@@ -191,7 +191,7 @@ def _anchor_samples(data: tuple, from_ticks: int) -> tuple:
 
 def _observation_spec(cfg: TrainConfig):
     """The spec the training env observes with (what the exported model's metadata carries)."""
-    from sim_bridge.env import EnvConfig
+    from fcemu.sim_bridge.env import EnvConfig
 
     return EnvConfig(**cfg.env_kwargs()).observation_spec
 
@@ -233,7 +233,7 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
         race.start_clock(t0)  # the race's clock includes the warm start
     warm = None
     if cfg.warm_start:
-        from training.warm_start import WarmStart
+        from fcemu.training.warm_start import WarmStart
 
         warm = WarmStart(cfg.warm_start_rounds, cfg.warm_start_steps, preset=cfg.warm_start).run(model, venv)
         data = warm.pop("dataset")  # the fit's samples: the anchor's, else let go here
@@ -258,7 +258,7 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
     (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
     venv.close()
 
-    from export.onnx_export import export_policy
+    from fcemu.export.onnx_export import export_policy
 
     source = race.best if cfg.export == "best" and race is not None and race.best else out
     export = export_policy(source, out / "policy.onnx")
@@ -277,9 +277,9 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
 
 # ── 7. Final evaluation: the exported file through the firmware loop, same commands ────
 def evaluate_run(out: Path, cfg: TrainConfig, specs: tuple[str, ...] = ("pid", "pid:paper")) -> dict:
-    from evaluation.evaluate import result_json
-    from evaluation.report import ControllerResult, write_report
-    from evaluation.runner import EvalConfig, run_controller
+    from fcemu.evaluation.evaluate import result_json
+    from fcemu.evaluation.report import ControllerResult, write_report
+    from fcemu.evaluation.runner import EvalConfig, run_controller
 
     ecfg = EvalConfig(task="episodic", episodes=cfg.eval_episodes, seed=cfg.eval_seed, airframe=cfg.airframe)
     policy = str(out / "policy.onnx")
@@ -304,7 +304,7 @@ def print_summary(summary: dict[str, Any]) -> None:
           f"({summary['export']['bytes']} bytes, parity {summary['export']['parity_max_abs_diff']:.1e})")
     if "eval" not in summary:
         return
-    from evaluation.metrics import AXES
+    from fcemu.evaluation.metrics import AXES
 
     for r in summary["eval"]["results"]:
         m = r["metrics"]
@@ -319,8 +319,8 @@ def print_summary(summary: dict[str, Any]) -> None:
 
 # ── 8. Command line ───────────────────────────────────────────────────────────────────
 def train_command(args) -> int:
-    from training.cli import user_error
-    from training.config import from_args
+    from fcemu.training.cli import user_error
+    from fcemu.training.config import from_args
 
     try:
         cfg = from_args(args)

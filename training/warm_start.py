@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from training import quick_eval
-from training.config import WARM_START_ROUNDS, WARM_START_STEPS
-from training.warm_start_teacher import PidTeacher, episode_delay_ticks, teacher_inputs
+from fcemu.training import quick_eval
+from fcemu.training.config import WARM_START_ROUNDS, WARM_START_STEPS
+from fcemu.training.warm_start_teacher import PidTeacher, episode_delay_ticks, teacher_inputs
 
 
 @dataclass

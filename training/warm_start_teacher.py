@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from firmware.action import pwm_to_action
-from firmware.controllers import load_controller
-from firmware.pid_controller import PIDRateController
+from fcemu.firmware.action import pwm_to_action
+from fcemu.firmware.controllers import load_controller
+from fcemu.firmware.pid_controller import PIDRateController
 
 TEACHER_DIR = Path(__file__).with_name("teachers")
 SCHEDULE = "schedule:"

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from export.c.contract import (
+from fcemu.export.c.contract import (
     ACTION_SIZE,
     NET_FUNCTION,
     SELF_TEST_TOLERANCE,
@@ -28,9 +28,9 @@ from export.c.contract import (
     c_float,
     contract_sources,
 )
-from export.c.tanh import DEFAULT_TANH, FAST_TANH_HEADER, TANH_CHOICES, TANH_HEADER, use_fast_tanh
-from firmware.neural import NeuralRateController, PolicyContractError
-from firmware.observation import FIELD_DEFS
+from fcemu.export.c.tanh import DEFAULT_TANH, FAST_TANH_HEADER, TANH_CHOICES, TANH_HEADER, use_fast_tanh
+from fcemu.firmware.neural import NeuralRateController, PolicyContractError
+from fcemu.firmware.observation import FIELD_DEFS
 
 SOURCES = ("fcemu_net.c", "fcemu_policy.c", "fcemu_golden.c")
 HOST_LIBRARY = "libfcemu_policy.so"

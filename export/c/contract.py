@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from firmware.action import ACTION_MAPPINGS, DIFFERENTIAL_GAIN, PWM_MIN, PWM_SPAN
-from firmware.observation import FIELD_DEFS, ObservationSpec
+from fcemu.firmware.action import ACTION_MAPPINGS, DIFFERENTIAL_GAIN, PWM_MIN, PWM_SPAN
+from fcemu.firmware.observation import FIELD_DEFS, ObservationSpec
 
 NET_FUNCTION = "fcemu_net"
 ACTION_SIZE = 4

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from export.c import firmware_image as image
-from export.c.build import (
+from fcemu.export.c import firmware_image as image
+from fcemu.export.c.build import (
     SOURCES,
     CExportError,
     export_c,
@@ -35,7 +35,7 @@ from export.c.build import (
     sample_observations,
     ulp_distance,
 )
-from export.c.tanh import DEFAULT_TANH
+from fcemu.export.c.tanh import DEFAULT_TANH
 
 CPI = 1.25
 REPORT_KEYS = ("model", "max_abs_diff", "max_ulp", "flash_bytes", "ram_bytes", "instructions_per_inference",
@@ -131,7 +131,7 @@ def bench_mcu(model: str | Path | None = None, out: str | Path | None = None,
               tanh: str = DEFAULT_TANH) -> dict:
     """`REPORT_KEYS` (what `fcemu bench mcu --json` prints) and the details behind them, which
     also go to OUT/mcu.json when `out` is given."""
-    from firmware.controllers import DEFAULT_POLICY
+    from fcemu.firmware.controllers import DEFAULT_POLICY
 
     model = Path(model) if model is not None else DEFAULT_POLICY
     missing = missing_tools()
@@ -142,7 +142,7 @@ def bench_mcu(model: str | Path | None = None, out: str | Path | None = None,
         src, build = root / "c", root / "build"
         parity = export_c(model, src, parity_samples, tanh)
         contract = json.loads((src / "contract.json").read_text())
-        from firmware.observation import ObservationSpec
+        from fcemu.firmware.observation import ObservationSpec
 
         spec = ObservationSpec.from_json(contract["metadata"]["observation"])
         obs = sample_observations(spec, target_vectors, seed=1)

@@ -21,11 +21,11 @@ from typing import Protocol
 
 import numpy as np
 
-from firmware.loop import Command, FlightLoop, TickSample
-from firmware.mavlink import ipc
-from firmware.params import CONTROLLERS
-from firmware.sensors import SensorFrame
-from firmware.vehicle import Vehicle, custom_mode, mode_from_parts
+from fcemu.firmware.loop import Command, FlightLoop, TickSample
+from fcemu.firmware.mavlink import ipc
+from fcemu.firmware.params import CONTROLLERS
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.vehicle import Vehicle, custom_mode, mode_from_parts
 
 READY_TIMEOUT_S = 30.0
 ARMABLE_EVERY = 25  # re-run the arming checks for SYS_STATUS every this many snapshots (10 Hz)
@@ -205,7 +205,7 @@ def start_mavlink(config: MavlinkConfig, params: dict[str, float]
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
     spec = json.dumps({"config": asdict(config), "params": params, "fd": theirs.fileno(), "slot": slot.fd})
     env = dict(os.environ)
-    proc = subprocess.Popen([sys.executable, "-m", "firmware.mavlink.process", spec],
+    proc = subprocess.Popen([sys.executable, "-m", "fcemu.firmware.mavlink.process", spec],
                             pass_fds=(theirs.fileno(), slot.fd), env=env)
     theirs.close()
     # Wait until it is up (pymavlink imported, sockets bound) so its start-up does not land in the loop.

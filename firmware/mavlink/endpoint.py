@@ -13,10 +13,10 @@ from pathlib import Path
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware.mavlink.budget import InputBudget
-from firmware.mavlink.signing import SigningState, signing_now
-from firmware.mavlink.telemetry import Scheduler
-from firmware.mavlink.tlog import TlogWriter
+from fcemu.firmware.mavlink.budget import InputBudget
+from fcemu.firmware.mavlink.signing import SigningState, signing_now
+from fcemu.firmware.mavlink.telemetry import Scheduler
+from fcemu.firmware.mavlink.tlog import TlogWriter
 
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)  # Linux: the socket's drop count with each datagram
 ANCILLARY_SPACE = socket.CMSG_SPACE(4)

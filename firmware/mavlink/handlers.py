@@ -17,8 +17,8 @@ from collections.abc import Callable
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware.mavlink import ipc, telemetry
-from firmware.mavlink.outputs import (
+from fcemu.firmware.mavlink import ipc, telemetry
+from fcemu.firmware.mavlink.outputs import (
     COUNTERS,
     NOTHING,
     Checks,
@@ -30,9 +30,9 @@ from firmware.mavlink.outputs import (
     command_ack,
     finite,
 )
-from firmware.mavlink.services import NoFilesNoMissions, ParameterProtocol
-from firmware.params import ParamTable
-from firmware.vehicle import FORCE_ARM_MAGIC, LAND
+from fcemu.firmware.mavlink.services import NoFilesNoMissions, ParameterProtocol
+from fcemu.firmware.params import ParamTable
+from fcemu.firmware.vehicle import FORCE_ARM_MAGIC, LAND
 
 M = mavlink
 MAX_RATE = 35.0  # rad/s (2000 deg/s, Betaflight's ceiling)

@@ -11,7 +11,7 @@ from typing import NamedTuple, Protocol
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware.mavlink import ipc, telemetry
+from fcemu.firmware.mavlink import ipc, telemetry
 
 M = mavlink
 COUNTERS = ("rx_rejected", "rx_foreign", "rx_unsupported", "rx_unhandled")

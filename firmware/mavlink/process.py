@@ -1,6 +1,6 @@
 """The MAVLink process: every peer's link and its I/O, telemetry, parameter persistence, the tlog.
 
-Started by `firmware.mavlink.bridge.start_mavlink` as `python -m firmware.mavlink.process
+Started by `fcemu.firmware.mavlink.bridge.start_mavlink` as `python -m fcemu.firmware.mavlink.process
 SPEC`; talks to the flight process over the inherited socket `SPEC["fd"]` and exits when
 that closes. HEARTBEAT goes out at 1 Hz of wall time; streams follow the loop clock of the
 snapshots; setpoints are coalesced (newest wins) so a flood of them costs the loop little.
@@ -20,16 +20,16 @@ import time
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware.mavlink import ipc, telemetry
-from firmware.mavlink import outputs as out
-from firmware.mavlink.budget import ParamStreams
-from firmware.mavlink.endpoint import Endpoint, load_signing_key
-from firmware.mavlink.handlers import Handlers
-from firmware.mavlink.replies import PendingCommands, StatusTexts
-from firmware.mavlink.signing import SigningState
-from firmware.mavlink.tlog import TlogWriter
-from firmware.params import ParamTable
-from firmware.vehicle import STABILIZED, custom_mode
+from fcemu.firmware.mavlink import ipc, telemetry
+from fcemu.firmware.mavlink import outputs as out
+from fcemu.firmware.mavlink.budget import ParamStreams
+from fcemu.firmware.mavlink.endpoint import Endpoint, load_signing_key
+from fcemu.firmware.mavlink.handlers import Handlers
+from fcemu.firmware.mavlink.replies import PendingCommands, StatusTexts
+from fcemu.firmware.mavlink.signing import SigningState
+from fcemu.firmware.mavlink.tlog import TlogWriter
+from fcemu.firmware.params import ParamTable
+from fcemu.firmware.vehicle import STABILIZED, custom_mode
 
 M = mavlink
 SETPOINT_MIN_GAP_S = 0.002  # forward at most 500 setpoint updates per second

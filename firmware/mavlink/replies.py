@@ -9,8 +9,8 @@ from typing import NamedTuple
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware.mavlink import telemetry
-from firmware.mavlink.outputs import Link, command_ack
+from fcemu.firmware.mavlink import telemetry
+from fcemu.firmware.mavlink.outputs import Link, command_ack
 
 M = mavlink
 TEXTS_PER_S_LIMITED = 5

@@ -6,8 +6,8 @@ import struct
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware.mavlink.outputs import Checks, Link, Output, ParamChanged, ParamListRequested, Say, finite
-from firmware.params import CONTROLLERS, ParamTable
+from fcemu.firmware.mavlink.outputs import Checks, Link, Output, ParamChanged, ParamListRequested, Say, finite
+from fcemu.firmware.params import CONTROLLERS, ParamTable
 
 M = mavlink
 FTP_HEADER = struct.Struct("<HBBBBBBI")  # seq, session, opcode, size, req_opcode, burst_complete, pad, offset

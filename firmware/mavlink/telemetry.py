@@ -9,9 +9,9 @@ import math
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware.estimator import euler_from_quat
-from firmware.mavlink.ipc import Snapshot
-from firmware.vehicle import ACRO, AUTO, MANUAL, OFFBOARD, STABILIZED
+from fcemu.firmware.estimator import euler_from_quat
+from fcemu.firmware.mavlink.ipc import Snapshot
+from fcemu.firmware.vehicle import ACRO, AUTO, MANUAL, OFFBOARD, STABILIZED
 
 M = mavlink
 HOME = (473977420, 85455940, 488000)  # PX4 SITL's default home (Zurich), 1e7 deg, mm

@@ -2,7 +2,7 @@
 (flight_tasks.py), the land detector (land_detector.py), parameters → settings and controller
 gains (param_adapter.py), and the `Vehicle` that composes them for the flight loop (vehicle.py)."""
 
-from firmware.vehicle.modes import (
+from fcemu.firmware.vehicle.modes import (
     ACCEPTED,
     ACRO,
     AUTO,
@@ -29,7 +29,7 @@ from firmware.vehicle.modes import (
     mode_from_parts,
     mode_name,
 )
-from firmware.vehicle.vehicle import Vehicle
+from fcemu.firmware.vehicle.vehicle import Vehicle
 
 __all__ = [
     "ACCEPTED", "ACRO", "AUTO", "AUTO_LAND", "AUTO_LOITER", "DENIED", "FAILED", "FORCE_ARM_MAGIC", "HOLD",

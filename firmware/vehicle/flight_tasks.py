@@ -19,12 +19,12 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from firmware.controller import RateSetpoint
-from firmware.estimator import GRAVITY, AttitudeEstimator
-from firmware.sensors import SensorFrame
-from firmware.vehicle.land_detector import LOW_THRUST, LandDetector
-from firmware.vehicle.modes import IN_AIR, LANDING, ON_GROUND
-from firmware.vehicle.param_adapter import VehicleSettings
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.estimator import GRAVITY, AttitudeEstimator
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.vehicle.land_detector import LOW_THRUST, LandDetector
+from fcemu.firmware.vehicle.modes import IN_AIR, LANDING, ON_GROUND
+from fcemu.firmware.vehicle.param_adapter import VehicleSettings
 
 VZ_GAIN = 0.12  # throttle per m/s of vertical-speed error
 THROTTLE_MIN, THROTTLE_MAX = 0.1, 0.95  # what the vertical-speed law may command in the air

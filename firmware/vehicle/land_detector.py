@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import math
 
-from firmware.estimator import GRAVITY
-from firmware.sensors import SensorFrame
-from firmware.vehicle.modes import IN_AIR, ON_GROUND
+from fcemu.firmware.estimator import GRAVITY
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.vehicle.modes import IN_AIR, ON_GROUND
 
 LANDED_VZ = 0.15  # m/s
 LANDED_HOLD_US = 500_000

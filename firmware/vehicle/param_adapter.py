@@ -13,11 +13,11 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from firmware.controller import RateController
-from firmware.params import CONTROLLERS, ParamTable
-from firmware.pid import PIDGains
-from firmware.pid_controller import PIDRateController
-from firmware.stick_rates import ActualRates, StickRates
+from fcemu.firmware.controller import RateController
+from fcemu.firmware.params import CONTROLLERS, ParamTable
+from fcemu.firmware.pid import PIDGains
+from fcemu.firmware.pid_controller import PIDRateController
+from fcemu.firmware.stick_rates import ActualRates, StickRates
 
 AXES = ("ROLL", "PITCH", "YAW")
 

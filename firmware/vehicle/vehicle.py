@@ -19,14 +19,14 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from firmware.controller import RateController, RateSetpoint
-from firmware.controllers import FALLBACK_CONTROLLER
-from firmware.estimator import GRAVITY, AttitudeEstimator
-from firmware.loop import Command
-from firmware.params import CONTROLLERS, ParamTable
-from firmware.sensors import SensorFrame
-from firmware.vehicle import param_adapter
-from firmware.vehicle.flight_tasks import (
+from fcemu.firmware.controller import RateController, RateSetpoint
+from fcemu.firmware.controllers import FALLBACK_CONTROLLER
+from fcemu.firmware.estimator import GRAVITY, AttitudeEstimator
+from fcemu.firmware.loop import Command
+from fcemu.firmware.params import CONTROLLERS, ParamTable
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.vehicle import param_adapter
+from fcemu.firmware.vehicle.flight_tasks import (
     IDLE,
     FlightInputs,
     FlightTask,
@@ -36,8 +36,8 @@ from firmware.vehicle.flight_tasks import (
     PositionFix,
     StickTask,
 )
-from firmware.vehicle.land_detector import LandDetector
-from firmware.vehicle.modes import (
+from fcemu.firmware.vehicle.land_detector import LandDetector
+from fcemu.firmware.vehicle.modes import (
     ACRO,
     AUTO_MODES,
     HOLD,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.betaflight_crosscheck import axis_mix, first_answer_tick, fly_fcemu, replay_residual
-from firmware.mixer import QuadXMixer
+from fcemu.evaluation.betaflight_crosscheck import axis_mix, first_answer_tick, fly_fcemu, replay_residual
+from fcemu.firmware.mixer import QuadXMixer
 
 THROTTLE = 0.745
 IDLE_US = 1055.0

@@ -9,13 +9,13 @@ import sys
 import numpy as np
 import pytest
 
-from evaluation.bound import Floor, error_bounds, rig_constants
-from evaluation.open_loop import near_optimal_pwm
-from evaluation.rate_boxes import RateBoxes
-from firmware.errors import UserError
-from sim_bridge.airframe import load_airframe
-from sim_bridge.tasks import episodic_commands
-from sim_bridge.twin import Twin
+from fcemu.evaluation.bound import Floor, error_bounds, rig_constants
+from fcemu.evaluation.open_loop import near_optimal_pwm
+from fcemu.evaluation.rate_boxes import RateBoxes
+from fcemu.firmware.errors import UserError
+from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.tasks import episodic_commands
+from fcemu.sim_bridge.twin import Twin
 
 K = 150  # a short horizon keeps each programme well under a second; the bound holds for any horizon
 

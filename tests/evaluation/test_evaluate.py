@@ -10,12 +10,12 @@ import sys
 import numpy as np
 import pytest
 
-from evaluation.metrics import AXES, METRIC_KEYS, compute_metrics
-from evaluation.runner import EvalConfig, hover_state, run_controller, setpoint_schedules
-from sim_bridge.airframe import load_airframe
-from sim_bridge.tasks import episodic_commands
-from sim_bridge.twin import Twin
-from sitl.traces import load_traces
+from fcemu.evaluation.metrics import AXES, METRIC_KEYS, compute_metrics
+from fcemu.evaluation.runner import EvalConfig, hover_state, run_controller, setpoint_schedules
+from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.tasks import episodic_commands
+from fcemu.sim_bridge.twin import Twin
+from fcemu.sitl.traces import load_traces
 
 
 def fcemu(*args: str) -> subprocess.CompletedProcess:

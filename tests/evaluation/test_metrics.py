@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from evaluation.metrics import (
+from fcemu.evaluation.metrics import (
     AXES,
     METRIC_KEYS,
     aggregate,
@@ -18,7 +18,7 @@ from evaluation.metrics import (
     mean_ci95,
     segment_traces,
 )
-from sitl.traces import Traces
+from fcemu.sitl.traces import Traces
 
 DT = 0.001
 T = 1000

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from evaluation.bound import rig_constants
-from evaluation.open_loop import fly, pwm_for_speeds
-from sim_bridge.twin import Twin
+from fcemu.evaluation.bound import rig_constants
+from fcemu.evaluation.open_loop import fly, pwm_for_speeds
+from fcemu.sim_bridge.twin import Twin
 
 
 def test_pwm_for_speeds_inverts_the_motor_model():

@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.metrics import (
+from fcemu.cli import main
+from fcemu.evaluation.metrics import (
     AXES,
     METRIC_KEYS,
     aggregate,
@@ -17,13 +18,12 @@ from evaluation.metrics import (
     pool_episode_metrics,
     traces_episode_metrics,
 )
-from evaluation.perturb import fly_perturbed, perturbed_airframes
-from evaluation.report import ControllerResult, write_report
-from evaluation.runner import EvalConfig, run_controller
-from fcemu.cli import main
-from sim_bridge.airframe import AIRFRAME_DIR, load_airframe
-from sim_bridge.env import EnvConfig, draw_episode
-from sim_bridge.randomization import load_randomization
+from fcemu.evaluation.perturb import fly_perturbed, perturbed_airframes
+from fcemu.evaluation.report import ControllerResult, write_report
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
+from fcemu.sim_bridge.env import EnvConfig, draw_episode
+from fcemu.sim_bridge.randomization import load_randomization
 
 FAST = ("--controller", "pid", "--episodes", "2", "--episode-s", "0.6", "--perturb", "2", "--json")
 

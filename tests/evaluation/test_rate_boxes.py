@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evaluation.bound import Floor, rig_constants
-from evaluation.open_loop import fly, horizon_error, near_optimal_pwm
-from evaluation.rate_boxes import Boxes, exit_error, gyro_coefficients, product_range
-from evaluation.runner import EvalConfig, run_controller
-from sim_bridge.tasks import episodic_commands
+from fcemu.evaluation.bound import Floor, rig_constants
+from fcemu.evaluation.open_loop import fly, horizon_error, near_optimal_pwm
+from fcemu.evaluation.rate_boxes import Boxes, exit_error, gyro_coefficients, product_range
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.sim_bridge.tasks import episodic_commands
 
 K = 150
 INDEX = 2  # seed 7's command 2, where the gyroscopic term matters most of the first five

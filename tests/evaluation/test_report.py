@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.metrics import compute_metrics
-from evaluation.report import ControllerResult, load_paper_tables, table_best, write_report
-from sitl.traces import Traces
+from fcemu.evaluation.metrics import compute_metrics
+from fcemu.evaluation.report import ControllerResult, load_paper_tables, table_best, write_report
+from fcemu.sitl.traces import Traces
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -13,7 +13,7 @@ import shutil
 
 import pytest
 
-from firmware.controllers import DEFAULT_POLICY
+from fcemu.firmware.controllers import DEFAULT_POLICY
 
 SHIPPED = DEFAULT_POLICY
 
@@ -33,7 +33,7 @@ def require_codegen() -> None:
 
 
 def require_target_tools() -> None:
-    from export.c.target import missing_tools
+    from fcemu.export.c.target import missing_tools
 
     require_codegen()
     missing = missing_tools()

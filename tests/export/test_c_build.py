@@ -13,7 +13,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from export.c.build import CExportError, export_c, ulp_distance
+from fcemu.export.c.build import CExportError, export_c, ulp_distance
 from tests.export.mcu_tools import SHIPPED, require_codegen
 
 ALLOWED_INCLUDES = {"<math.h>", "<stdint.h>", "<float.h>", '"fcemu_policy.h"', '"fcemu_tanh.h"'}

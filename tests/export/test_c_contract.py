@@ -13,13 +13,13 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from export.c.build import compile_host, export_c
-from export.c.contract import Contract, contract_sources
-from firmware.action import action_to_pwm
-from firmware.c_policy import CPolicyController
-from firmware.controller import RateSetpoint
-from firmware.neural import NeuralRateController
-from firmware.observation import (
+from fcemu.export.c.build import compile_host, export_c
+from fcemu.export.c.contract import Contract, contract_sources
+from fcemu.firmware.action import action_to_pwm
+from fcemu.firmware.c_policy import CPolicyController
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.neural import NeuralRateController
+from fcemu.firmware.observation import (
     FIELDS,
     INTEGRAL,
     MOTOR_OUTPUT,
@@ -28,7 +28,7 @@ from firmware.observation import (
     ObservationSpec,
     observe_step,
 )
-from firmware.sensors import SensorFrame
+from fcemu.firmware.sensors import SensorFrame
 from tests.export.mcu_tools import require_codegen
 
 SPEC = ObservationSpec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL, RMS), integral_leak=0.99,

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export.c.build import export_c, ulp_distance
-from export.c.tanh import FAST_TANH_HEADER, TANH_HEADER, use_fast_tanh
+from fcemu.export.c.build import export_c, ulp_distance
+from fcemu.export.c.tanh import FAST_TANH_HEADER, TANH_HEADER, use_fast_tanh
 from tests.export.mcu_tools import SHIPPED, require_codegen
 
 F32P = ctypes.POINTER(ctypes.c_float)

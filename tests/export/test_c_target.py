@@ -13,7 +13,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from export.c.target import REPORT_KEYS, bench_mcu, budget_verdict, within_budget
+from fcemu.export.c.target import REPORT_KEYS, bench_mcu, budget_verdict, within_budget
 from tests.export.mcu_tools import SHIPPED, require_target_tools
 
 

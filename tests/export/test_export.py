@@ -11,12 +11,12 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from export.cli import export_command
-from export.onnx_export import ExportError, build_actor, export_policy, find_checkpoint, load_model
 from fcemu import __version__
-from firmware.neural import NeuralRateController, read_metadata
-from firmware.observation import ObservationSpec
-from training.train import TrainConfig, train
+from fcemu.export.cli import export_command
+from fcemu.export.onnx_export import ExportError, build_actor, export_policy, find_checkpoint, load_model
+from fcemu.firmware.neural import NeuralRateController, read_metadata
+from fcemu.firmware.observation import ObservationSpec
+from fcemu.training.train import TrainConfig, train
 
 pytestmark = pytest.mark.slow
 
@@ -130,7 +130,7 @@ def test_a_fold_that_loses_parity_falls_back_to_a_cheaper_one_then_to_the_graph(
                                                                                  spoilt, normalisation, ops):
     import onnx
 
-    import export.onnx_export as onnx_export
+    import fcemu.export.onnx_export as onnx_export
 
     class OffByALittle(onnx_export.FoldedActor):
         def __init__(self, actor, centred: bool = False) -> None:

@@ -12,8 +12,8 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from firmware.contract import META_PREFIX
-from firmware.controllers import DEFAULT_POLICY
+from fcemu.firmware.contract import META_PREFIX
+from fcemu.firmware.controllers import DEFAULT_POLICY
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from firmware.action import action_to_pwm, gymfc_pwm, pwm_to_action, throttle_pwm
+from fcemu.firmware.action import action_to_pwm, gymfc_pwm, pwm_to_action, throttle_pwm
 
 
 def test_gymfc_mapping_is_the_papers():

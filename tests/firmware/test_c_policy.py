@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.runner import EvalConfig, run_controller
-from firmware.c_policy import CPolicyController
-from firmware.controller import RateSetpoint
-from firmware.controllers import DEFAULT_POLICY, load_controller
-from firmware.neural import NeuralRateController, PolicyContractError, PolicyOutputError
-from firmware.sensors import SensorFrame
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.firmware.c_policy import CPolicyController
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.controllers import DEFAULT_POLICY, load_controller
+from fcemu.firmware.neural import NeuralRateController, PolicyContractError, PolicyOutputError
+from fcemu.firmware.sensors import SensorFrame
 
 SHIPPED = DEFAULT_POLICY
 
@@ -24,7 +24,7 @@ def exported(tmp_path_factory) -> Path:
     from tests.export.mcu_tools import require_codegen
 
     require_codegen()
-    from export.c.build import export_c
+    from fcemu.export.c.build import export_c
 
     out = tmp_path_factory.mktemp("c_policy")
     export_c(SHIPPED, out, parity_samples=1000)

@@ -10,10 +10,10 @@ import onnx
 import pytest
 from onnx import helper, numpy_helper
 
-from firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
-from firmware.controllers import DEFAULT_POLICY, load_controller
-from firmware.neural import NeuralRateController
-from firmware.observation import ObservationSpec
+from fcemu.firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
+from fcemu.firmware.controllers import DEFAULT_POLICY, load_controller
+from fcemu.firmware.neural import NeuralRateController
+from fcemu.firmware.observation import ObservationSpec
 
 SHIPPED = {p.key[len(META_PREFIX):]: p.value
            for p in onnx.load(str(DEFAULT_POLICY), load_external_data=False).metadata_props}
@@ -94,8 +94,8 @@ def test_outputs_far_outside_the_action_space_are_refused(tmp_path: Path) -> Non
 
 
 def test_the_loop_rate_reaches_the_check_from_every_loader(tmp_path: Path) -> None:
-    from evaluation.runner import run_controller  # noqa: F401  (imports load_controller with the rate)
-    from sitl.sitl import build_sitl
+    from fcemu.evaluation.runner import run_controller  # noqa: F401  (imports load_controller with the rate)
+    from fcemu.sitl.sitl import build_sitl
 
     with pytest.raises(PolicyContractError, match="asked to run at 500 Hz"):
         load_controller(str(DEFAULT_POLICY), 500.0)

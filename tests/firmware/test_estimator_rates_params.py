@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from firmware.estimator import GRAVITY, AttitudeEstimator, euler_from_quat, quat_from_euler
-from firmware.params import INT32, ParamTable, bytewise_from_int
-from firmware.stick_rates import ActualRates, StickRates
+from fcemu.firmware.estimator import GRAVITY, AttitudeEstimator, euler_from_quat, quat_from_euler
+from fcemu.firmware.params import INT32, ParamTable, bytewise_from_int
+from fcemu.firmware.stick_rates import ActualRates, StickRates
 
 
 def accel_for(roll: float, pitch: float) -> tuple[float, float, float]:
@@ -56,7 +56,7 @@ def test_gyro_bias_is_learned() -> None:
 
 
 def test_estimator_tracks_twin_truth_in_ball_rig() -> None:
-    from sim_bridge.twin import Twin
+    from fcemu.sim_bridge.twin import Twin
 
     twin = Twin(rig="rig")
     frame = twin.reset(seed=0)

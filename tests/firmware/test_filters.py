@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from firmware.filters import BiquadLowpass, BiquadNotch, PT1Filter, make_lowpass, notch_q, pt1_gain
+from fcemu.firmware.filters import BiquadLowpass, BiquadNotch, PT1Filter, make_lowpass, notch_q, pt1_gain
 
 
 def _sine_gain(filt, freq_hz: float, dt: float, seconds: float = 2.0) -> float:

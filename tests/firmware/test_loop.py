@@ -7,11 +7,11 @@ import time
 import numpy as np
 import pytest
 
-from firmware.controller import RateSetpoint
-from firmware.loop import Command, FlightLoop, ScriptedCommander
-from firmware.sensors import SensorFrame
-from firmware.timing import LockstepClock, RealTimeClock, TimingStats
-from sim_bridge.twin import Twin
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.loop import Command, FlightLoop, ScriptedCommander
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.timing import LockstepClock, RealTimeClock, TimingStats
+from fcemu.sim_bridge.twin import Twin
 
 
 class ConstantController:

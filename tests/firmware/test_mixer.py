@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from firmware.mixer import BETAFLIGHT_QUAD_X, PAPER_IRIS, TABLES, QuadXMixer
-from sim_bridge.twin import Twin
+from fcemu.firmware.mixer import BETAFLIGHT_QUAD_X, PAPER_IRIS, TABLES, QuadXMixer
+from fcemu.sim_bridge.twin import Twin
 
 LEFT, FRONT, CCW = (2, 3), (1, 3), (1, 2)  # zero-based motor indices: 3/4, 2/4, 2/3
 

@@ -7,11 +7,11 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from firmware.action import action_to_pwm, gymfc_pwm, throttle_pwm
-from firmware.controller import RateSetpoint
-from firmware.loop import FlightLoop, ScriptedCommander
-from firmware.neural import META_PREFIX, NeuralRateController, PolicyContractError, PolicyOutputError
-from firmware.observation import (
+from fcemu.firmware.action import action_to_pwm, gymfc_pwm, throttle_pwm
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.loop import FlightLoop, ScriptedCommander
+from fcemu.firmware.neural import META_PREFIX, NeuralRateController, PolicyContractError, PolicyOutputError
+from fcemu.firmware.observation import (
     FIELDS,
     INTEGRAL,
     MOTOR_OUTPUT,
@@ -19,10 +19,10 @@ from firmware.observation import (
     ObservationSpec,
     observe_step,
 )
-from firmware.sensors import SensorFrame
-from firmware.timing import LockstepClock
-from sim_bridge.env import EnvConfig, RateTask
-from sim_bridge.twin import Twin
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.timing import LockstepClock
+from fcemu.sim_bridge.env import EnvConfig, RateTask
+from fcemu.sim_bridge.twin import Twin
 
 
 def linear_policy(path, weight: np.ndarray, bias: np.ndarray, meta: dict[str, str] | None,

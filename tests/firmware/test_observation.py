@@ -2,9 +2,9 @@ import numpy as np
 import onnx
 import pytest
 
-from firmware.controllers import DEFAULT_POLICY
-from firmware.neural import META_PREFIX
-from firmware.observation import (
+from fcemu.firmware.controllers import DEFAULT_POLICY
+from fcemu.firmware.neural import META_PREFIX
+from fcemu.firmware.observation import (
     FIELDS,
     INTEGRAL,
     MOTOR_OUTPUT,

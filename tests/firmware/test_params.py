@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware.params import MAX_FILE_BYTES, ParamTable, load_warning
+from fcemu.firmware.params import MAX_FILE_BYTES, ParamTable, load_warning
 
 ROOT = Path(__file__).resolve().parents[2]
 

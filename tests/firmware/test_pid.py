@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from firmware.pid import GAIN_SCALE, PIDGains, RatePID
+from fcemu.firmware.pid import GAIN_SCALE, PIDGains, RatePID
 
 DT = 0.001
 ZERO = (0.0, 0.0, 0.0)

@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware.controller import RateSetpoint
-from firmware.pid import PIDGains
-from firmware.pid_controller import PRESETS, PIDRateController, load_preset, preset_path
-from firmware.sensors import SensorFrame
-from sim_bridge.twin import Twin
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.pid import PIDGains
+from fcemu.firmware.pid_controller import PRESETS, PIDRateController, load_preset, preset_path
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.twin import Twin
 
 TABLES = Path(__file__).resolve().parents[2] / "evaluation" / "data" / "paper_tables.json"
 STEP = 3.0

@@ -2,8 +2,8 @@ from __future__ import annotations
 
 import pytest
 
-from firmware.action import PWM_MIN, PWM_SPAN
-from sim_bridge.airframe import load_airframe
+from fcemu.firmware.action import PWM_MIN, PWM_SPAN
+from fcemu.sim_bridge.airframe import load_airframe
 
 
 @pytest.mark.parametrize("mass", [1.0, 1.3])

@@ -7,7 +7,7 @@ import struct
 import numpy as np
 import pytest
 
-from sim_bridge.betaflight_link import (
+from fcemu.sim_bridge.betaflight_link import (
     FDM_PACKET,
     MOTOR_PACKET,
     RC_PACKET,

@@ -9,11 +9,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from sim_bridge.airframe import EFFECT_KEYS, effect_fields, load_airframe
-from sim_bridge.env import RateControlEnv
-from sim_bridge.plant import AirframeEffects, DelayLine, MotorModel, body_torque
-from sim_bridge.twin import Twin, TwinState
-from sim_bridge.vec_env import BatchedRateEnv
+from fcemu.sim_bridge.airframe import EFFECT_KEYS, effect_fields, load_airframe
+from fcemu.sim_bridge.env import RateControlEnv
+from fcemu.sim_bridge.plant import AirframeEffects, DelayLine, MotorModel, body_torque
+from fcemu.sim_bridge.twin import Twin, TwinState
+from fcemu.sim_bridge.vec_env import BatchedRateEnv
 from tests.sim_bridge.test_vec_env import _assert_matches_single_envs
 
 IRIS = load_airframe("iris")
@@ -267,7 +267,7 @@ def test_realistic_airframe_changes_what_the_env_flies():
 
 
 def test_eval_flies_the_airframe_it_is_given():
-    from evaluation.runner import EvalConfig, run_controller
+    from fcemu.evaluation.runner import EvalConfig, run_controller
 
     nominal, realistic = (run_controller("pid", EvalConfig(episodes=2, seed=1, airframe=af), progress=False)
                           for af in ("iris", "iris_realistic"))

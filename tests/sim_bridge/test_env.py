@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from firmware.action import action_to_pwm
-from firmware.observation import observe_step
-from sim_bridge.env import RateControlEnv
-from sim_bridge.tasks import OMEGA_MAX, episodic_commands
-from sim_bridge.twin import SensorNoise
+from fcemu.firmware.action import action_to_pwm
+from fcemu.firmware.observation import observe_step
+from fcemu.sim_bridge.env import RateControlEnv
+from fcemu.sim_bridge.tasks import OMEGA_MAX, episodic_commands
+from fcemu.sim_bridge.twin import SensorNoise
 
 
 def _rollout(env: RateControlEnv, seed: int, steps: int, actions: np.ndarray) -> dict[str, np.ndarray]:

@@ -16,8 +16,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from firmware.sensors import SensorFrame
-from sim_bridge.link import (
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.link import (
     AdaptiveSpin,
     InProcessLink,
     LinkError,
@@ -27,7 +27,7 @@ from sim_bridge.link import (
     UdpTwinClient,
     spawn_server,
 )
-from sim_bridge.protocol import (
+from fcemu.sim_bridge.protocol import (
     HEADER,
     MAGIC,
     VERSION,
@@ -41,8 +41,8 @@ from sim_bridge.protocol import (
     encode_pwm,
     encode_reset,
 )
-from sim_bridge.twin import SensorNoise, Twin, TwinState
-from sim_bridge.twin_server import UdpTwinServer
+from fcemu.sim_bridge.twin import SensorNoise, Twin, TwinState
+from fcemu.sim_bridge.twin_server import UdpTwinServer
 
 pytestmark = pytest.mark.timeout(30)
 

@@ -8,8 +8,8 @@ import struct
 import numpy as np
 import pytest
 
-from firmware.sensors import SensorFrame
-from sim_bridge.protocol import (
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.protocol import (
     HEADER,
     MAGIC,
     MAX_ERROR_TEXT,
@@ -30,7 +30,7 @@ from sim_bridge.protocol import (
     encode_reset,
     peek_header,
 )
-from sim_bridge.twin import TwinState
+from fcemu.sim_bridge.twin import TwinState
 
 pytestmark = pytest.mark.timeout(30)
 

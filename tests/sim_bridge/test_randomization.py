@@ -8,10 +8,10 @@ import shutil
 import numpy as np
 import pytest
 
-from sim_bridge.airframe import AIRFRAME_DIR, load_airframe
-from sim_bridge.env import RateControlEnv
-from sim_bridge.randomization import PARAMETERS, RandomizationError, load_randomization
-from sim_bridge.vec_env import BatchedRateEnv
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
+from fcemu.sim_bridge.env import RateControlEnv
+from fcemu.sim_bridge.randomization import PARAMETERS, RandomizationError, load_randomization
+from fcemu.sim_bridge.vec_env import BatchedRateEnv
 
 SHIPPED = AIRFRAME_DIR / "iris.randomization.json"
 
@@ -209,7 +209,7 @@ def test_the_nominal_draw_is_the_airframe_itself():
 
 
 def test_a_share_of_episodes_flies_the_nominal_airframe():
-    from sim_bridge.env import EnvConfig, draw_episode
+    from fcemu.sim_bridge.env import EnvConfig, draw_episode
 
     ranges = load_randomization("iris")
     nominal = ranges.nominal()

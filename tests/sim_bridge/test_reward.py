@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from sim_bridge.env import RateControlEnv
-from sim_bridge.reward import REWARD_TERMS, RateReward
-from sim_bridge.vec_env import BatchedRateEnv, make_sb3_vec_env
+from fcemu.sim_bridge.env import RateControlEnv
+from fcemu.sim_bridge.reward import REWARD_TERMS, RateReward
+from fcemu.sim_bridge.vec_env import BatchedRateEnv, make_sb3_vec_env
 
 # The float32 rewards of training's former SB3 wrapper (RewardOption, VecEnvWrapper over the batched
 # env) for make_sb3_vec_env(3, seed=4, **env) and the actions of `_actions`, recorded from it before

@@ -3,7 +3,7 @@ import itertools
 import numpy as np
 import pytest
 
-from sim_bridge.tasks import (
+from fcemu.sim_bridge.tasks import (
     OMEGA_MAX,
     continuous_schedule,
     draw_throttle,

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from firmware.sensors import SensorFrame
-from sim_bridge.twin import SensorNoise, Twin, TwinState
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.twin import SensorNoise, Twin, TwinState
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim_bridge.link import LinkError, RemoteError, UdpTwinClient, spawn_server
-from sim_bridge.protocol import encode_reset
-from sim_bridge.twin import Twin
-from sim_bridge.twin_server import SenderBudget, UdpTwinServer
+from fcemu.sim_bridge.link import LinkError, RemoteError, UdpTwinClient, spawn_server
+from fcemu.sim_bridge.protocol import encode_reset
+from fcemu.sim_bridge.twin import Twin
+from fcemu.sim_bridge.twin_server import SenderBudget, UdpTwinServer
 
 pytestmark = pytest.mark.timeout(90)
 ROOT = Path(__file__).resolve().parents[2]
@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[2]
 # Sends RESETs with fresh sequence numbers as fast as one Python process can, from `n_socks` sockets.
 STORM = """
 import socket, sys, time
-from sim_bridge.protocol import encode_reset
+from fcemu.sim_bridge.protocol import encode_reset
 host, port, seconds, n_socks = sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
 socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n_socks)]
 for s in socks:

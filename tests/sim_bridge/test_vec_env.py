@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from sim_bridge.env import RateControlEnv
-from sim_bridge.twin import SensorNoise
-from sim_bridge.vec_env import NOISE_BLOCK, BatchedRateEnv, make_sb3_vec_env
+from fcemu.sim_bridge.env import RateControlEnv
+from fcemu.sim_bridge.twin import SensorNoise
+from fcemu.sim_bridge.vec_env import NOISE_BLOCK, BatchedRateEnv, make_sb3_vec_env
 
 INFO_KEYS = ("setpoint", "rate", "gyro", "pwm", "paper_reward", "action_rate")
 CONFIGS = {
@@ -106,7 +106,7 @@ def test_randomisation_is_per_copy_and_changes_dynamics():
 def test_sb3_adapter_api():
     from stable_baselines3.common.vec_env import VecEnv
 
-    from sim_bridge.vec_env import SB3VecEnv
+    from fcemu.sim_bridge.vec_env import SB3VecEnv
 
     venv = make_sb3_vec_env(3, seed=5, episode_s=0.01)
     assert isinstance(venv, VecEnv) and isinstance(venv, SB3VecEnv) and venv.num_envs == 3
@@ -143,7 +143,7 @@ def test_ppo_learns_on_the_adapter():
 
 
 def test_bench_functions_measure_and_the_batch_is_faster():
-    from benchmarks.env import env_steps_per_s, vec_env_steps_per_s
+    from fcemu.benchmarks.env import env_steps_per_s, vec_env_steps_per_s
 
     single = env_steps_per_s(seconds=0.3)
     batched = vec_env_steps_per_s(64, seconds=0.3)

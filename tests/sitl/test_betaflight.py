@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from fcemu.cli import main
-from sim_bridge.twin import Twin
-from sitl.betaflight import BASE_SETTINGS, BetaflightFlight, RcMap
-from sitl.betaflight_process import BetaflightError, BetaflightSitl, port_in_use, sitl_binary
+from fcemu.sim_bridge.twin import Twin
+from fcemu.sitl.betaflight import BASE_SETTINGS, BetaflightFlight, RcMap
+from fcemu.sitl.betaflight_process import BetaflightError, BetaflightSitl, port_in_use, sitl_binary
 
 try:
     sitl_binary()

@@ -14,8 +14,8 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as M
 
-from sitl.cli import register
-from sitl.sitl import mavlink_config_from_args
+from fcemu.sitl.cli import register
+from fcemu.sitl.sitl import mavlink_config_from_args
 from tests.firmware.mavlink.conftest import ROOT, listen
 
 CLIMB = 0.85  # thrust 0..1, above the Iris's hover

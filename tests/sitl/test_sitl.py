@@ -9,22 +9,22 @@ import sys
 import time
 from pathlib import Path
 
-import firmware.controllers
-from firmware.controllers import DEFAULT_POLICY, default_controller
-from sitl import sitl
+from fcemu.firmware import controllers
+from fcemu.firmware.controllers import DEFAULT_POLICY, default_controller
+from fcemu.sitl import sitl
 
 
 def test_the_shipped_policy_is_package_data_and_flies_by_default() -> None:
     assert DEFAULT_POLICY.is_file()
-    assert DEFAULT_POLICY.parent == Path(firmware.controllers.__file__).parent / "policies"
+    assert DEFAULT_POLICY.parent == Path(controllers.__file__).parent / "policies"
     assert default_controller() == str(DEFAULT_POLICY)
     assert sitl.flying_line(default_controller()) == f"fcemu: flying neural:iris_rate_ppo ({DEFAULT_POLICY})"
 
 
 def test_without_a_policy_the_line_says_the_pid_flies_and_why(monkeypatch, tmp_path) -> None:
     missing = tmp_path / "iris_rate_ppo.onnx"
-    monkeypatch.setattr(firmware.controllers, "DEFAULT_POLICY", missing)
-    assert firmware.controllers.default_controller() == "pid"
+    monkeypatch.setattr(controllers, "DEFAULT_POLICY", missing)
+    assert controllers.default_controller() == "pid"
     assert sitl.flying_line("pid") == f"fcemu: flying pid (no policy found at {missing})"
     assert sitl.flying_line("pid:paper") == "fcemu: flying pid:paper"
 

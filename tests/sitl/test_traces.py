@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.metrics import compute_metrics
-from sitl.traces import Traces, TracesError, load_traces, save_traces
+from fcemu.evaluation.metrics import compute_metrics
+from fcemu.sitl.traces import Traces, TracesError, load_traces, save_traces
 
 
 def _traces(n: int = 3, steps: int = 50, task: str = "episodic") -> Traces:

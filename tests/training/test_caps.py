@@ -10,9 +10,9 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import ActorCriticPolicy
 
-from training.caps import consecutive_pairs, spatial_smoothness, temporal_smoothness
-from training.regularised_ppo import RegularisedPPO
-from training.train import TrainConfig, train
+from fcemu.training.caps import consecutive_pairs, spatial_smoothness, temporal_smoothness
+from fcemu.training.regularised_ppo import RegularisedPPO
+from fcemu.training.train import TrainConfig, train
 
 OBS = spaces.Box(-np.inf, np.inf, (7,), np.float32)
 ACT = spaces.Box(-1.0, 1.0, (4,), np.float32)

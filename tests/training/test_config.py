@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from fcemu.cli import build_parser
-from training.config import ALGOS, FIELDS, WARM_START_TARGET_KL, TrainConfig, from_args, parse_hp
+from fcemu.training.config import ALGOS, FIELDS, WARM_START_TARGET_KL, TrainConfig, from_args, parse_hp
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -47,7 +47,7 @@ def test_bench_and_sweep_take_the_same_options():
 def test_the_command_line_builds_the_config():
     argv = "train --algo sac --memory 3 --steps 10 --seed 4 --envs 2 --out runs/x --throttle 0.6 0.8"
     args = build_parser().parse_args(argv.split())
-    assert args.handler == "training.train:train_command"
+    assert args.handler == "fcemu.training.train:train_command"
     cfg = from_args(args)
     got = (cfg.algo, cfg.memory, cfg.steps, cfg.seed, cfg.n_envs, cfg.throttle, cfg.out)
     assert got == ("sac", 3, 10, 4, 2, (0.6, 0.8), "runs/x")
@@ -81,7 +81,7 @@ def test_the_command_line_builds_the_config():
     default = from_args(build_parser().parse_args(["train"]))
     assert dataclasses.asdict(default) == dataclasses.asdict(TrainConfig())
     bench = build_parser().parse_args(["bench", "train", "--max-minutes", "1", "--hp", "n_epochs=1"])
-    assert bench.handler == "benchmarks.train:bench_train" and bench.max_minutes == 1.0
+    assert bench.handler == "fcemu.benchmarks.train:bench_train" and bench.max_minutes == 1.0
     cfg = from_args(bench)
     assert (cfg.steps, cfg.eval_every, cfg.eval_episodes, cfg.hyper["n_epochs"]) == (10**7, 250_000, 0, 1)
 
@@ -115,7 +115,7 @@ def test_threads_default_to_the_cpus_this_process_may_use():
     assert TrainConfig(threads=3).threads == 3
     one_cpu = subprocess.run(
         ["taskset", "-c", "0", sys.executable, "-c",
-         "from training.config import TrainConfig; print(TrainConfig().threads)"],
+         "from fcemu.training.config import TrainConfig; print(TrainConfig().threads)"],
         env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True, timeout=60)
     assert one_cpu.stdout.strip() == "1", one_cpu.stderr
 
@@ -146,7 +146,7 @@ def test_randomize_reaches_the_training_env_and_is_off_by_default():
     assert "randomize" not in TrainConfig().env_kwargs()  # the nominal airframe, exactly as before
     cfg = from_args(build_parser().parse_args(["train", "--randomize", "iris"]))
     assert cfg.env_kwargs()["randomize"] == "iris"
-    from sim_bridge.vec_env import BatchedRateEnv
+    from fcemu.sim_bridge.vec_env import BatchedRateEnv
 
     env = BatchedRateEnv(2, **{**cfg.env_kwargs(), "episode_s": 0.01})
     env.reset(seed=0)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from firmware.observation import INTEGRAL, MOTOR_OUTPUT, RMS, ObservationSpec
-from training.init import InitError, _widen, init_checkpoint
+from fcemu.firmware.observation import INTEGRAL, MOTOR_OUTPUT, RMS, ObservationSpec
+from fcemu.training.init import InitError, _widen, init_checkpoint
 
 
 def _run(tmp_path: Path, spec: ObservationSpec, algo: str = "ppo") -> Path:

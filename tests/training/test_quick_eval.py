@@ -6,9 +6,9 @@ import math
 
 import pytest
 
-from evaluation.metrics import compute_metrics
-from evaluation.runner import EvalConfig, run_controller
-from training import quick_eval
+from fcemu.evaluation.metrics import compute_metrics
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.training import quick_eval
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,8 @@ import pytest
 import torch
 from stable_baselines3.common.vec_env import VecNormalize
 
-from training import quick_eval
-from training.train import TrainConfig, make_model, make_vec_env
+from fcemu.training import quick_eval
+from fcemu.training.train import TrainConfig, make_model, make_vec_env
 
 
 @pytest.mark.parametrize("squash", [False, True])

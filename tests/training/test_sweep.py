@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from firmware.neural import NeuralRateController
-from training.sweep import parse_seeds, parse_space
+from fcemu.firmware.neural import NeuralRateController
+from fcemu.training.sweep import parse_seeds, parse_space
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # Ray start-up on a loaded machine
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,8 +41,8 @@ def test_seeds_and_space_parse():
 
 def test_spec_from_yaml_and_command_line(tmp_path):
     from fcemu.cli import build_parser
-    from training.cli import SWEEP_DEFAULTS
-    from training.sweep import spec_from_args
+    from fcemu.training.cli import SWEEP_DEFAULTS
+    from fcemu.training.sweep import spec_from_args
 
     path = tmp_path / "sweep.yaml"
     path.write_text("seeds: 0-2\nsteps: 300000\nsquash: true\naction_rate_penalty: 1.0\n"
@@ -134,8 +134,8 @@ def test_each_trial_and_the_pid_fly_the_perturbed_airframes_of_fcemu_eval(sweep)
 
 def test_a_bad_perturbed_flight_fails_before_any_trial():
     from fcemu.cli import build_parser
-    from training.cli import SWEEP_DEFAULTS
-    from training.sweep import spec_from_args
+    from fcemu.training.cli import SWEEP_DEFAULTS
+    from fcemu.training.sweep import spec_from_args
 
     for bad in (["--perturb", "-1"], ["--perturb", "2", "--perturb-episodes", "0"],
                 ["--perturb", "2", "--randomize", "no_such_ranges"]):

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.metrics import AXES, compute_metrics
-from evaluation.runner import EvalConfig, run_controller
-from firmware.neural import NeuralRateController
-from training import quick_eval
-from training.train import TrainConfig, train
+from fcemu.evaluation.metrics import AXES, compute_metrics
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.firmware.neural import NeuralRateController
+from fcemu.training import quick_eval
+from fcemu.training.train import TrainConfig, train
 
 pytestmark = pytest.mark.slow
 
@@ -122,7 +122,7 @@ def test_bar_verdict_names_each_criterion(run):
 
 
 def test_unclipped_reward_weights_the_axes_and_never_saturates():
-    from training.train import make_vec_env
+    from fcemu.training.train import make_vec_env
 
     venv = make_vec_env(TrainConfig(envs=2, seed=0, throttle=0.7, action_rate_penalty=0.5,
                                     axis_weights=(1.0, 2.0, 3.0)))
@@ -143,7 +143,7 @@ def test_unclipped_reward_weights_the_axes_and_never_saturates():
 def test_gym_make_with_the_training_env_kwargs_gives_the_training_reward():
     import gymnasium as gym
 
-    from training.train import make_vec_env
+    from fcemu.training.train import make_vec_env
 
     cfg = TrainConfig(envs=2, seed=6, action_rate_penalty=2.0, axis_weights=(1.0, 1.0, 2.0))
     venv = make_vec_env(cfg)
@@ -172,7 +172,7 @@ def test_a_randomised_run_trains_end_to_end_and_races_on_the_nominal_airframe(tm
 
 
 def test_the_race_flies_the_training_airframe():
-    from training.train import PidRaceCallback
+    from fcemu.training.train import PidRaceCallback
 
     race = PidRaceCallback(TrainConfig(airframe="iris_realistic", eval_commands=2), every=1000)
     assert race.evaluator.env.config.base_airframe.name == "iris_realistic"
@@ -183,7 +183,7 @@ def test_the_race_flies_the_training_airframe():
 
 def test_the_batched_evaluator_observes_with_the_trained_leaks():
     """The race scores a policy on the observation it was trained on, leaks included."""
-    from firmware.observation import FIELDS, INTEGRAL, RMS
+    from fcemu.firmware.observation import FIELDS, INTEGRAL, RMS
 
     fields = (*FIELDS, INTEGRAL, RMS)
     evaluator = quick_eval.BatchedEvaluator(2, 3, memory=2, obs_fields=fields,
@@ -251,7 +251,7 @@ def test_init_adds_an_observation_field_at_zero_weight(run, tmp_path):
 
 
 def test_init_refuses_a_run_of_another_observation_or_algorithm(run, tmp_path):
-    from training.train import InitError
+    from fcemu.training.train import InitError
 
     src, _ = run
     base = dict(steps=128, seed=5, envs=8, eval_episodes=0, progress=False,

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from stable_baselines3.common.vec_env import VecNormalize
 
-from evaluation.metrics import compute_metrics
-from firmware.controllers import load_controller
-from training import quick_eval
-from training.config import TrainConfig
-from training.train import make_model, make_vec_env
-from training.warm_start import WarmStart
-from training.warm_start_teacher import PidTeacher, episode_delay_ticks, load_schedule, teacher_inputs
+from fcemu.evaluation.metrics import compute_metrics
+from fcemu.firmware.controllers import load_controller
+from fcemu.training import quick_eval
+from fcemu.training.config import TrainConfig
+from fcemu.training.train import make_model, make_vec_env
+from fcemu.training.warm_start import WarmStart
+from fcemu.training.warm_start_teacher import PidTeacher, episode_delay_ticks, load_schedule, teacher_inputs
 
 
 def _teacher_flight(n: int, seed: int):
@@ -58,7 +58,7 @@ def test_train_with_a_warm_start_reports_it_and_its_time_counts_in_the_race(tmp_
                                                                            anchor: float):
     import json
 
-    from training.train import train
+    from fcemu.training.train import train
 
     out = tmp_path / "run"
     cfg = TrainConfig(algo=algo, seed=0, out=str(out), envs=8, steps=4096, checkpoint_every=100_000,
@@ -103,7 +103,7 @@ def test_a_schedule_flies_each_copy_with_the_band_for_its_airframes_delay(tmp_pa
 
 
 def test_the_delay_of_each_episode_is_the_drawn_airframes():
-    from sim_bridge.vec_env import BatchedRateEnv
+    from fcemu.sim_bridge.vec_env import BatchedRateEnv
 
     batch = BatchedRateEnv(8, randomize="iris")
     batch.reset(seed=3)
@@ -150,7 +150,7 @@ def test_each_warm_start_sample_carries_its_airframes_delay(tmp_path: Path):
 def test_the_anchor_can_keep_to_the_airframes_with_a_long_delay(tmp_path: Path):
     import json
 
-    from training.train import train
+    from fcemu.training.train import train
 
     cfg = TrainConfig(algo="ppo", seed=0, out=str(tmp_path), envs=8, steps=1024, checkpoint_every=100_000,
                       eval_every=0, eval_episodes=0, warm_start="schedule:latency", warm_start_rounds=1,

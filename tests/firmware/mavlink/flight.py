@@ -11,7 +11,7 @@ from pathlib import Path
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as M
 
-from firmware.params import ParamTable
+from fcemu.firmware.params import ParamTable
 
 ROOT = Path(__file__).resolve().parents[3]
 

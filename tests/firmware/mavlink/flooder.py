@@ -13,7 +13,7 @@ import time
 
 from pymavlink.dialects.v20 import common as M
 
-from firmware.params import ParamTable
+from fcemu.firmware.params import ParamTable
 
 HOVER = ParamTable()["MPC_THR_HOVER"]
 BATCH = 100

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from firmware.mavlink.budget import WINDOW_S, InputBudget, ParamStreams
+from fcemu.firmware.mavlink.budget import WINDOW_S, InputBudget, ParamStreams
 
 
 def test_a_sender_over_its_share_is_shed_while_another_sender_gets_through() -> None:

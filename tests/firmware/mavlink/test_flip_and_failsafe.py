@@ -25,7 +25,7 @@ def latest(conn, kind: str):
 
 @pytest.mark.timeout(150)
 def test_pymavlink_script_flies_the_flip_faster_than_real_time(tmp_path) -> None:
-    from sitl.demo import run_demo
+    from fcemu.sitl.demo import run_demo
 
     result = run_demo("pid", 2.0, tmp_path, timeout_s=100.0)
     flight = result["flight"]

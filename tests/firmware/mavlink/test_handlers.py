@@ -8,10 +8,10 @@ import pickle
 import pytest
 from pymavlink.dialects.v20 import common as M
 
-from firmware.mavlink import ipc, outputs
-from firmware.mavlink.handlers import Handlers
-from firmware.mavlink.telemetry import Scheduler
-from firmware.params import ParamTable
+from fcemu.firmware.mavlink import ipc, outputs
+from fcemu.firmware.mavlink.handlers import Handlers
+from fcemu.firmware.mavlink.telemetry import Scheduler
+from fcemu.firmware.params import ParamTable
 
 NAN = math.nan
 

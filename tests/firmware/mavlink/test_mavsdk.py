@@ -79,7 +79,7 @@ def test_mavsdk_offboard_stop_and_action_hold_hold_altitude(sitl) -> None:
     """MAVSDK's canonical ending: `offboard.stop()` asks for HOLD (PX4 AUTO.LOITER); so does
     `action.hold()`. On the free rig, where the vehicle has a position source, HOLD holds the
     altitude it was entered at; then LAND brings it down and it disarms."""
-    from sim_bridge.airframe import load_airframe
+    from fcemu.sim_bridge.airframe import load_airframe
 
     hover = load_airframe().hover_throttle()
     offboard_port = free_udp_port()

@@ -131,7 +131,7 @@ def test_a_signed_frame_captured_on_one_link_is_refused_when_replayed_on_another
 
 
 def test_signing_state_remembers_nothing_from_a_frame_with_a_bad_signature() -> None:
-    from firmware.mavlink.signing import SigningState, signing_now
+    from fcemu.firmware.mavlink.signing import SigningState, signing_now
 
     state = SigningState(KEY)
     forged = bytearray(forged_frame(250, 190, (1 << 48) - 10))

@@ -8,10 +8,10 @@ import socket
 import pytest
 from pymavlink.dialects.v20 import common as M
 
-from firmware.mavlink import ipc
-from firmware.mavlink.bridge import MavlinkConfig, PeerConfig
-from firmware.mavlink.process import Station
-from firmware.params import ParamTable
+from fcemu.firmware.mavlink import ipc
+from fcemu.firmware.mavlink.bridge import MavlinkConfig, PeerConfig
+from fcemu.firmware.mavlink.process import Station
+from fcemu.firmware.params import ParamTable
 
 NAN = math.nan
 
@@ -91,7 +91,7 @@ def test_a_frame_cut_short_does_not_swallow_the_next_datagram() -> None:
     """UDP carries whole frames: each datagram is parsed afresh (found by the fuzz test)."""
     import time
 
-    from firmware.mavlink.endpoint import Endpoint
+    from fcemu.firmware.mavlink.endpoint import Endpoint
 
     ep = Endpoint("gcs", "127.0.0.1", 9, 1, 0)
     gcs = M.MAVLink(None, srcSystem=255, srcComponent=0)

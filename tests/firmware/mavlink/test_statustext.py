@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from pymavlink.dialects.v20 import common as M
 
-from firmware.mavlink.telemetry import statustext
+from fcemu.firmware.mavlink.telemetry import statustext
 from tests.firmware.mavlink.conftest import connect, wait_for
 
 pytestmark = pytest.mark.timeout(60)

@@ -7,16 +7,22 @@ import math
 import numpy as np
 import pytest
 
-from firmware.estimator import AttitudeEstimator
-from firmware.loop import FlightLoop, TickSample
-from firmware.params import ParamTable
-from firmware.pid_controller import PIDRateController
-from firmware.sensors import SensorFrame
-from firmware.timing import LockstepClock
-from firmware.vehicle import HOLD, IN_AIR, OFFBOARD, ON_GROUND, Vehicle
-from firmware.vehicle.flight_tasks import FlightInputs, HoldTask, LandTask, PositionFix, tilt_for_acceleration
-from firmware.vehicle.land_detector import LandDetector
-from firmware.vehicle.param_adapter import VehicleSettings
+from fcemu.firmware.estimator import AttitudeEstimator
+from fcemu.firmware.loop import FlightLoop, TickSample
+from fcemu.firmware.params import ParamTable
+from fcemu.firmware.pid_controller import PIDRateController
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.firmware.timing import LockstepClock
+from fcemu.firmware.vehicle import HOLD, IN_AIR, OFFBOARD, ON_GROUND, Vehicle
+from fcemu.firmware.vehicle.flight_tasks import (
+    FlightInputs,
+    HoldTask,
+    LandTask,
+    PositionFix,
+    tilt_for_acceleration,
+)
+from fcemu.firmware.vehicle.land_detector import LandDetector
+from fcemu.firmware.vehicle.param_adapter import VehicleSettings
 
 REST = SensorFrame(0, np.zeros(3), np.array([0.0, 0.0, -9.81]), np.zeros(4))
 HOVER = ParamTable()["MPC_THR_HOVER"]
@@ -115,9 +121,9 @@ class PositionSource:
 
 @pytest.mark.parametrize("with_fix", [True, False])
 def test_hold_in_the_free_twin_keeps_altitude_after_a_climb(with_fix: bool) -> None:
-    from sim_bridge.airframe import load_airframe
-    from sim_bridge.link import InProcessLink
-    from sim_bridge.twin import Twin
+    from fcemu.sim_bridge.airframe import load_airframe
+    from fcemu.sim_bridge.link import InProcessLink
+    from fcemu.sim_bridge.twin import Twin
 
     twin = Twin(rig="free")
     link = InProcessLink(twin)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from firmware.vehicle import modes as m
+from fcemu.firmware.vehicle import modes as m
 
 
 def machine() -> m.ModeMachine:

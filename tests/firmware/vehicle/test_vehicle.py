@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from firmware import vehicle as v
-from firmware.params import ParamTable
-from firmware.sensors import SensorFrame
+from fcemu.firmware import vehicle as v
+from fcemu.firmware.params import ParamTable
+from fcemu.firmware.sensors import SensorFrame
 
 REST = SensorFrame(0, np.zeros(3), np.array([0.0, 0.0, -9.81]), np.zeros(4))
 
