@@ -38,7 +38,7 @@ def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "ri
         config = MavlinkConfig(peers=[PeerConfig("gcs", "127.0.0.1", gcs),
                                       PeerConfig("offboard", "127.0.0.1", offboard)], params_file=None)
         vs = start_vehicle_sitl(controller, rig, rate_hz, 1.0, config)
-        peer = subprocess.Popen([sys.executable, "-m", "fcemu.firmware.mavlink.loadpeer",
+        peer = subprocess.Popen([sys.executable, "-m", "fcemu.benchmarks.loadpeer",
                                  str(gcs), str(offboard)])
         sitl = vs.sitl
         release_core = give_loop_a_core((vs.proc.pid, peer.pid))

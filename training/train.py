@@ -42,7 +42,7 @@ def make_vec_env(cfg: TrainConfig) -> VecEnv:
     The reward is the env's own (`sim_bridge.reward`), built from `cfg.env_kwargs()`:
     training only chooses the weights, so `gym.make(..., **env_kwargs)` gives the same reward.
     """
-    from fcemu.sim_bridge.vec_env import make_sb3_vec_env
+    from fcemu.training.sb3_env import make_sb3_vec_env
 
     return VecMonitor(make_sb3_vec_env(cfg.n_envs, seed=cfg.seed, **cfg.env_kwargs()))
 

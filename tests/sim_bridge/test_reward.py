@@ -11,10 +11,10 @@ from gymnasium.utils.env_checker import check_env
 
 from fcemu.sim_bridge.env import RateControlEnv
 from fcemu.sim_bridge.reward import REWARD_TERMS, RateReward
-from fcemu.sim_bridge.vec_env import BatchedRateEnv, make_sb3_vec_env
+from fcemu.sim_bridge.vec_env import BatchedRateEnv
 
 # The float32 rewards of training's former SB3 wrapper (RewardOption, VecEnvWrapper over the batched
-# env) for make_sb3_vec_env(3, seed=4, **env) and the actions of `_actions`, recorded from it before
+# env) for BatchedRateEnv(3, **env) reset with seed=4 and the actions of `_actions`, recorded from it before
 # the reward moved into the env: rewards at steps 0, 1, 99, 100 (first of the second episode), 399,
 # and each copy's sum over the 400 steps.
 CASES = {
@@ -58,9 +58,9 @@ def _actions(steps: int, n: int) -> list[np.ndarray]:
 @pytest.mark.parametrize("name", CASES)
 def test_env_reward_is_the_former_training_wrapper_to_the_bit(name):
     env_kwargs, picked, sums = CASES[name]
-    venv = make_sb3_vec_env(3, seed=4, **env_kwargs)
-    venv.reset()
-    rewards = np.array([venv.step(a)[1] for a in _actions(STEPS, 3)])
+    venv = BatchedRateEnv(3, **env_kwargs)
+    venv.reset(seed=4)
+    rewards = np.array([venv.step(a)[1].astype(np.float32) for a in _actions(STEPS, 3)])
     venv.close()
     assert rewards.dtype == np.float32
     for k, expected in picked.items():

@@ -2,7 +2,7 @@
 offboard ports) and parses all of it, arms the vehicle, puts it in OFFBOARD and streams
 SET_ATTITUDE_TARGET body rates at 100 Hz (a slow sine on each axis at hover thrust) until killed.
 
-    python -m firmware.mavlink.loadpeer GCS_PORT OFFBOARD_PORT [RATE_HZ]
+    python -m fcemu.benchmarks.loadpeer GCS_PORT OFFBOARD_PORT [RATE_HZ]
 """
 
 from __future__ import annotations
