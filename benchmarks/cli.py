@@ -41,6 +41,6 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     config.add_arguments(p, exclude=("eval_seed", "export", "progress"), defaults=BENCH_DEFAULTS)
     p.add_argument("--max-minutes", type=float, default=15.0, help="cap on the race against the PID")
     p.add_argument("--target", choices=("beat", "bar"), default="beat",
-                   help="stop when the Error sum beats the PID's (beat) or meets issue 5's bar (bar)")
+                   help="stop when the Error sum beats the PID's (beat) or meets the deployable bar (bar)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(handler="fcemu.benchmarks.train:bench_train")

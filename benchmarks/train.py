@@ -3,8 +3,8 @@
 Trains with the defaults of `fcemu train`, evaluating the deterministic policy every
 `--eval-every` steps on a fixed set of commands at hover (the in-training evaluation of
 `training.train.PidRaceCallback`), and stops when it beats the best PID preset's Error sum
-(`--target beat`) or meets issue 5's whole bar (`--target bar`), or at the cap. Wall time
-includes the evaluations and a `--warm-start` (its environment steps are reported apart,
+(`--target beat`) or meets the deployable bar's nominal lines (`--target bar`,
+`fcemu.evaluation.bar`), or at the cap. Wall time includes the evaluations and a `--warm-start` (its environment steps are reported apart,
 not in the steps to beat); steps/s does not. The machine's load is reported with it.
 """
 

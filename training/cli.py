@@ -49,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--perturb", type=int, default=0, metavar="N",
                    help="fly each trial's policy, and the PID once, on N airframes drawn from the "
                         "--randomize ranges (default iris), as `fcemu eval --perturb N` does, and "
-                        "judge each by issue 10's perturbed lines (default 0: not flown)")
+                        "judge each by the deployable bar's perturbed lines (default 0: not flown)")
     p.add_argument("--perturb-seed", type=int, default=0, metavar="S",
                    help="seed of the perturbed airframes (a stream training never draws from)")
     p.add_argument("--perturb-episodes", type=int, default=100, metavar="E",

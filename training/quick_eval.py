@@ -9,7 +9,7 @@ so the PID reference is `run_controller(pid, EvalConfig(episodes=1, seed=seed + 
 fly the training airframe as it is, without randomisation; the trace holds the body rate
 (the gyro's reading without vibration, noise or delay), as `fcemu eval` records it.
 
-`bar_verdict` judges the policy against the best PID preset by the shipped policy's criteria;
+`fcemu.evaluation.bar.bar_verdict` judges it against the best PID preset by the deployable bar;
 `selection_key` ranks in-training evaluations for the exported checkpoint.
 """
 
@@ -19,17 +19,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fcemu.evaluation.metrics import AXES, EvalMetrics, compute_metrics
+from fcemu.evaluation.metrics import EvalMetrics, compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.observation import FIELDS
 from fcemu.sim_bridge.vec_env import BatchedRateEnv
 from fcemu.sitl.traces import Traces
 from fcemu.training.config import SELECT
-
-
-def error_sum(metrics: EvalMetrics) -> float:
-    """The bar's figure: mean Error per episode, summed over roll, pitch and yaw."""
-    return float(sum(metrics.stat("error", a).mean for a in AXES))
 
 
 def concat_traces(parts: list[Traces], controller: str, seed: int) -> Traces:
@@ -128,46 +123,6 @@ def sb3_actor(model, vecnormalize=None):
     return act_mean
 
 
-ERROR_RATIO_BAR = 0.95  # Error sum ≤ this × the PID's
-PEAK_MARGIN_PCT = 3.0  # Peak ≤ the PID's + this, every axis
-SUCCESS_BAR_PCT = 99.8  # Success ≥ this, every axis
-SMOOTHNESS_BAR = 1.5  # smoothness (mean |Δpwm| per step) ≤ this × the PID's
-PERTURBED_SUCCESS_BAR_PCT = 99.0  # on perturbed airframes: Success ≥ this, every axis (Error ≤ the PID's)
-
-
-def bar_verdict(policy: EvalMetrics, pids: dict[str, EvalMetrics], error_ratio: float = ERROR_RATIO_BAR,
-                min_success: float = SUCCESS_BAR_PCT, peak_margin: float = PEAK_MARGIN_PCT,
-                smoothness_ratio: float = SMOOTHNESS_BAR) -> dict:
-    """The bar against the best PID preset (lowest Error sum); every criterion, its figures and its check.
-
-    Error sum ≤ `error_ratio` × the PID's; Rise ≤ the PID's, Peak ≤ the PID's + `peak_margin`
-    points and Success ≥ `min_success` % on every axis; smoothness ≤ `smoothness_ratio` × the
-    PID's. A figure that is missing (NaN: e.g. no episode rose) fails its check.
-    """
-    best = min(pids, key=lambda k: error_sum(pids[k]))
-    ref = pids[best]
-    pol_sum, ref_sum = error_sum(policy), error_sum(ref)
-    rise = {a: [policy.stat("rise_ms", a).mean, ref.stat("rise_ms", a).mean] for a in AXES}
-    peak = {a: [policy.stat("peak_pct", a).mean, ref.stat("peak_pct", a).mean] for a in AXES}
-    success = {a: policy.stat("success_pct", a).mean for a in AXES}
-    # smoothness is one figure over the motors, the same on every axis
-    smooth, smooth_pid = policy.stat("smoothness", "roll").mean, ref.stat("smoothness", "roll").mean
-    checks = {
-        "error_ratio": pol_sum / ref_sum <= error_ratio,
-        "rise": all(p <= r for p, r in rise.values()),
-        "peak": all(p <= r + peak_margin for p, r in peak.values()),
-        "success": all(success[a] >= min_success for a in AXES),
-        "smoothness": smooth <= smoothness_ratio * smooth_pid,
-    }
-    return {"best_pid": best, "policy_error_sum": pol_sum, "pid_error_sum": ref_sum,
-            "error_ratio": pol_sum / ref_sum, "error_ratio_bar": error_ratio,
-            "success_pct": success, "success_bar": min_success,
-            "rise_ms_policy_vs_pid": rise, "peak_pct_policy_vs_pid": peak, "peak_margin": peak_margin,
-            "smoothness": smooth, "pid_smoothness": smooth_pid, "smoothness_ratio": smooth / smooth_pid,
-            "smoothness_bar": smoothness_ratio,
-            "checks": checks, "meets_bar": all(checks.values())}
-
-
 def selection_key(verdict: dict, select: str = "bar") -> tuple[int, float]:
     """Rank of an evaluation for the exported checkpoint (`--export best`); lower is better.
 
@@ -185,22 +140,3 @@ def selection_key(verdict: dict, select: str = "bar") -> tuple[int, float]:
     rough = verdict["smoothness_ratio"] / verdict["smoothness_bar"]
     penalty = rough if rough > 1.0 else 1.0  # NaN smoothness: no penalty rather than an unrankable key
     return 1, verdict["error_ratio"] * penalty
-
-
-def format_verdict(verdict: dict) -> str:
-    """The verdict on one line: each criterion's figures (roll/pitch/yaw) vs the PID's, and which fail."""
-    def pair(key: str, fmt: str) -> str:
-        pol, ref = zip(*verdict[key].values(), strict=True)
-        return f"{'/'.join(f'{x:{fmt}}' for x in pol)} vs {'/'.join(f'{x:{fmt}}' for x in ref)}"
-
-    v = verdict
-    failed = [k for k, ok in v["checks"].items() if not ok]
-    success = "/".join(f"{x:.1f}" for x in v["success_pct"].values())
-    return (f"error {v['policy_error_sum']:.1f} vs {v['best_pid']} {v['pid_error_sum']:.1f} "
-            f"(×{v['error_ratio']:.3f} ≤ {v['error_ratio_bar']}), "
-            f"rise ms {pair('rise_ms_policy_vs_pid', '.0f')}, "
-            f"peak % {pair('peak_pct_policy_vs_pid', '.1f')} (+{v['peak_margin']:g}), "
-            f"success % {success} (≥ {v['success_bar']}), "
-            f"smoothness {v['smoothness']:.2f} vs {v['pid_smoothness']:.2f} "
-            f"(×{v['smoothness_ratio']:.2f} ≤ {v['smoothness_bar']}) "
-            f"→ {'MET' if v['meets_bar'] else 'not met: ' + ', '.join(failed)}")

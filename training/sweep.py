@@ -163,7 +163,7 @@ def _race_reporting_to_tune(cfg: TrainConfig):
 
 def trial_metrics(history: list[dict[str, Any]], best_path: Path | None) -> dict[str, Any]:
     """What a trial reports: the last evaluation, and the best so far: the one the race
-    exports (`quick_eval.selection_key`: meeting issue 10's bar first, then the Error ratio
+    exports (`quick_eval.selection_key`: meeting the deployable bar first, then the Error ratio
     with a penalty for roughness beyond it), so a row's figures are its exported policy's."""
     best = min(history, key=lambda h: tuple(h["selection_key"]))
     return {"error_ratio": history[-1]["error_ratio"], METRIC: best["error_ratio"],
@@ -318,7 +318,7 @@ def write_tables(rows: list[dict[str, Any]], out: Path, perturbed: bool = False)
         writer.writerow(columns)
         writer.writerows([[_cell(k, row[k]) for k in columns] for row in rows])
     head = ("trial", "seed", "settings", "status", "best Error ratio vs PID", "at step",
-            "Success % r/p/y", "smoothness µs/step", "meets issue 10's bar", "steps", "wall s")
+            "Success % r/p/y", "smoothness µs/step", "meets the deployable bar", "steps", "wall s")
     if perturbed:
         head += ("perturbed Error ratio vs PID", "perturbed Success % r/p/y", "meets the perturbed lines")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]

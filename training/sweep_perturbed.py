@@ -3,7 +3,7 @@
 The same flight as `fcemu eval --controller P --episodes E --seed 7 --perturb N
 --perturb-seed S` (the bar's commands, airframes from the training ranges on a stream
 training never draws from), pooled over the airframes; the PID is flown once, after the
-trials, and each trial's row says whether it meets issue 10's perturbed lines.
+trials, and each trial's row says whether it meets the deployable bar's perturbed lines.
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from __future__ import annotations
 import sys
 from typing import Any
 
+from fcemu.evaluation.bar import error_sum, meets_perturbed
 from fcemu.training.config import TrainConfig
-from fcemu.training.quick_eval import PERTURBED_SUCCESS_BAR_PCT, error_sum
 
-BAR_COMMAND_SEED = 7  # issue 10's bar is flown on the commands of `fcemu eval --seed 7`
+BAR_COMMAND_SEED = 7  # the deployable bar is flown on the commands of `fcemu eval --seed 7`
 
 
 def perturb_from_args(args, cfg: TrainConfig) -> dict[str, Any]:
@@ -58,12 +58,12 @@ def fly_summary(controller: str, perturb: dict[str, Any], progress: bool = False
 
 def judge(rows: list[dict[str, Any]], perturb: dict[str, Any]) -> dict[str, Any]:
     """The PID flown once on the trials' perturbed airframes; each trial judged against it by
-    issue 10's perturbed lines (Error ≤ the PID's, Success ≥ 99 % on every axis)."""
+    the deployable bar's perturbed lines (`fcemu.evaluation.bar`)."""
     pid = fly_summary("pid", perturb, progress=True)
     for row in rows:
         p = row["perturbed"]
         row["perturbed_error_ratio"] = None if p is None else p["error"] / pid["error"]
         row["perturbed_success_pct"] = None if p is None else p["success_pct"]
-        row["meets_perturbed"] = None if p is None else bool(
-            p["error"] <= pid["error"] and min(p["success_pct"]) >= PERTURBED_SUCCESS_BAR_PCT)
+        row["meets_perturbed"] = None if p is None else meets_perturbed(p["error"], p["success_pct"],
+                                                                        pid["error"])
     return pid

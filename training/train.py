@@ -25,6 +25,7 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList, Check
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
 from fcemu import __version__
+from fcemu.evaluation import bar
 from fcemu.evaluation.metrics import compute_metrics
 from fcemu.training import quick_eval
 from fcemu.training.config import ALGOS, TrainConfig, parse_hp
@@ -94,7 +95,7 @@ class PidRaceCallback(BaseCallback):
 
     Both fly `cfg.airframe` as it is (no randomisation: the race is on the nominal
     airframe). Records each evaluation (steps, wall time, the bar's verdict,
-    `quick_eval.bar_verdict`) and saves the best policy so far as a checkpoint, `best`
+    `bar.bar_verdict`) and saves the best policy so far as a checkpoint, `best`
     holding its path: best by `quick_eval.selection_key` with `cfg.select` (by default one
     meeting the bar beats one that does not, then the lowest Error, rough outputs
     penalised; or the lowest Error). With `stop_at_bar`, ends
@@ -151,12 +152,12 @@ class PidRaceCallback(BaseCallback):
         vecnorm = self.model.get_vec_normalize_env()
         traces = self.evaluator.traces(quick_eval.sb3_actor(self.model, vecnorm))
         metrics = compute_metrics(traces)
-        verdict = quick_eval.bar_verdict(metrics, self.pids)
+        verdict = bar.bar_verdict(metrics, self.pids)
         verdict.update(steps=self.num_timesteps, wall_s=time.perf_counter() - self._t0,
                        selection_key=list(quick_eval.selection_key(verdict, self.cfg.select)))
         self.history.append(verdict)
         print(f"[eval] {self.num_timesteps} steps {verdict['wall_s']:.0f} s: "
-              f"{quick_eval.format_verdict(verdict)}", file=sys.stderr)
+              f"{bar.format_verdict(verdict)}", file=sys.stderr)
         return verdict
 
 
@@ -288,7 +289,7 @@ def evaluate_run(out: Path, cfg: TrainConfig, specs: tuple[str, ...] = ("pid", "
         traces = run_controller(spec, ecfg, progress=cfg.progress)
         metrics[spec] = compute_metrics(traces)
         results.append(ControllerResult(spec, metrics[spec], traces))
-    verdict = quick_eval.bar_verdict(metrics[policy], {s: metrics[s] for s in specs})
+    verdict = bar.bar_verdict(metrics[policy], {s: metrics[s] for s in specs})
     payload = {"seed": ecfg.seed, "episodes": ecfg.episodes, "task": ecfg.task, "throttle": "hover",
                "results": [result_json(s, ecfg, metrics[s]) for s in metrics], "bar": verdict}
     (out / "eval.json").write_text(json.dumps(payload, indent=2, default=float) + "\n")
@@ -313,8 +314,8 @@ def print_summary(summary: dict[str, Any]) -> None:
         total = sum(m["error"][a][0] for a in AXES)
         print(f"  {r['controller']:>28}  error {cells['error']} (sum {total:.1f})  rise ms {cells['rise_ms']}"
               f"  peak % {cells['peak_pct']}  success % {cells['success_pct']}")
-    bar = summary["eval"]["bar"]
-    print(f"  bar: {quick_eval.format_verdict(bar)}")
+    verdict = summary["eval"]["bar"]
+    print(f"  bar: {bar.format_verdict(verdict)}")
 
 
 # ── 8. Command line ───────────────────────────────────────────────────────────────────

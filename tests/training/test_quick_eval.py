@@ -1,4 +1,4 @@
-"""The in-training verdict: issue 10's criteria against the best PID, and the checkpoint ranking."""
+"""The in-training verdict: the deployable bar against the best PID, and the checkpoint ranking."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import math
 
 import pytest
 
+from fcemu.evaluation import bar
 from fcemu.evaluation.metrics import compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.training import quick_eval
@@ -18,9 +19,9 @@ def pids():
 
 
 def test_the_verdict_checks_every_criterion_against_the_best_pid(pids):
-    best = min(pids, key=lambda k: quick_eval.error_sum(pids[k]))
+    best = min(pids, key=lambda k: bar.error_sum(pids[k]))
     other = next(k for k in pids if k != best)
-    v = quick_eval.bar_verdict(pids[other], pids)
+    v = bar.bar_verdict(pids[other], pids)
     assert v["best_pid"] == best and v["error_ratio"] > 1.0 and not v["meets_bar"]
     assert set(v["checks"]) == {"error_ratio", "rise", "peak", "success", "smoothness"}
     ref = pids[best]
@@ -28,12 +29,12 @@ def test_the_verdict_checks_every_criterion_against_the_best_pid(pids):
     peaks = v["peak_pct_policy_vs_pid"]
     assert v["checks"]["peak"] == all(p <= r + 3.0 for p, r in peaks.values())
     assert v["checks"]["success"] == all(x >= 99.8 for x in v["success_pct"].values())
-    line = quick_eval.format_verdict(v)
+    line = bar.format_verdict(v)
     for word in ("error", "rise ms", "peak %", "success %", "smoothness", "not met: error_ratio"):
         assert word in line
     # against itself with the bars opened: every criterion holds
-    same = quick_eval.bar_verdict(ref, {best: ref}, error_ratio=1.0, min_success=0.0)
-    assert same["meets_bar"] and quick_eval.format_verdict(same).endswith("→ MET")
+    same = bar.bar_verdict(ref, {best: ref}, error_ratio=1.0, min_success=0.0)
+    assert same["meets_bar"] and bar.format_verdict(same).endswith("→ MET")
 
 
 def _verdict(ratio: float, smooth_ratio: float, meets: bool) -> dict:

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fcemu.evaluation import bar
 from fcemu.evaluation.metrics import AXES, compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.neural import NeuralRateController
@@ -49,9 +50,9 @@ def test_final_evaluation_flies_the_export_and_the_pids_on_the_same_commands(run
     payload = json.loads((out / "eval.json").read_text())
     assert [r["controller"] for r in payload["results"]] == ["pid", "pid:paper", str(out / "policy.onnx")]
     assert all(r["episodes"] == 3 and r["seed"] == payload["seed"] for r in payload["results"])
-    bar = payload["bar"]
-    assert bar["best_pid"] in ("pid", "pid:paper") and bar["meets_bar"] is False
-    assert bar["error_ratio"] == pytest.approx(bar["policy_error_sum"] / bar["pid_error_sum"])
+    verdict = payload["bar"]
+    assert verdict["best_pid"] in ("pid", "pid:paper") and verdict["meets_bar"] is False
+    assert verdict["error_ratio"] == pytest.approx(verdict["policy_error_sum"] / verdict["pid_error_sum"])
 
 
 def test_in_training_evaluation_exports_its_best_checkpoint(run):
@@ -112,11 +113,11 @@ def test_bar_verdict_names_each_criterion(run):
     out, _ = run
     traces = run_controller(str(out / "policy.onnx"), EvalConfig(episodes=4, seed=2), progress=False)
     pid = run_controller("pid", EvalConfig(episodes=4, seed=2), progress=False)
-    verdict = quick_eval.bar_verdict(compute_metrics(traces), {"pid": compute_metrics(pid)})
+    verdict = bar.bar_verdict(compute_metrics(traces), {"pid": compute_metrics(pid)})
     assert set(verdict["checks"]) == {"error_ratio", "rise", "peak", "success", "smoothness"}
     assert verdict["meets_bar"] is False  # 4096 steps of training do not beat a PID
     assert verdict["error_ratio"] > 1.0
-    same = quick_eval.bar_verdict(compute_metrics(pid), {"pid": compute_metrics(pid)})
+    same = bar.bar_verdict(compute_metrics(pid), {"pid": compute_metrics(pid)})
     assert same["error_ratio"] == 1.0 and not same["checks"]["error_ratio"] and same["checks"]["rise"]
     assert same["checks"]["peak"] and same["checks"]["smoothness"] and same["smoothness_ratio"] == 1.0
 
@@ -178,7 +179,7 @@ def test_the_race_flies_the_training_airframe():
     assert race.evaluator.env.config.base_airframe.name == "iris_realistic"
     assert race.evaluator.env.config.randomize is None
     nominal = quick_eval.pid_references(("pid",), 2, 1)["pid"]
-    assert quick_eval.error_sum(race.pids["pid"]) != quick_eval.error_sum(nominal)
+    assert bar.error_sum(race.pids["pid"]) != bar.error_sum(nominal)
 
 
 def test_the_batched_evaluator_observes_with_the_trained_leaks():

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from stable_baselines3.common.vec_env import VecNormalize
 
+from fcemu.evaluation import bar
 from fcemu.evaluation.metrics import compute_metrics
 from fcemu.firmware.controllers import load_controller
 from fcemu.training import quick_eval
@@ -27,8 +28,8 @@ def _teacher_flight(n: int, seed: int):
 
 def test_the_teacher_on_the_batched_twin_flies_as_the_firmware_pid():
     n, seed = 6, 1
-    teacher = quick_eval.error_sum(_teacher_flight(n, seed))
-    firmware = quick_eval.error_sum(quick_eval.pid_references(("pid",), n, seed)["pid"])
+    teacher = bar.error_sum(_teacher_flight(n, seed))
+    firmware = bar.error_sum(quick_eval.pid_references(("pid",), n, seed)["pid"])
     assert teacher == pytest.approx(firmware, rel=0.02)  # a sign or axis mix-up is many times off
 
 
@@ -39,10 +40,10 @@ def test_warm_start_fits_the_network_to_fly_near_the_pid(tmp_path: Path, squash:
     venv = VecNormalize(make_vec_env(cfg), norm_obs=True, norm_reward=True, clip_obs=10.0, gamma=0.99)
     model = make_model(cfg, venv, tmp_path / "tb")
     ev = quick_eval.BatchedEvaluator(8, 1)
-    pid = quick_eval.error_sum(quick_eval.pid_references(("pid",), 8, 1)["pid"])
+    pid = bar.error_sum(quick_eval.pid_references(("pid",), 8, 1)["pid"])
 
     def ratio() -> float:
-        return quick_eval.error_sum(compute_metrics(ev.traces(quick_eval.sb3_actor(model, venv)))) / pid
+        return bar.error_sum(compute_metrics(ev.traces(quick_eval.sb3_actor(model, venv)))) / pid
 
     untrained = ratio()
     out = WarmStart(rounds=2, steps_per_round=1200).run(model, venv)
