@@ -46,9 +46,9 @@ def _check_speed(text: str) -> None:
 
 
 def _check_peer(text: str) -> None:
-    from fcemu.firmware.mavlink.bridge import parse_peer
+    from fcemu.sitl.sitl_args import checked_peer
 
-    parse_peer(text, "peer")
+    checked_peer(text, "peer")
 
 
 loop_rate = _number(float, lambda rate: math.isfinite(rate) and 0 < rate <= 100_000 and not 1e6 % rate,

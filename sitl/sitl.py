@@ -239,13 +239,19 @@ def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float |
 
 
 def mavlink_config_from_args(args):
-    from fcemu.firmware.mavlink.bridge import MavlinkConfig, parse_peer
+    """The MAVLink process's config; its peers, key and files checked (sitl_args) before anything starts."""
+    from fcemu.firmware.mavlink.bridge import MavlinkConfig
+    from fcemu.sitl.sitl_args import check_mavlink_files, check_signed_peers, checked_peer
 
     instance = getattr(args, "instance", 0)
-    peers = [parse_peer(args.gcs or f"127.0.0.1:{GCS_PORT}", "gcs"),
-             parse_peer(args.offboard or f"127.0.0.1:{OFFBOARD_PORT + instance}", "offboard")]
-    peers += [parse_peer(p, f"peer{i}") for i, p in enumerate(args.peer or [])]
+    options = [("--gcs", args.gcs or f"127.0.0.1:{GCS_PORT}"),
+               ("--offboard", args.offboard or f"127.0.0.1:{OFFBOARD_PORT + instance}")]
+    options += [("--peer", spec) for spec in args.peer or []]
+    names = ["gcs", "offboard"] + [f"peer{i}" for i in range(len(options) - 2)]
+    peers = [checked_peer(spec, name) for (_, spec), name in zip(options, names, strict=True)]
+    check_signed_peers(options, peers, args.signing_key)
     params_file = args.params if args.params is not None else str(default_params_file(instance))
+    check_mavlink_files(args, params_file or None)
     return MavlinkConfig(peers=peers, sysid=args.sysid or 1 + instance, tlog=args.tlog,
                          signing_key=args.signing_key, params_file=params_file or None)
 

@@ -17,6 +17,7 @@ import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -194,20 +195,49 @@ class LinkedVehicle:
             pass
 
 
+def open_for_mavlink(config: MavlinkConfig) -> dict[str, int]:
+    """The MAVLink process's files, opened here so that a bad one fails in the caller, before that
+    process starts: the tlog (created, emptied) and the signing key (its bytes through a pipe, not argv)."""
+    files: dict[str, int] = {}
+    try:
+        if config.tlog:
+            Path(config.tlog).parent.mkdir(parents=True, exist_ok=True)
+            files["tlog"] = os.open(config.tlog, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o644)
+        if config.signing_key:
+            from fcemu.firmware.mavlink.endpoint import load_signing_key
+
+            key = load_signing_key(config.signing_key)
+            read_end, write_end = os.pipe()
+            os.write(write_end, key)
+            os.close(write_end)
+            files["signing_key"] = read_end
+    except BaseException:
+        for fd in files.values():
+            os.close(fd)
+        raise
+    return files
+
+
 def start_mavlink(config: MavlinkConfig, params: dict[str, float]
                   ) -> tuple[subprocess.Popen, socket.socket, ipc.SnapshotSlot, dict[str, int]]:
     """Start the MAVLink process; returns it, the flight side of the socket pair, the telemetry
     slot and the process's local UDP port per peer."""
+    files = open_for_mavlink(config)
     ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     slot = ipc.SnapshotSlot()
     for s in (ours, theirs):
         s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 20)
         s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-    spec = json.dumps({"config": asdict(config), "params": params, "fd": theirs.fileno(), "slot": slot.fd})
+    spec = json.dumps({"config": {**asdict(config), **files}, "params": params, "fd": theirs.fileno(),
+                       "slot": slot.fd})
     env = dict(os.environ)
-    proc = subprocess.Popen([sys.executable, "-m", "fcemu.firmware.mavlink.process", spec],
-                            pass_fds=(theirs.fileno(), slot.fd), env=env)
-    theirs.close()
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "fcemu.firmware.mavlink.process", spec],
+                                pass_fds=(theirs.fileno(), slot.fd, *files.values()), env=env)
+    finally:
+        theirs.close()
+        for fd in files.values():
+            os.close(fd)
     # Wait until it is up (pymavlink imported, sockets bound) so its start-up does not land in the loop.
     ours.settimeout(READY_TIMEOUT_S)
     try:

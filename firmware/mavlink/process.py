@@ -69,6 +69,14 @@ def open_links(peers: list[dict], sysid: int, signing: SigningState | None, tlog
             for i, p in enumerate(peers)]
 
 
+def read_signing_key(source: str | int) -> bytes:
+    """From the pipe the flight process wrote it to (bridge.open_for_mavlink), or from its file."""
+    if isinstance(source, int):
+        with os.fdopen(source, "rb") as pipe:
+            return pipe.read()
+    return load_signing_key(source)
+
+
 class Station:
     def __init__(self, config: dict, params: dict, ipc_sock: socket.socket, slot: ipc.SnapshotSlot) -> None:
         self.slot = slot
@@ -80,8 +88,9 @@ class Station:
         for name, value in params.items():
             self.params.set(name, value)
         self.ipc = ipc_sock
-        self.tlog = TlogWriter(config["tlog"]) if config.get("tlog") else None
-        key = load_signing_key(config["signing_key"]) if config.get("signing_key") else None
+        tlog, key_source = config.get("tlog"), config.get("signing_key")
+        self.tlog = TlogWriter(tlog) if tlog not in (None, "") else None
+        key = read_signing_key(key_source) if key_source not in (None, "") else None
         self.signing = SigningState(key) if key is not None else None  # one per vehicle, every link
         self.endpoints = open_links(config["peers"], self.sysid, self.signing, self.tlog, self.has_position)
         self.snap = idle_snapshot()

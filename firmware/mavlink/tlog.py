@@ -11,8 +11,10 @@ _STAMP = struct.Struct(">Q")
 
 
 class TlogWriter:
-    def __init__(self, path: str | Path) -> None:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
+    def __init__(self, path: str | Path | int) -> None:
+        """`path`: a file to create, or the descriptor of one opened for writing."""
+        if not isinstance(path, int):
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
         self._f = open(path, "wb", buffering=1 << 16)
         self.frames = 0
 
