@@ -5,7 +5,9 @@ The vehicle's firmware runs the rate loop; this script is the outer loop a compa
 computer would be: attitude from ATTITUDE, position and altitude from LOCAL_POSITION_NED,
 and back SET_ATTITUDE_TARGET with type_mask 128 (ignore attitude: body rates in rad/s,
 FRD, and thrust 0..1) in PX4 OFFBOARD mode. It runs on the vehicle's clock (time_boot_ms),
-so it flies the same whether the SITL runs in real time or N× faster.
+so it flies the same whether the SITL runs in real time or N× faster. After touchdown it
+idles the motors and disarms only once the vehicle reports itself landed (EXTENDED_SYS_STATE
+landed_state ON_GROUND): PX4 refuses a disarm before that.
 
     fcemu sitl --controller pid            # in one terminal
     python -m fcemu.sitl.demo_flight             # in another (examples/pymavlink_flip.py in a checkout)
@@ -30,6 +32,7 @@ G = 9.81
 HOVER = 0.745  # Iris hover throttle; the altitude loop's integrator trims the rest
 IGNORE_ATTITUDE = 128
 FLIP_RATE = 10.0  # rad/s
+TOUCHDOWN_TIMEOUT_S = 10.0  # of vehicle time, for the vehicle to report ON_GROUND
 
 
 class OuterLoop:
@@ -66,6 +69,8 @@ def fly(conn, altitude: float, timeout: float, log: list) -> dict:
                                M.MAVLINK_MSG_ID_ATTITUDE, 10_000, 0, 0, 0, 0, 0)
     conn.mav.command_long_send(conn.target_system, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
                                M.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 10_000, 0, 0, 0, 0, 0)
+    conn.mav.command_long_send(conn.target_system, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                               M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 100_000, 0, 0, 0, 0, 0)
     outer = OuterLoop()
     pos = conn.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=10)
     if pos is None:
@@ -77,10 +82,12 @@ def fly(conn, altitude: float, timeout: float, log: list) -> dict:
 
     phase, t_phase, t_prev, att, disarm_sent = "offboard", None, None, None, None
     flip_angle, max_alt, flip_time, events = 0.0, 0.0, None, []
+    landed: int | None = None  # EXTENDED_SYS_STATE.landed_state, since touchdown
+    was_flying = False  # a HEARTBEAT has said armed in OFFBOARD
     wall_deadline = time.monotonic() + timeout
     while time.monotonic() < wall_deadline:
         msg = conn.recv_match(type=["ATTITUDE", "LOCAL_POSITION_NED", "HEARTBEAT", "STATUSTEXT",
-                                    "COMMAND_ACK"], blocking=True, timeout=1.0)
+                                    "COMMAND_ACK", "EXTENDED_SYS_STATE"], blocking=True, timeout=1.0)
         if msg is None:
             continue
         kind = msg.get_type()
@@ -90,12 +97,23 @@ def fly(conn, altitude: float, timeout: float, log: list) -> dict:
         if kind == "STATUSTEXT":
             events.append(msg.text)
             continue
+        if kind == "EXTENDED_SYS_STATE":
+            landed = msg.landed_state if phase == "touchdown" else None
+            continue
         if kind in ("HEARTBEAT", "COMMAND_ACK"):
             disarmed = (not msg.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED if kind == "HEARTBEAT" else
                         msg.command == M.MAV_CMD_COMPONENT_ARM_DISARM and msg.result == M.MAV_RESULT_ACCEPTED)
             if phase == "touchdown" and disarmed:
                 phase = "done"
                 break
+            if kind == "HEARTBEAT":
+                mode = mavutil.interpret_px4_mode(msg.base_mode, msg.custom_mode)
+                if mode == "OFFBOARD" and not disarmed:
+                    was_flying = True
+                elif was_flying and phase != "touchdown":  # a failsafe took over: it is not ours to fly
+                    state = "disarmed" if disarmed else "armed"
+                    events.append(f"the vehicle left OFFBOARD ({mode}, {state})")
+                    break
             continue
         att = msg
         t = att.time_boot_ms / 1000.0
@@ -145,9 +163,12 @@ def fly(conn, altitude: float, timeout: float, log: list) -> dict:
             rates = outer.rates(att, pos, tilt_limit=0.2 if alt > 0.5 else 0.05)
             thrust = outer.thrust(att, pos, z_sp, speed, dt)
             if alt < 0.2 and elapsed > 1.0:  # within 10 cm of resting height: a bounce would only climb
-                phase, t_phase, disarm_sent = "touchdown", t, None
-        elif phase == "touchdown":  # latched: motors to idle and disarm, asked again until it is done
-            if disarm_sent is None or t - disarm_sent > 0.5:
+                phase, t_phase, disarm_sent, landed = "touchdown", t, None, None
+        elif phase == "touchdown":  # latched: motors to idle; disarm once the vehicle says it has landed
+            if elapsed > TOUCHDOWN_TIMEOUT_S:
+                events.append(f"not landed {TOUCHDOWN_TIMEOUT_S:g} s after touchdown (landed_state {landed})")
+                break
+            if landed == M.MAV_LANDED_STATE_ON_GROUND and (disarm_sent is None or t - disarm_sent > 1.0):
                 conn.mav.command_long_send(conn.target_system, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0,
                                            0, 0, 0, 0, 0, 0, 0)
                 disarm_sent = t
