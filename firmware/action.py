@@ -21,6 +21,7 @@ from typing import TypeVar
 import numpy as np
 
 ACTION_MAPPINGS = ("gymfc", "throttle")
+DEFAULT_ACTION_MAPPING = "throttle"  # what `fcemu train`, RateControlEnv and the shipped policies use
 PWM_MIN, PWM_SPAN = 1000.0, 1000.0
 DIFFERENTIAL_GAIN = 0.5
 

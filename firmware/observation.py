@@ -11,8 +11,8 @@ limit cycles a fast policy can fall into on a slow airframe (17–60 Hz): a 16 m
 sees less than a period, and the integral averages an oscillation to zero. (Trained with
 it, a policy softens its steps instead: docs/training_notes.md, 2026-11-24, an oscillation
 feature.) Optional field `motor_output` (4): the motor outputs u = (PWM − 1000) / 1000 the
-controller commanded on the previous tick. A penalty on |Δu| in the reward depends on them, and the rotor speeds
-show them only through the motors' lag; at a start there is no previous tick, and u is
+controller commanded on the previous tick. A penalty on |Δu| in the reward depends on them,
+and the rotor speeds show them only through the motors' lag; at a start there is no previous tick, and u is
 taken as the steady-state command of the rotors' speeds, clip(ω · rotor_speed_scale, 0, 1)
 (exact for the Iris, whose speed is linear in u up to 1100 rad/s). The spec
 travels in the model's metadata and the firmware refuses a model whose spec differs.

@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from fcemu.firmware.action import ACTION_MAPPINGS, action_to_pwm, motor_output
+from fcemu.firmware.action import ACTION_MAPPINGS, DEFAULT_ACTION_MAPPING, action_to_pwm, motor_output
 from fcemu.firmware.observation import (
     DEFAULT_LEAK,
     DEFAULT_RMS_LEAK,
@@ -65,7 +65,7 @@ class EnvConfig:
 
     task: str = "episodic"
     memory: int = 1
-    action_mapping: str = "gymfc"
+    action_mapping: str = DEFAULT_ACTION_MAPPING
     throttle: float | tuple[float, float] | None = None  # None: the airframe's hover throttle
     episode_s: float | None = None  # None: 1 s episodic, 10 s continuous
     noise: SensorNoise | None = None
@@ -263,7 +263,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
-    def __init__(self, task: str = "episodic", memory: int = 1, action_mapping: str = "gymfc",
+    def __init__(self, task: str = "episodic", memory: int = 1, action_mapping: str = DEFAULT_ACTION_MAPPING,
                  throttle: float | tuple[float, float] | None = None, episode_s: float | None = None,
                  noise: SensorNoise | None = None,
                  randomize: Mapping[str, float] | Randomization | str | Path | None = None,

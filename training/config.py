@@ -19,6 +19,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any
 
+from fcemu.firmware.action import ACTION_MAPPINGS, DEFAULT_ACTION_MAPPING
 from fcemu.firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK
 from fcemu.firmware.timing import available_cpus
 from fcemu.sim_bridge.reward import REWARDS
@@ -98,8 +99,8 @@ class TrainConfig:
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")
     envs: int | None = option(None, "parallel twins (default: per algorithm)")
-    action_mapping: str = option("throttle", "how the 4 actions become motor commands",
-                                 choices=("gymfc", "throttle"))
+    action_mapping: str = option(DEFAULT_ACTION_MAPPING, "how the 4 actions become motor commands",
+                                 choices=ACTION_MAPPINGS)
     throttle: float | tuple[float, float] | None = option(
         (0.5, 0.9), "collective for the throttle mapping: one value, or LO HI drawn per episode",
         nargs="+", metavar="T")

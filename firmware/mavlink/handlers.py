@@ -32,10 +32,9 @@ from fcemu.firmware.mavlink.outputs import (
 )
 from fcemu.firmware.mavlink.services import NoFilesNoMissions, ParameterProtocol
 from fcemu.firmware.params import ParamTable
-from fcemu.firmware.vehicle import FORCE_ARM_MAGIC, LAND
+from fcemu.firmware.vehicle import FORCE_ARM_MAGIC, LAND, SETPOINT_RATE_MAX
 
 M = mavlink
-MAX_RATE = 35.0  # rad/s (2000 deg/s, Betaflight's ceiling)
 IGNORE_ATTITUDE = 128
 IGNORE_THRUST = 64
 RC_IGNORE = (0, 65535)
@@ -95,7 +94,8 @@ class Handlers(Checks):
         rates = tuple(0.0 if mask & bit else v for bit, v in
                       ((1, msg.body_roll_rate), (2, msg.body_pitch_rate), (4, msg.body_yaw_rate)))
         thrust = self._thrust if mask & IGNORE_THRUST else msg.thrust
-        if not finite(*rates, thrust) or max(abs(r) for r in rates) > MAX_RATE or not 0.0 <= thrust <= 1.0:
+        too_fast = max(abs(r) for r in rates) > SETPOINT_RATE_MAX
+        if not finite(*rates, thrust) or too_fast or not 0.0 <= thrust <= 1.0:
             return self._reject()
         self._thrust = thrust
         return [ipc.Setpoint(rates, float(thrust))]

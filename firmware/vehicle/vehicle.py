@@ -56,7 +56,7 @@ from fcemu.firmware.vehicle.modes import (
 )
 
 ARM_THROTTLE_MAX = 0.1
-SETPOINT_RATE_MAX = 50.0  # rad/s
+SETPOINT_RATE_MAX = 35.0  # rad/s (2000 deg/s, Betaflight's ceiling): the one limit on a rate setpoint
 
 
 class Vehicle:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from fcemu.firmware.action import action_to_pwm
+from fcemu.firmware.action import DEFAULT_ACTION_MAPPING, action_to_pwm
 from fcemu.firmware.observation import observe_step
 from fcemu.sim_bridge.env import RateControlEnv
 from fcemu.sim_bridge.tasks import OMEGA_MAX, episodic_commands
@@ -45,8 +45,12 @@ def test_registered_ids():
         env.step(env.action_space.sample())
 
 
+def test_the_env_maps_actions_as_training_does_by_default():
+    assert RateControlEnv().config.action_mapping == DEFAULT_ACTION_MAPPING == "throttle"
+
+
 def test_reward_formula_on_a_known_state():
-    env = RateControlEnv()
+    env = RateControlEnv(action_mapping="gymfc")  # the paper's mapping: an action is a motor's PWM
     obs, info = env.reset(seed=4)
     sp = info["setpoint"]
     # at rest the gyro reads zero, so the observed error is the command itself

@@ -187,3 +187,9 @@ def test_init_and_warm_start_exclude_each_other():
     with pytest.raises(ValueError, match="--init"):
         TrainConfig(warm_start="pid", init="runs/ppo")
     assert TrainConfig(init="runs/ppo").hyper["target_kl"] == WARM_START_TARGET_KL  # refining, as after one
+
+
+def test_training_maps_actions_as_the_env_does_by_default() -> None:
+    from fcemu.firmware.action import DEFAULT_ACTION_MAPPING
+
+    assert TrainConfig().action_mapping == DEFAULT_ACTION_MAPPING
