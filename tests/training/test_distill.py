@@ -1,0 +1,88 @@
+"""`fcemu distill`: the observation both policies read, and a short run end to end."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+
+from fcemu.export.onnx_export import export_policy
+from fcemu.firmware.neural import NeuralRateController
+from fcemu.firmware.observation import (
+    INTEGRAL,
+    MOTOR_OUTPUT,
+    RMS,
+    ObservationHistory,
+    ObservationSpec,
+    observe_step,
+)
+from fcemu.training.distill import DistillConfig, DistillError, columns, distill, union_spec
+
+TEACHER = Path(__file__).parents[2] / "policies" / "iris_rate_ppo_rms64_mo.onnx"
+
+
+def _history(spec: ObservationSpec, steps: list[tuple[np.ndarray, ...]]) -> np.ndarray:
+    """The firmware's observation after these (setpoint, gyro, rotor, previous u) steps."""
+    history = ObservationHistory(spec)
+    setpoint, gyro, rotor, u = steps[0]
+    history.start(observe_step(spec, setpoint, gyro, rotor, motor_output=u))
+    for setpoint, gyro, rotor, u in steps[1:]:
+        history.record(observe_step(spec, setpoint, gyro, rotor, motor_output=u))
+    return history.observation()
+
+
+@pytest.mark.parametrize("student", [
+    ObservationSpec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL, RMS, MOTOR_OUTPUT)),
+    ObservationSpec(memory=1, fields=("rate_error", "rotor_speed", RMS)),
+    ObservationSpec(memory=5, fields=("rate_error", "rotor_speed", MOTOR_OUTPUT, INTEGRAL)),
+])
+def test_each_policy_reads_from_the_union_what_the_firmware_builds_for_it(student):
+    teacher = ObservationSpec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL, RMS))
+    union = union_spec(teacher, student)
+    rng = np.random.default_rng(0)
+    steps = [(rng.uniform(-5, 5, 3), rng.uniform(-5, 5, 3), rng.uniform(0, 1100, 4), rng.uniform(0, 1, 4))
+             for _ in range(7)]
+    flown = _history(union, steps)
+    for spec in (teacher, student):
+        np.testing.assert_array_equal(flown[columns(spec, union)], _history(spec, steps))
+
+
+def test_a_student_with_other_leaks_than_the_teacher_is_refused():
+    with pytest.raises(DistillError, match="rms_leak"):
+        union_spec(ObservationSpec(fields=("rate_error", "rotor_speed", RMS)),
+                   ObservationSpec(fields=("rate_error", "rotor_speed", RMS), rms_leak=0.9))
+
+
+def test_a_short_distillation_leaves_a_run_that_exports_and_flies(tmp_path):
+    out = tmp_path / "student"
+    summary = distill(DistillConfig(teacher=str(TEACHER), out=str(out), memory=1, net_arch=(16, 16),
+                                    rounds=2, steps=60, envs=4, fit_steps=20, batch_size=256,
+                                    smoothness=0.1, threads=1, progress=False))
+    assert [h["teacher_share"] for h in summary["history"]] == [1.0, 0.5]
+    assert summary["history"][-1]["imitation_mse"] < summary["history"][0]["imitation_mse"] * 2
+    config = json.loads((out / "config.json").read_text())
+    assert config["observation"]["memory"] == 1 and config["trained_steps"] == 2 * 60 * 4
+    assert config["distill"]["teacher"] == str(TEACHER)
+    # the ONNX carries the firmware's contract, and `fcemu export` of the run gives the same graph
+    controller = NeuralRateController(out / "policy.onnx")
+    assert controller.spec.size == 17 and controller.spec.fields[-1] == MOTOR_OUTPUT
+    again = export_policy(out, tmp_path / "again.onnx")
+    assert again["parity_ok"]
+    obs = np.random.default_rng(1).normal(size=(32, 17)).astype(np.float32)
+    a, b = (ort.InferenceSession(str(p)).run(None, {"observation": obs})[0]
+            for p in (out / "policy.onnx", tmp_path / "again.onnx"))
+    np.testing.assert_array_equal(a, b)
+
+
+def test_the_command_refuses_a_teacher_that_is_not_a_policy(tmp_path):
+    bogus = tmp_path / "teacher.onnx"
+    bogus.write_bytes(b"not a model")
+    proc = subprocess.run([sys.executable, "-m", "fcemu", "distill", str(bogus), "--out", str(tmp_path / "o"),
+                           "--no-progress"], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.startswith("fcemu: error: ") and proc.stderr.count("\n") == 1

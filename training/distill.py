@@ -1,0 +1,327 @@
+"""`fcemu distill`: a compact student policy fitted to a teacher policy (.onnx) by DAgger.
+
+The student flies the randomised twins (`sim_bridge.vec_env.BatchedRateEnv`); the teacher,
+in onnxruntime, labels every state the student visits with its own action, from its own
+observation. Both observations come from one firmware observation (`firmware.observation`)
+that holds the fields and the history of both: the environment builds it with the union of
+the two specs, and each policy reads its columns. So the student may observe less, and a
+shorter history, than the teacher, but only what the firmware can compute. Round 0 is flown
+by the teacher; in round r a twin's episode is flown by the teacher with probability β^r,
+else by the student (the DAgger mixture). After each round the student is fitted (Adam, mean
+squared error against the teacher's action clipped to the action range, plus an optional
+penalty on the change of the student's action from one step to the next) on every sample so far.
+
+The run directory is `fcemu train`'s (config.json, model.zip, vecnormalize.pkl, policy.onnx):
+the student is the actor of an SB3 PPO model, so `fcemu export DIR` exports it and
+`fcemu train --init DIR` fine-tunes it (its critic is untrained).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+import torch
+
+from fcemu.firmware.neural import META_PREFIX
+from fcemu.firmware.observation import FIELD_DEFS, FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS, ObservationSpec
+
+OPTIONAL_FIELDS = {INTEGRAL: "integral", RMS: "error_rms", MOTOR_OUTPUT: "motor_output"}
+
+
+class DistillError(ValueError):
+    """A teacher or a student that cannot be distilled, with the reason."""
+
+
+@dataclass
+class DistillConfig:
+    teacher: str
+    out: str = "runs/distill"
+    memory: int = 2  # the student's history length
+    fields: tuple[str, ...] | None = None  # the student's fields (default: the teacher's)
+    net_arch: tuple[int, ...] = (64, 64)
+    rounds: int = 8
+    steps: int = 1000  # per twin and round
+    envs: int = 64
+    beta: float = 0.5  # the teacher flies an episode of round r with probability beta**r
+    fit_steps: int = 1500  # Adam steps after each round (the last round: three times as many)
+    batch_size: int = 4096
+    learning_rate: float = 1e-3
+    smoothness: float = 0.0  # weight of the mean squared change of the student's action per step
+    task: str = "episodic"
+    randomize: str | None = "iris_esc2"
+    randomize_share: float = 0.5
+    seed: int = 0
+    threads: int = 0
+    progress: bool = True
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# ── The teacher and the observation both policies read ─────────────────────────────────
+class Teacher:
+    """An exported policy in onnxruntime, and the contract its metadata carries."""
+
+    def __init__(self, path: str | Path) -> None:
+        try:
+            self.session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own types for a missing or foreign file
+            raise DistillError(f"{path}: cannot load as an ONNX policy ({exc})") from None
+        meta = self.session.get_modelmeta().custom_metadata_map
+        if META_PREFIX + "observation" not in meta:
+            raise DistillError(f"{path}: no fcemu metadata; give a policy made by `fcemu export`")
+        self.spec = ObservationSpec.from_json(meta[META_PREFIX + "observation"])
+        self.action_mapping = meta[META_PREFIX + "action_mapping"]
+        self.throttle = json.loads(meta.get(META_PREFIX + "throttle", "null"))
+        self.input = self.session.get_inputs()[0].name
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return self.session.run(None, {self.input: obs})[0]
+
+
+def union_spec(teacher: ObservationSpec, student: ObservationSpec) -> ObservationSpec:
+    """One observation holding both: the teacher's fields then the student's others, the longer history."""
+    for leak in ("integral_leak", "rms_leak"):
+        if getattr(teacher, leak) != getattr(student, leak):
+            raise DistillError(f"the student's {leak} differs from the teacher's")
+    return ObservationSpec(memory=max(teacher.memory, student.memory), rate_scale=teacher.rate_scale,
+                           rotor_speed_scale=teacher.rotor_speed_scale,
+                           fields=(*teacher.fields, *(f for f in student.fields if f not in teacher.fields)),
+                           integral_leak=teacher.integral_leak, rms_leak=teacher.rms_leak)
+
+
+def columns(spec: ObservationSpec, union: ObservationSpec) -> np.ndarray:
+    """For each column of `spec`'s observation, its column in `union`'s (newest step first)."""
+    offsets, start = {}, 0
+    for name in union.fields:
+        offsets[name] = start
+        start += FIELD_DEFS[name].size
+    return np.array([k * union.step_size + offsets[name] + j for k in range(spec.memory)
+                     for name in spec.fields for j in range(FIELD_DEFS[name].size)])
+
+
+def student_train_config(cfg: DistillConfig, teacher: Teacher):
+    """The student as a `fcemu train` run: its spec, the teacher's action contract, the twins."""
+    from fcemu.training.config import TrainConfig
+
+    fields = tuple(cfg.fields or teacher.spec.fields)
+    if fields[:2] != FIELDS or set(fields[2:]) - set(OPTIONAL_FIELDS):
+        raise DistillError(f"student fields {fields}: rate_error and rotor_speed first, then any of "
+                           f"{tuple(OPTIONAL_FIELDS)}")
+    flags = {flag: name in fields for name, flag in OPTIONAL_FIELDS.items()}
+    leaks = {**({"integral_leak": teacher.spec.integral_leak} if flags["integral"] else {}),
+             **({"rms_leak": teacher.spec.rms_leak} if flags["error_rms"] else {})}
+    throttle = tuple(teacher.throttle) if isinstance(teacher.throttle, list) else teacher.throttle
+    hp = {"policy_kwargs": {"net_arch": {"pi": list(cfg.net_arch), "vf": [64, 64]}, "log_std_init": -3.0}}
+    train_cfg = TrainConfig(algo="ppo", seed=cfg.seed, out=cfg.out, memory=cfg.memory, **flags, **leaks,
+                            envs=1, action_mapping=teacher.action_mapping, throttle=throttle, task=cfg.task,
+                            obs_clip=0.0, hp=hp, threads=cfg.threads, progress=cfg.progress,
+                            randomize=cfg.randomize,
+                            randomize_share=cfg.randomize_share if cfg.randomize else 1.0)
+    from fcemu.training.train import _observation_spec
+
+    spec = _observation_spec(train_cfg)
+    if (spec.rate_scale, spec.rotor_speed_scale) != (teacher.spec.rate_scale, teacher.spec.rotor_speed_scale):
+        raise DistillError("the teacher's observation scales are not the firmware's defaults")
+    return train_cfg, spec
+
+
+# ── The student network ────────────────────────────────────────────────────────────────
+class Student:
+    """The actor of an SB3 PPO model with fixed observation statistics: raw observation → mean action."""
+
+    def __init__(self, model, mean: np.ndarray, var: np.ndarray, eps: float) -> None:
+        self.policy = model.policy
+        self.mean = torch.as_tensor(mean, dtype=torch.float32)
+        self.inv_std = torch.as_tensor(1.0 / np.sqrt(var + eps), dtype=torch.float32)
+        self.params = [*self.policy.mlp_extractor.policy_net.parameters(),
+                       *self.policy.action_net.parameters()]
+
+    def __call__(self, raw: torch.Tensor) -> torch.Tensor:
+        x = (raw - self.mean) * self.inv_std
+        return self.policy.action_net(self.policy.mlp_extractor.forward_actor(x))
+
+    def act(self, raw: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return self(torch.as_tensor(raw)).numpy()
+
+
+@dataclass
+class Dataset:
+    """Every labelled sample so far; `next_row` is the sample one step later on the same twin, or −1."""
+
+    obs: list[np.ndarray] = field(default_factory=list)
+    labels: list[np.ndarray] = field(default_factory=list)
+    next_row: list[np.ndarray] = field(default_factory=list)
+    size: int = 0
+
+    def add(self, obs: np.ndarray, labels: np.ndarray, ended: np.ndarray) -> None:
+        """One round's (steps, twins, ...) arrays; `ended[k]`: the twins whose episode ended at step k."""
+        steps, n = ended.shape
+        rows = self.size + np.arange(steps * n).reshape(steps, n)
+        nxt = np.full((steps, n), -1)
+        nxt[:-1] = np.where(ended[:-1], -1, rows[1:])
+        self.obs.append(obs.reshape(steps * n, -1))
+        self.labels.append(np.clip(labels, -1.0, 1.0).reshape(steps * n, 4))  # past ±1 the mixer clips
+        self.next_row.append(nxt.reshape(-1))
+        self.size += steps * n
+
+    def tensors(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return (torch.as_tensor(np.concatenate(self.obs)), torch.as_tensor(np.concatenate(self.labels)),
+                torch.as_tensor(np.concatenate(self.next_row)))
+
+
+def fit(student: Student, data: Dataset, steps: int, cfg: DistillConfig, gen: torch.Generator) -> dict:
+    """Adam on the imitation error (and the smoothness penalty) over the aggregate; the final losses."""
+    x, y, nxt = data.tensors()
+    opt = torch.optim.Adam(student.params, lr=cfg.learning_rate)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=cfg.learning_rate * 0.05)
+    with_next = torch.nonzero(nxt >= 0).squeeze(1)
+    for _ in range(steps):
+        idx = torch.randint(len(x), (cfg.batch_size,), generator=gen)
+        loss = torch.nn.functional.mse_loss(student(x[idx]), y[idx])
+        if cfg.smoothness:
+            pair = with_next[torch.randint(len(with_next), (cfg.batch_size,), generator=gen)]
+            loss = loss + cfg.smoothness * (student(x[pair]) - student(x[nxt[pair]])).pow(2).sum(1).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+    with torch.no_grad():
+        probe = torch.randint(len(x), (min(len(x), 65536),), generator=gen)
+        mse = float(torch.nn.functional.mse_loss(student(x[probe]), y[probe]))
+    return {"imitation_mse": mse}
+
+
+# ── DAgger ─────────────────────────────────────────────────────────────────────────────
+def fly(env, teacher: Teacher, student: Student | None, cols: tuple[np.ndarray, np.ndarray], steps: int,
+        teacher_share: float, rng: np.random.Generator, obs: np.ndarray, bar) -> tuple:
+    """One round: every twin `steps` steps; the student's observations, the teacher's labels,
+    the episode ends, the tracking error |Ω* − Ω| of the student's episodes, the next observation."""
+    t_cols, s_cols = cols
+    n = env.num_envs
+    by_teacher = np.ones(n, dtype=bool) if student is None else rng.random(n) < teacher_share
+    s_obs = np.empty((steps, n, len(s_cols)), dtype=np.float32)
+    labels = np.empty((steps, n, 4), dtype=np.float32)
+    ended = np.empty((steps, n), dtype=bool)
+    errors: list[float] = []
+    for k in range(steps):
+        s_obs[k] = obs[:, s_cols]
+        labels[k] = teacher.act(np.ascontiguousarray(obs[:, t_cols]))
+        action = labels[k] if student is None else np.where(by_teacher[:, None], labels[k],
+                                                              student.act(s_obs[k]))
+        obs, _, _, truncated, info = env.step(np.clip(action, -1.0, 1.0).astype(np.float32))
+        if not by_teacher.all():
+            errors.append(float(np.abs(info["setpoint"] - info["rate"])[~by_teacher].sum(1).mean()))
+        ended[k] = truncated
+        if truncated.any() and student is not None:
+            by_teacher[truncated] = rng.random(int(truncated.sum())) < teacher_share
+        if bar is not None and k % 50 == 49:
+            bar.update(50)
+    return s_obs, labels, ended, (float(np.mean(errors)) if errors else None), obs
+
+
+def distill(cfg: DistillConfig) -> dict[str, Any]:
+    """DAgger rounds, the fit, the run directory and its exported policy.onnx; the summary."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from fcemu.export.onnx_export import export_policy
+    from fcemu.sim_bridge.vec_env import BatchedRateEnv
+    from fcemu.training.train import make_model, make_vec_env, run_config
+
+    if cfg.memory < 1 or cfg.rounds < 1 or cfg.steps < 1 or cfg.envs < 1 or not 0.0 <= cfg.beta <= 1.0:
+        raise DistillError("--memory, --rounds, --steps and --envs must be >= 1 and --beta in [0, 1]")
+    teacher = Teacher(cfg.teacher)
+    train_cfg, spec = student_train_config(cfg, teacher)
+    torch.set_num_threads(train_cfg.threads)
+    torch.manual_seed(cfg.seed)
+    union = union_spec(teacher.spec, spec)
+    cols = (columns(teacher.spec, union), columns(spec, union))
+    env_kwargs = {**train_cfg.env_kwargs(), "memory": union.memory, "obs_fields": union.fields,
+                  "integral_leak": union.integral_leak, "rms_leak": union.rms_leak}
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    config = run_config(train_cfg)
+    config["distill"] = {**asdict(cfg), "teacher": str(cfg.teacher)}
+    (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
+
+    venv = VecNormalize(make_vec_env(train_cfg), norm_obs=True, norm_reward=False, clip_obs=np.inf)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # PPO's batch size against one twin's rollout: never rolled out
+        model = make_model(train_cfg, venv, out / "tb")
+    env = BatchedRateEnv(cfg.envs, **env_kwargs)
+    rng = np.random.default_rng(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    data, student, history = Dataset(), None, []
+    obs, _ = env.reset(seed=cfg.seed * 1000)
+    bar = None
+    if cfg.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.rounds * cfg.steps, unit="step", desc="distill", file=sys.stderr)
+    t0 = time.perf_counter()
+    for r in range(cfg.rounds):
+        share = cfg.beta ** r
+        s_obs, labels, ended, flown_error, obs = fly(env, teacher, student, cols, cfg.steps, share, rng, obs,
+                                                     bar)
+        data.add(s_obs, labels, ended)
+        if student is None:  # the observation statistics, from the teacher's flights (as VecNormalize's)
+            venv.obs_rms.mean = s_obs.reshape(-1, s_obs.shape[-1]).mean(0).astype(np.float64)
+            venv.obs_rms.var = s_obs.reshape(-1, s_obs.shape[-1]).var(0).astype(np.float64)
+            venv.obs_rms.count = float(s_obs.shape[0] * s_obs.shape[1])
+            student = Student(model, venv.obs_rms.mean, venv.obs_rms.var, venv.epsilon)
+        losses = fit(student, data, cfg.fit_steps * (3 if r == cfg.rounds - 1 else 1), cfg, gen)
+        history.append({"round": r, "teacher_share": share, "samples": data.size,
+                        "student_flown_error": flown_error, **losses})
+        if bar is not None:
+            bar.set_postfix(mse=f"{losses['imitation_mse']:.4f}",
+                            err="-" if flown_error is None else f"{flown_error:.3f}")
+    if bar is not None:
+        bar.close()
+    wall = time.perf_counter() - t0
+    env.close()
+    model.num_timesteps = cfg.rounds * cfg.steps * cfg.envs
+    model.save(out / "model.zip")
+    venv.save(str(out / "vecnormalize.pkl"))
+    venv.close()
+    config.update(trained_steps=model.num_timesteps, train_wall_s=round(wall, 1))
+    (out / "config.json").write_text(json.dumps(config, indent=2) + "\n")
+    export = export_policy(out, out / "policy.onnx")
+    summary = {"run": str(out), "teacher": str(cfg.teacher), "observation": json.loads(spec.to_json()),
+               "inputs": spec.size, "net_arch": list(cfg.net_arch), "env_steps": model.num_timesteps,
+               "wall_s": round(wall, 1), "history": history, "export": export}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def distill_command(args) -> int:
+    from fcemu.training.cli import user_error
+
+    cfg = DistillConfig(teacher=args.teacher, out=args.out, memory=args.memory,
+                        fields=tuple(args.fields) if args.fields else None, net_arch=tuple(args.net_arch),
+                        rounds=args.rounds, steps=args.steps, envs=args.envs, beta=args.beta,
+                        fit_steps=args.fit_steps, batch_size=args.batch_size,
+                        learning_rate=args.learning_rate,
+                        smoothness=args.smoothness, task=args.task,
+                        randomize=None if args.randomize == "none" else args.randomize,
+                        randomize_share=args.randomize_share, seed=args.seed, threads=args.threads,
+                        progress=args.progress)
+    try:
+        summary = distill(cfg)
+    except ValueError as exc:  # DistillError, a bad TrainConfig value, an ExportError
+        return user_error(str(exc))
+    if args.json:
+        print(json.dumps(summary, default=float))
+    else:
+        last = summary["history"][-1]
+        print(f"{summary['run']}: student {summary['inputs']} inputs, {summary['net_arch']}, "
+              f"{summary['env_steps']} env steps in {summary['wall_s']:.0f} s, imitation mse "
+              f"{last['imitation_mse']:.5f}, exported {summary['export']['out']} "
+              f"(parity {summary['export']['parity_max_abs_diff']:.1e})")
+    return 0
