@@ -10,10 +10,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from fcemu.evaluation import faults as fault_eval
 from fcemu.evaluation.metrics import AXES, EvalMetrics, compute_metrics
 from fcemu.evaluation.perturb import PerturbedAirframe, PerturbedResult, fly_perturbed, perturbed_airframes
 from fcemu.evaluation.report import ControllerResult, write_report
 from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.firmware.controllers import is_policy
 from fcemu.sim_bridge.randomization import RandomizationError, load_randomization
 from fcemu.sitl.traces import Traces, save_traces
 
@@ -67,6 +69,7 @@ def eval_command(args) -> int:
         if args.perturb < 0:
             raise ValueError(f"--perturb must be >= 0, got {args.perturb}")
         airframes, ranges = _airframes(args)
+        faults = fault_eval.check_specs(getattr(args, "fault", None) or [])
     except (RandomizationError, ValueError) as exc:
         print(f"fcemu: error: {exc}", file=sys.stderr)
         return 2
@@ -84,6 +87,9 @@ def eval_command(args) -> int:
             perturbed = fly_perturbed(spec, cfg, airframes, args.perturb_seed,
                                       on_airframe=lambda _: bar.update(), ranges=ranges)
         payload.append(result_json(spec, cfg, metrics, perturbed))
+        fault_rows = [_fly_fault(spec, cfg, fault, traces, progress) for fault in faults]
+        if fault_rows:
+            payload[-1]["faults"] = [r.to_json() for r in fault_rows]
         if args.save_traces:
             out = save_traces(traces_path(args.save_traces, spec, len(specs) > 1), traces)
             print(f"traces: {out}", file=sys.stderr)
@@ -92,9 +98,12 @@ def eval_command(args) -> int:
             trace_cfg = replace(cfg, task="continuous", episodes=1, episode_s=REPORT_CONTINUOUS_S)
             continuous = run_controller(spec, trace_cfg, progress=False)
         step = traces.step_window() if cfg.task != "continuous" else None
-        results.append(ControllerResult(spec, metrics, step, _first(continuous), perturbed))
+        results.append(ControllerResult(spec, metrics, step, _first(continuous), perturbed,
+                                        tuple(fault_rows)))
         if not args.json:
             print(summary_line(spec, metrics))
+            for r in fault_rows:
+                print(fault_eval.summary_line(spec, r))
             if perturbed is not None:
                 print(summary_line(f"perturbed x{len(airframes)}", perturbed.metrics))
     bar.close()
@@ -106,6 +115,12 @@ def eval_command(args) -> int:
     if args.json:
         print(json.dumps(payload[0] if len(payload) == 1 else {"results": payload}))
     return 0
+
+
+def _fly_fault(spec: str, cfg: EvalConfig, fault, nominal: Traces, progress: bool) -> fault_eval.FaultResult:
+    plan = fault_eval.FaultPlan(fault, cfg.seed, cfg.episodes, cfg.n_ticks, cfg.warmup_ticks)
+    faulted = run_controller(spec, cfg, progress=progress, faults=plan)
+    return fault_eval.fault_result(plan, faulted, nominal, 1.0 / cfg.rate_hz, policy=is_policy(spec))
 
 
 def _first(traces: Traces | None) -> Traces | None:

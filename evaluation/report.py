@@ -23,6 +23,7 @@ from fcemu.evaluation.metrics import AXES, MIN_E0, SETTLE_S, EvalMetrics, Stat
 from fcemu.sitl.traces import Traces
 
 if TYPE_CHECKING:
+    from fcemu.evaluation.faults import FaultResult
     from fcemu.evaluation.perturb import PerturbedResult
 
 PAPER_COLUMNS = ("PPO m=1", "PID")
@@ -52,6 +53,7 @@ class ControllerResult:
     step: Traces | None = None  # episodic-task traces; one episode is drawn
     continuous: Traces | None = None  # continuous-task traces; episode 0, first 10 s, is drawn
     perturbed: PerturbedResult | None = None  # the same commands on perturbed airframes
+    faults: tuple[FaultResult, ...] = ()  # the same commands with a fault injected (--fault)
 
 
 def load_paper_tables() -> dict[str, Any]:
@@ -347,6 +349,17 @@ def write_report(
             robustness_table(results), "",
             *_delay_section(results),
             "![Error per perturbed airframe](robustness.png)", ""]
+    if any(r.faults for r in results):
+        from fcemu.evaluation.faults import FAULT_WINDOW, fault_table
+
+        rows = [(r.name, f) for r in results for f in r.faults]
+        parts[parts.index("## Figures"):parts.index("## Figures")] = [
+            "## Faults: the same commands with a fault injected", "",
+            f"Each fault comes at a seeded time between {FAULT_WINDOW[0]:.0%} and {FAULT_WINDOW[1]:.0%} of "
+            "each episode (the same time for every controller). Upright: the attitude stayed within 90° of "
+            "the one the commanded rates lead to from the fault on. Error Σ: from the fault tick to the "
+            "episode's end, summed over the axes, mean per episode. The answer is the firmware's health "
+            "monitor's (docs/DESIGN.md, \"Sensor health\").", "", fault_table(rows), ""]
     if any(r.step is not None for r in results):
         plot_step_responses(results, out / "step_response.png", episode=step_episode)
         parts += [f"Step response of evaluation command {step_episode}, every controller:", "",

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
@@ -24,6 +25,7 @@ from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from fcemu.firmware.controllers import load_controller
+from fcemu.firmware.health import HealthMonitor
 from fcemu.firmware.loop import Command, FlightLoop, TickSample
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.firmware.timing import LockstepClock
@@ -32,6 +34,9 @@ from fcemu.sim_bridge.link import InProcessLink
 from fcemu.sim_bridge.tasks import EVAL_TASKS, INFLIGHT_WARMUP_S, continuous_schedule, episodic_commands
 from fcemu.sim_bridge.twin import Twin, TwinState
 from fcemu.sitl.traces import Traces
+
+if TYPE_CHECKING:
+    from fcemu.evaluation.faults import FaultPlan
 
 TASKS = EVAL_TASKS
 NOISE_STREAM = 0x6e6f6973  # "nois": the twin's sensor-noise seeds, a stream apart from the commands'
@@ -144,11 +149,12 @@ def hover_state(airframe: Airframe, throttle: float) -> TwinState:
 
 def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
                    on_episode: Callable[[int], None] | None = None,
-                   airframe: Airframe | None = None) -> Traces:
+                   airframe: Airframe | None = None, faults: FaultPlan | None = None) -> Traces:
     """Fly `spec` (pid, pid:<preset>, FILE.onnx) over the evaluation set; return its traces.
 
     `airframe` replaces the nominal Iris (e.g. a perturbed one); its hover throttle is flown
-    unless `cfg.throttle` is set.
+    unless `cfg.throttle` is set. `faults` injects its faults into the twin at its tick of each
+    episode and records what the firmware's health monitor made of them.
     """
     controllers = {"main": load_controller(spec, cfg.rate_hz)}
     neural = not spec.startswith("pid")
@@ -161,7 +167,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     throttle = cfg.throttle_for(twin.airframe)
     start = hover_state(twin.airframe, throttle) if cfg.task == "inflight" else None
     noise_seeds = sensor_noise_seeds(cfg)
-    faults = 0
+    n_faults = 0
     bar = tqdm(range(n), desc=f"eval {spec}", unit="ep", disable=not progress, leave=False)
     for i in bar:
         commander = _Schedule(setpoints[i], throttle, round(1e6 / cfg.rate_hz))
@@ -169,14 +175,21 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
         first = twin.reset(int(noise_seeds[i]), start)
         recorder.start()
         loop = FlightLoop(InProcessLink(twin), first, controllers, commander, LockstepClock(), cfg.rate_hz,
-                          [recorder], fallback=FALLBACK if neural else None)
+                          [recorder], fallback=FALLBACK if neural else None,
+                          health=HealthMonitor(dt=1.0 / cfg.rate_hz))
+        at = -1 if faults is None else faults.ticks[i]
         for k in range(ticks):
+            if k == at:
+                twin.faults = faults.injector(i, twin)
             loop.tick(k * loop.period_us)
-        faults += sum(loop.faults.values())
+        if faults is not None:
+            faults.record(i, at, loop.health)
+            twin.faults = None
+        n_faults += sum(loop.faults.values())
         if on_episode is not None:
             on_episode(i)
     t = (np.arange(ticks) - cfg.warmup_ticks) / cfg.rate_hz
-    extra = {"throttle": throttle, "controller_faults": faults, "rate_hz": cfg.rate_hz}
+    extra = {"throttle": throttle, "controller_faults": n_faults, "rate_hz": cfg.rate_hz}
     if start is not None:
         extra["initial_rotor_speed"] = list(start.rotor_speed)
     return Traces(t, np.array(setpoints), rate, pwm, controller=spec, seed=cfg.seed, task=cfg.task,

@@ -16,6 +16,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 
 from fcemu.firmware.controller import PWM_MAX, PWM_MIN, RateController, RateSetpoint
+from fcemu.firmware.health import HealthMonitor
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.firmware.timing import Clock, TimingStats
 
@@ -80,6 +81,8 @@ class FlightLoop:
     last PWM held, so simulated time stays on the loop's clock. A controller that raises or
     returns non-finite or out-of-range PWM is replaced for that tick by `fallback` (or the
     motors stop if there is none), and the fault is counted; the loop never stops for bad data.
+    With `health` (firmware/health.py) each tick's frame is checked first: the controller reads
+    the frame it returns, and once it no longer trusts a policy's inputs the fallback flies.
     """
 
     def __init__(
@@ -93,6 +96,7 @@ class FlightLoop:
         sinks: Sequence[TelemetrySink] = (),
         fallback: str | None = None,
         stats: TimingStats | None = None,
+        health: HealthMonitor | None = None,
     ) -> None:
         if rate_hz <= 0 or 1e6 % rate_hz:
             raise ValueError(f"rate_hz must divide one second into whole microseconds, got {rate_hz}")
@@ -111,18 +115,27 @@ class FlightLoop:
         self._active = ""
         self.last_sample: TickSample | None = None
         self.plant_ns = 0
+        self.health = health
 
     def tick(self, t_us: int) -> TickSample:
         command = self.commander.command(t_us, self.frame)
         name = command.controller
+        frame = self.frame
+        health = self.health
+        if health is not None:
+            if command.armed and not self._armed:
+                health.reset()
+            written = self.last_sample.pwm if self.last_sample is not None else DISARMED_PWM
+            frame = health.check(frame, written)
+            if not health.policy_trusted and self.fallback in self.controllers:
+                name = self.fallback
         if not command.armed:
             pwm = DISARMED_PWM
         else:
             if not self._armed or name != self._active:
                 self._switch(name)
-            pwm, name = self._run_controller(name, command.setpoint)
+            pwm, name = self._run_controller(name, command.setpoint, frame)
         self._armed = command.armed
-        frame = self.frame
         plant_start = time.perf_counter_ns()
         self.frame = self.plant.pwm_write(pwm)
         self.plant_ns = time.perf_counter_ns() - plant_start
@@ -144,12 +157,13 @@ class FlightLoop:
             controller.reset()
         self._active = name
 
-    def _run_controller(self, name: str, setpoint: RateSetpoint) -> tuple[np.ndarray, str]:
+    def _run_controller(self, name: str, setpoint: RateSetpoint,
+                        frame: SensorFrame) -> tuple[np.ndarray, str]:
         controller = self.controllers.get(name)
         problem = "unknown controller" if controller is None else ""
         if controller is not None:
             try:
-                pwm = controller.update(setpoint, self.frame, self.dt)
+                pwm = controller.update(setpoint, frame, self.dt)
                 # NaN fails both comparisons, so two reductions check finiteness and range.
                 if pwm.shape == (4,) and PWM_MIN <= pwm.min() and pwm.max() <= PWM_MAX:
                     return pwm, name
@@ -159,7 +173,7 @@ class FlightLoop:
                 problem = f"raised {type(exc).__name__}"
         self.faults[f"{name}: {problem}"] = self.faults.get(f"{name}: {problem}", 0) + 1
         if self.fallback and self.fallback != name and self.fallback in self.controllers:
-            return self._run_controller(self.fallback, setpoint)
+            return self._run_controller(self.fallback, setpoint, frame)
         return DISARMED_PWM, "none"
 
     def run(self, duration_s: float | None = None, should_stop: Callable[[], bool] | None = None,

@@ -18,6 +18,7 @@ import numpy as np
 
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf, load_airframe
+from fcemu.sim_bridge.faults import FaultInjector
 from fcemu.sim_bridge.plant import AirframeEffects, MotorModel, SensorModel, SensorNoise
 
 
@@ -83,6 +84,7 @@ class Twin:
         self._omega = [0.0] * 4
         self._t_us = 0
         self._rng = np.random.default_rng()
+        self.faults: FaultInjector | None = None  # injected faults (sim_bridge/faults.py); None: none
         self.reset()
 
     @property
@@ -130,8 +132,13 @@ class Twin:
             values = []
         if len(values) != 4 or not all(isinstance(v, (float, int)) and math.isfinite(v) for v in values):
             raise ValueError(f"pwm must be 4 finite values in µs, got {pwm!r}")
+        faults = self.faults
+        if faults is not None:
+            values = faults.motor_command(values, self.motors.pwm_min)
         if self._plain:
-            self._omega, self._ctrl[:] = self.motors.step_one(self._omega, values)
+            scale = None if faults is None else faults.speed_scale
+            self._omega, thrust = self.motors.step_one(self._omega, values, scale)
+            self._ctrl[:] = thrust if faults is None else faults.thrust(thrust)
         else:
             self._step_effects(values)
         mujoco.mj_step(self.model, self.data)
@@ -144,7 +151,11 @@ class Twin:
         fx = self.effects
         pwm = fx.command(np.array(pwm)).tolist()
         before = self._omega
-        self._omega, self._ctrl[:] = self.motors.step_one(before, pwm, fx.speed_scale_one())
+        scale, faults = fx.speed_scale_one(), self.faults
+        if faults is not None and faults.speed_scale is not None:
+            scale = faults.speed_scale * (1.0 if scale is None else scale)
+        self._omega, thrust = self.motors.step_one(before, pwm, scale)
+        self._ctrl[:] = thrust if faults is None else faults.thrust(thrust)
         if fx.torques:
             rates = (self.data.qvel[self._rot] * FLU_FROM_FRD).tolist()
             torque = fx.torque_one(rates, self._omega, before)
@@ -162,6 +173,8 @@ class Twin:
                                                    self._rng.standard_normal(SensorModel.DRAWS))
         if fx.gyro_delays:
             gyro = fx.gyro_delayed(gyro, reset=reset)
+        if self.faults is not None:
+            gyro, omega = self.faults.read(gyro, omega)
         return SensorFrame(self._t_us, gyro, accel, omega)
 
     def clean_gyro(self) -> np.ndarray:

@@ -1,0 +1,174 @@
+"""Sensor health: what the flight controller makes of a gyro or ESC telemetry it can no longer trust.
+
+`HealthMonitor.check(frame, pwm)` runs once per tick before the controller, on plain floats (a
+few µs), and returns the frame the controller should read: the same object while nothing is
+wrong. The rules, with `HealthRules`' defaults at 1 kHz (docs/DESIGN.md, "Sensor health"):
+
+- Gyro sample implausible: not finite, beyond the gyro's full scale (±2000 deg/s), or a jump of
+  more than `gyro_jump` rad/s from the last good sample in one tick (no airframe accelerates that
+  fast). The sample is replaced by the last good one (a dropped or spiked sample costs one tick
+  of old data). Each implausible sample adds 1 to a score, each good one takes `recovery` off;
+  at `gyro_fail_score` the gyro has FAILED.
+- Gyro stuck: all three axes bit-identical for `gyro_stuck_ticks` ticks in which the motor
+  outputs were asking for a torque (their spread above `torque_spread_us`): FAILED.
+- Gyro FAILED (latched until the next arming): the controller reads zero rates from then on
+  (it flies on its setpoint alone), the policy hands over to the PID, and `failsafe` asks the
+  vehicle for LAND; said once.
+- Rotor speed absent (any non-finite ESC reading): the policy's input is incomplete, it hands
+  over to the PID at once (1 tick). Rotor speed stale: a motor's reading bit-identical for
+  `rotor_stale_ticks` ticks while its PWM moved more than `stale_pwm_us` from where it was when
+  the reading last changed. Rotor speed implausible: a reading farther than `rotor_tolerance`
+  × the top speed from a first-order model of the commanded speed, scored as the gyro's, at
+  `rotor_fail_score`. Each hands the policy over to the PID (latched until the next arming) and
+  is said once; the PID does not read rotor speed, so the vehicle flies on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fcemu.firmware.sensors import SensorFrame
+
+CRITICAL, WARNING = 2, 4  # MAV_SEVERITY
+_ZERO3 = np.zeros(3)
+
+
+@dataclass(frozen=True)
+class HealthRules:
+    gyro_range: float = math.radians(2000.0)  # rad/s
+    gyro_jump: float = 5.0  # rad/s in one tick (5000 rad/s² at 1 kHz)
+    gyro_fail_score: float = 20.0
+    gyro_stuck_ticks: int = 50
+    torque_spread_us: float = 20.0  # max − min PWM of the four motors
+    recovery: float = 0.25  # score taken off per good sample
+    rotor_speed_max: float = 1100.0  # rad/s at PWM 2000 (the Iris)
+    motor_tau_s: float = 0.02  # the speed model's time constant
+    rotor_tolerance: float = 0.3  # × rotor_speed_max
+    rotor_fail_score: float = 10.0
+    rotor_stale_ticks: int = 20
+    stale_pwm_us: float = 5.0
+    pwm_min: float = 1000.0
+    pwm_max: float = 2000.0
+
+
+class HealthMonitor:
+    """The rules above for one vehicle; `detected` maps each verdict to the tick it was reached."""
+
+    def __init__(self, rules: HealthRules | None = None, dt: float = 0.001) -> None:
+        self.rules = r = rules or HealthRules()
+        self._alpha = 1.0 - math.exp(-dt / r.motor_tau_s)
+        self._speed_per_us = r.rotor_speed_max / (r.pwm_max - r.pwm_min)
+        self._tolerance = r.rotor_tolerance * r.rotor_speed_max
+        self.outbox: list[tuple[int, str]] = []
+        self.reset()
+
+    def reset(self) -> None:
+        """Start over (at arming): every verdict cleared, the models restarted from the next frame."""
+        self.ticks = 0
+        self.policy_trusted = True
+        self.gyro_failed = False
+        self.failsafe = ""
+        self.handover = ""  # why the policy handed over ("" while it flies)
+        self.detected: dict[str, int] = {}
+        self.glitches = 0
+        self._gyro_score = 0.0
+        self._last_good: list[float] | None = None
+        self._held: np.ndarray | None = None
+        self._stuck = 0
+        self._expected: list[float] | None = None
+        self._prev_speed = [math.nan] * 4
+        self._pwm_at_change = [0.0] * 4
+        self._stale = [0] * 4
+        self._rotor_score = [0.0] * 4
+
+    # ---- verdicts ----
+    def _declare(self, what: str, severity: int, text: str) -> None:
+        if what not in self.detected:
+            self.detected[what] = self.ticks
+            self.outbox.append((severity, text))
+
+    def _hand_over(self, why: str) -> None:
+        if self.policy_trusted:
+            self.policy_trusted = False
+            self.handover = why
+            self._declare("handover", WARNING, f"Policy inputs untrusted ({why}): PID flies")
+
+    def _fail_gyro(self, why: str) -> None:
+        self.gyro_failed = True
+        self.failsafe = f"gyro {why}"
+        self._declare("gyro_failed", CRITICAL, f"Gyro {why}: rate feedback lost")
+        self._hand_over(f"gyro {why}")
+
+    # ---- the tick ----
+    def check(self, frame: SensorFrame, pwm: np.ndarray) -> SensorFrame:
+        """The frame to fly on, given this tick's `frame` and the PWM written the tick before."""
+        self.ticks += 1
+        p = pwm.tolist()
+        gyro = self._check_gyro(frame.gyro.tolist(), p)
+        self._check_rotors(frame.rotor_speed.tolist(), p)
+        return frame if gyro is None else frame._replace(gyro=gyro)
+
+    def _check_gyro(self, g: list[float], p: list[float]) -> np.ndarray | None:
+        r = self.rules
+        if self.gyro_failed:
+            return _ZERO3
+        last = self._last_good
+        g0, g1, g2 = g
+        top, jump = r.gyro_range, r.gyro_jump
+        valid = (abs(g0) <= top and abs(g1) <= top and abs(g2) <= top
+                 and (last is None or max(abs(g0 - last[0]), abs(g1 - last[1]), abs(g2 - last[2])) <= jump))
+        if not valid:  # NaN fails every comparison above
+            self.glitches += 1
+            self._gyro_score += 1.0
+            if self._gyro_score >= r.gyro_fail_score:
+                self._fail_gyro("implausible")
+                return _ZERO3
+            if self._held is None:
+                self._held = np.array(last) if last is not None else _ZERO3
+            return self._held
+        self._gyro_score = max(0.0, self._gyro_score - r.recovery)
+        if g == last:
+            if max(p) - min(p) > r.torque_spread_us:
+                self._stuck += 1
+                if self._stuck >= r.gyro_stuck_ticks:
+                    self._fail_gyro("stuck")
+                    return _ZERO3
+        else:
+            self._stuck = 0
+        self._last_good = g
+        self._held = None
+        return None
+
+    def _check_rotors(self, w: list[float], p: list[float]) -> None:
+        r = self.rules
+        expected = self._expected
+        if expected is None:
+            expected = self._expected = [v if math.isfinite(v) else 0.0 for v in w]
+            self._pwm_at_change = list(p)
+        alpha, per_us, lo = self._alpha, self._speed_per_us, r.pwm_min
+        hi_speed = r.rotor_speed_max
+        for i in range(4):
+            v, pi = w[i], p[i]
+            command = min(max((pi - lo) * per_us, 0.0), hi_speed)
+            expected[i] += alpha * (command - expected[i])
+            if not math.isfinite(v):
+                self._hand_over(f"rotor speed {i + 1} absent")
+                continue
+            if v == self._prev_speed[i]:
+                if abs(pi - self._pwm_at_change[i]) > r.stale_pwm_us:
+                    self._stale[i] += 1
+                    if self._stale[i] >= r.rotor_stale_ticks:
+                        self._hand_over(f"rotor speed {i + 1} stale")
+            else:
+                self._stale[i] = 0
+                self._pwm_at_change[i] = pi
+                self._prev_speed[i] = v
+            if abs(v - expected[i]) > self._tolerance:
+                self._rotor_score[i] += 1.0
+                if self._rotor_score[i] >= r.rotor_fail_score:
+                    self._hand_over(f"rotor speed {i + 1} implausible")
+            elif self._rotor_score[i]:
+                self._rotor_score[i] = max(0.0, self._rotor_score[i] - r.recovery)
