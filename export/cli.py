@@ -97,7 +97,14 @@ def bench_mcu_command(args) -> int:
     print(f"Cortex-M4F in QEMU vs onnxruntime ({target['vectors']} observations): max |diff| "
           f"{target['max_abs_diff_vs_onnx']:.2e}, {target['max_ulp_vs_onnx']} ULP; vs host C: "
           f"{target['max_abs_diff_vs_host']:.2e}, {target['max_ulp_vs_host']} ULP")
+    cycles = details["cycles"]
     print(f"RAM = {target['static_ram_bytes']} static + {target['stack_bytes']} stack (painted); "
-          f"time = instructions × CPI {details['cpi_assumed']} / clock; tanh: {details['tanh']}")
+          f"tanh: {details['tanh']}")
+    print(f"time: {cycles['instructions']} instructions traced → {cycles['cycles']} cycles by the "
+          f"Cortex-M4 TRM tables (refill 1–3 and VLDR pipelining: {cycles['cycles_low']}–"
+          f"{cycles['cycles_high']}) + {cycles['art_wait_cycles']} flash wait cycles behind the ART = "
+          f"{report['est_cycles']} → {report['est_us_at_168mhz']} µs at 168 MHz; every taken branch and "
+          f"weight line missing the flash cache: {report['est_us_at_168mhz_flash_bound']} µs; "
+          f"instructions × CPI {details['cpi_assumed']}: {report['est_us_at_168mhz_cpi']} µs")
     print(budget_verdict(report))
     return 0

@@ -9,7 +9,9 @@ instruction, so timer ticks are proportional to instructions; a calibration loop
 exactly two instructions per iteration gives the ratio, so no clock rate is assumed.
 
 A second image, the size probe, holds only startup and one `fcemu_policy_step` call:
-`arm-none-eabi-size` on it is the policy's flash and static RAM.
+`arm-none-eabi-size` on it is the policy's flash and static RAM. A third, the trace image,
+calls `fcemu_policy_infer` on the first bench vectors and exits: `export.c.trace` follows it
+instruction by instruction.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ ARM_FLAGS = ("-mcpu=cortex-m4", "-mthumb", "-mfpu=fpv4-sp-d16", "-mfloat-abi=har
              "-ffunction-sections", "-fdata-sections")
 STACK_BYTES = 0x40000
 CALIBRATION_ITERATIONS = 1_000_000
+TRACED_INFERENCES = 3
 
 LINKER_SCRIPT = f"""\
 MEMORY {{
@@ -90,6 +93,23 @@ int main(void) {
     for (int i = 0; i < 4; ++i) pwm_out[i] = pwm[i];
     return status;
 }
+"""
+
+TRACE_HARNESS = f"""\
+#include "fcemu_policy.h"
+
+extern const int bench_count;
+extern const float bench_obs[][FCEMU_OBS_SIZE];
+volatile float sink;
+
+int main(void) {{
+    float action[FCEMU_ACTION_SIZE];
+    for (int n = 0; n < {TRACED_INFERENCES}; ++n) {{
+        fcemu_policy_infer(bench_obs[n % bench_count], action);
+        sink = action[0];
+    }}
+    return 0;
+}}
 """
 
 HARNESS = f"""\

@@ -6,11 +6,16 @@ it on `qemu-system-arm -M mps2-an386` (a Cortex-M4 board) with semihosting and
 `-icount shift=0`; compare the target's outputs bit for bit with the host build's and
 with onnxruntime's; size the policy with `arm-none-eabi-size` on the size-probe image.
 
-Time per inference is an estimate: instructions counted in QEMU × an assumed CPI,
-divided by the clock. `CPI` is 1.25: the M4's single-precision FPU issues most
-operations in one cycle but VMLA/VDIV take more and flash wait states cost cycles the
-ART accelerator (F405) or caches (H743) do not all hide. The H743 is a Cortex-M7, whose
-dual issue makes the M4 figure an upper bound there.
+Time per inference is an estimate from the instructions the M4 executes: a third image is
+traced in QEMU one instruction at a time (`export.c.trace`) and each executed instruction is
+weighed with the Cortex-M4 TRM's cycle counts (`export.c.cycles`). `est_cycles` adds the
+flash wait states an STM32F405's ART accelerator leaves in the steady state (5 wait states at
+168 MHz, 64 cached 128-bit lines, sequential prefetch; the weights assumed read at zero wait,
+as from SRAM); `est_us_at_168mhz_flash_bound` charges 5 wait states to every taken branch
+into another flash line and to every 128-bit line of weights. The 480 MHz figure divides the
+same M4 count by an STM32H743's clock: its Cortex-M7 issues two instructions per cycle, so
+that is an upper bound there. `est_us_at_168mhz_cpi` keeps the earlier estimate, the
+instruction count from `-icount` × an assumed CPI of 1.25.
 """
 
 from __future__ import annotations
@@ -36,17 +41,20 @@ from fcemu.export.c.build import (
     ulp_distance,
 )
 from fcemu.export.c.tanh import DEFAULT_TANH
+from fcemu.export.c.trace import inference_timing
 
 CPI = 1.25
 REPORT_KEYS = ("model", "max_abs_diff", "max_ulp", "flash_bytes", "ram_bytes", "instructions_per_inference",
-               "est_us_at_168mhz", "est_us_at_480mhz")
+               "est_cycles", "est_us_at_168mhz", "est_us_at_480mhz", "est_us_at_168mhz_cpi",
+               "est_us_at_168mhz_flash_bound")
 CLOCKS_MHZ = {"168": 168.0, "480": 480.0}
 LOOP_BUDGET_SHARE = 0.25
 TARGET_VECTORS = 1024
 TIMED_INFERENCES = 64
 QEMU_CMD = ("qemu-system-arm", "-M", "mps2-an386", "-cpu", "cortex-m4", "-nographic", "-monitor", "none",
             "-serial", "none", "-icount", "shift=0")
-TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-size", "qemu-system-arm")
+TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-size", "arm-none-eabi-objdump", "arm-none-eabi-nm",
+         "qemu-system-arm")
 INSTALL_HINT = ("apt-get install gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm "
                 "(or `make mcu-tools`)")
 
@@ -66,17 +74,17 @@ def _run(cmd: list[str], what: str, timeout: float = 600) -> str:
     return done.stdout
 
 
-def build_images(src: Path, build: Path, n_vectors: int) -> tuple[Path, Path]:
-    """Cross-compile the sources once; link the harness and the size probe."""
+def build_images(src: Path, build: Path, n_vectors: int) -> tuple[Path, Path, Path]:
+    """Cross-compile the sources once; link the harness, the size probe and the trace image."""
     build.mkdir(parents=True, exist_ok=True)
     (build / "link.ld").write_text(image.LINKER_SCRIPT)
     for name, text in (("startup.c", image.STARTUP), ("harness.c", image.HARNESS),
-                       ("size_probe.c", image.SIZE_PROBE)):
+                       ("size_probe.c", image.SIZE_PROBE), ("trace_harness.c", image.TRACE_HARNESS)):
         (build / name).write_text(text)
     defines = [f"-DFCEMU_TIMED_INFERENCES={TIMED_INFERENCES}"]
     objects = {}
     for path in [*(src / s for s in SOURCES), build / "bench_vectors.c", build / "startup.c",
-                 build / "harness.c", build / "size_probe.c"]:
+                 build / "harness.c", build / "size_probe.c", build / "trace_harness.c"]:
         obj = build / (path.stem + ".o")
         _run(["arm-none-eabi-gcc", *image.ARM_FLAGS, *defines, f"-I{src}", "-c", str(path), "-o", str(obj)],
              f"arm-none-eabi-gcc {path.name}")
@@ -84,12 +92,14 @@ def build_images(src: Path, build: Path, n_vectors: int) -> tuple[Path, Path]:
     link = ["arm-none-eabi-gcc", *image.ARM_FLAGS, "-nostartfiles", "-T", str(build / "link.ld"),
             "-Wl,--gc-sections"]
     policy = [objects["fcemu_net"], objects["fcemu_policy"], objects["startup"]]
-    harness, probe = build / "harness.elf", build / "size_probe.elf"
+    harness, probe, trace = build / "harness.elf", build / "size_probe.elf", build / "trace.elf"
     _run([*link, *policy, objects["fcemu_golden"], objects["bench_vectors"], objects["harness"],
           "-lm", "-lc", "-lgcc", "-o", str(harness)], "linking the harness image")
     _run([*link, *policy, objects["size_probe"], "-lm", "-lc", "-lgcc", "-o", str(probe)],
          "linking the size probe")
-    return harness, probe
+    _run([*link, *policy, objects["bench_vectors"], objects["trace_harness"], "-lm", "-lc", "-lgcc",
+          "-o", str(trace)], "linking the trace image")
+    return harness, probe, trace
 
 
 def image_size(elf: Path) -> dict[str, int]:
@@ -149,8 +159,9 @@ def bench_mcu(model: str | Path | None = None, out: str | Path | None = None,
         (build).mkdir(parents=True, exist_ok=True)
         (build / "bench_vectors.c").write_text(
             golden_source(obs, np.zeros((len(obs), 4), np.float32), prefix="bench"))
-        harness, probe = build_images(src, build, len(obs))
+        harness, probe, trace = build_images(src, build, len(obs))
         target = run_qemu(harness, len(obs))
+        timing = inference_timing(trace, build / "fcemu_net.o")
         reference = onnx_outputs(model, obs)
         host = host_outputs(load_host_library(src / "libfcemu_policy.so"), obs)
         size = image_size(probe)
@@ -159,6 +170,7 @@ def bench_mcu(model: str | Path | None = None, out: str | Path | None = None,
                            f"(max |diff| {target['self_test_max_abs_diff']:.2e})")
     ours = target["outputs"]
     instructions = target["instructions_per_inference"]
+    est_cycles = timing["cycles"] + timing["art_wait_cycles"]
     report = {
         "model": str(model),
         "max_abs_diff": max(parity["max_abs_diff"], float(np.max(np.abs(ours - reference)))),
@@ -166,11 +178,14 @@ def bench_mcu(model: str | Path | None = None, out: str | Path | None = None,
         "flash_bytes": size["flash_bytes"],
         "ram_bytes": size["static_ram_bytes"] + target["stack_bytes"],
         "instructions_per_inference": instructions,
-        "est_us_at_168mhz": round(instructions * CPI / CLOCKS_MHZ["168"], 1),
-        "est_us_at_480mhz": round(instructions * CPI / CLOCKS_MHZ["480"], 1),
+        "est_cycles": est_cycles,
+        "est_us_at_168mhz": round(est_cycles / CLOCKS_MHZ["168"], 1),
+        "est_us_at_480mhz": round(est_cycles / CLOCKS_MHZ["480"], 1),
+        "est_us_at_168mhz_cpi": round(instructions * CPI / CLOCKS_MHZ["168"], 1),
+        "est_us_at_168mhz_flash_bound": round(timing["flash_bound_cycles"] / CLOCKS_MHZ["168"], 1),
     }
     details = {
-        **report, "cpi_assumed": CPI, "tanh": tanh,
+        **report, "cpi_assumed": CPI, "tanh": tanh, "cycles": timing,
         "host": {k: parity[k] for k in ("parity_samples", "max_abs_diff", "max_ulp")},
         "target": {"vectors": len(obs), "max_abs_diff_vs_onnx": float(np.max(np.abs(ours - reference))),
                    "max_ulp_vs_onnx": int(ulp_distance(ours, reference).max()),
@@ -202,5 +217,5 @@ def budget_verdict(report: dict, loop_hz: float = 1000.0, share: float = LOOP_BU
         verdict = "fits" if within_budget(report, mhz, loop_hz, share) else "OVER BUDGET"
         share_used = us * loop_hz / 1e6
         parts.append(f"{board} @ {mhz} MHz: {us:.1f} µs ({share_used:.0%} of the period), {verdict}")
-    return (f"budget {budget_us:.0f} µs = {share:.0%} of a {loop_hz:.0f} Hz loop (CPI {CPI}): "
+    return (f"budget {budget_us:.0f} µs = {share:.0%} of a {loop_hz:.0f} Hz loop (TRM cycle count): "
             + "; ".join(parts))
