@@ -286,6 +286,9 @@ def sitl_command(args) -> int:
     spin_us = None if own_core else SHARED_SPIN_US
     vs = None
     if args.no_mavlink:
+        from fcemu.sitl.sitl_args import refuse_mavlink_options
+
+        refuse_mavlink_options(args)
         sitl = build_sitl(controller, args.rig, args.rate, realtime=speed is not None, speed=speed or 1.0,
                           spin_us=spin_us)
     else:

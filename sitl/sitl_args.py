@@ -110,3 +110,15 @@ def check_signed_peers(options: list[tuple[str, str]], peers: list[PeerConfig], 
     for (option, spec), peer in zip(options, peers, strict=True):
         if peer.signed:
             raise UserError(f"{option} {spec}: a :signed peer needs --signing-key")
+
+
+MAVLINK_OPTIONS = ("gcs", "offboard", "peer", "sysid", "tlog", "signing_key", "params")
+
+
+def refuse_mavlink_options(args) -> None:
+    """--no-mavlink flies without the MAVLink process: an option for it would be silently ignored."""
+    given = [f"--{name.replace('_', '-')}" for name in MAVLINK_OPTIONS
+             if getattr(args, name, None) is not None]
+    if given:
+        verb = "sets" if len(given) == 1 else "set"
+        raise UserError(f"{' and '.join(given)} {verb} up MAVLink, which --no-mavlink turns off")

@@ -16,8 +16,9 @@ from tests.firmware.mavlink.conftest import ROOT
 
 def fcemu_sitl(tmp_path: Path, *argv: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
     env = {**os.environ, "XDG_DATA_HOME": str(tmp_path / "data"), "PYTHONUNBUFFERED": "1"}
+    peers = [] if "--no-mavlink" in argv else ["--gcs", "127.0.0.1:9", "--offboard", "127.0.0.1:9"]
     return subprocess.run([sys.executable, "-m", "fcemu.cli", "sitl", "--quiet", "--speed", "max",
-                           "--duration", "0.3", "--gcs", "127.0.0.1:9", "--offboard", "127.0.0.1:9", *argv],
+                           "--duration", "0.3", *peers, *argv],
                           cwd=tmp_path, capture_output=True, text=True, timeout=timeout, env=env)
 
 
@@ -38,6 +39,8 @@ REFUSED = {
                                   "--peer 127.0.0.1:14560:signed: a :signed peer needs --signing-key"),
     "signed offboard peer without a key": (["--offboard", "localhost:14540:signed"],
                                            "--offboard localhost:14540:signed: a :signed peer needs"),
+    "tlog without MAVLink": (["--no-mavlink", "--tlog", "x.tlog"],
+                             "--tlog sets up MAVLink, which --no-mavlink turns off"),
 }
 
 
