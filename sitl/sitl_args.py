@@ -64,10 +64,14 @@ def check_signing_key(path: str) -> None:
 
 
 def check_tlog(path: str) -> None:
-    """Create the tlog (and its folder) now; the MAVLink process is given it open."""
+    """The tlog (and its folder) can be created; the flight opens it for the MAVLink process
+    (bridge.open_for_mavlink), so a new one is not left behind should something else fail first."""
+    existed = os.path.lexists(path)
     try:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o644))
+        if not existed:
+            os.unlink(path)
     except OSError as exc:
         raise UserError(f"--tlog {path}: cannot write it ({_reason(exc)})") from None
 
