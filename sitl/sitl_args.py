@@ -36,7 +36,13 @@ def resolve_host(host: str) -> str:
 
 def checked_peer(spec: str, name: str) -> PeerConfig:
     """parse_peer, with the host resolved once here (the MAVLink process sends to the address)."""
-    peer = parse_peer(spec, name)
+    try:
+        peer = parse_peer(spec, name)
+    except ValueError:
+        port = spec.removesuffix(":signed").rpartition(":")[2]
+        if port.isdigit() and not 0 < int(port) < 65536:
+            raise ValueError(f"bad peer {spec!r}: port {port} is not in 1..65535") from None
+        raise
     try:
         peer.host = resolve_host(peer.host)
     except ValueError as exc:
