@@ -9,6 +9,16 @@ mixer's saturation), so the report also replays the controller open loop: fcemu'
 Betaflight's own recorded gyro and commands tick by tick, and its per-axis motor mix is compared
 with Betaflight's answers (`replay_residual`). Equal controllers give a residual at the level of
 Betaflight's 1 µs output truncation and its 8 kHz filters on the held 1 kHz gyro.
+
+`--firmware DIR` flies a Betaflight built with a policy in it (`fcemu export --target
+betaflight`) with NEURAL on, against fcemu flying the same exported C policy (DIR/policy).
+
+Pace. The SITL's clock follows the FDM timestamps only as far as the packets' arrival allows
+(see `sitl.betaflight`); each episode's drift of that clock from the twin's is measured and a
+run in which it exceeds `CLOCK_TOLERANCE` (median) or `CLOCK_LIMIT` is refused, since
+Betaflight's filters, rates and RX
+then run on another time base than the twin's. The default pace, `DEFAULT_SPEED` × real time,
+keeps it within tolerance on a loaded two-core host.
 """
 
 from __future__ import annotations
@@ -35,12 +45,17 @@ from fcemu.sim_bridge.link import InProcessLink
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.sim_bridge.twin import Twin
 from fcemu.sitl.betaflight import BetaflightFlight, RcMap
-from fcemu.sitl.betaflight_process import BetaflightError
+from fcemu.sitl.betaflight_process import BetaflightError, NeuralFirmware, neural_firmware
 from fcemu.sitl.traces import Traces, save_traces
 
 FCEMU_PRESET = "pid:betaflight"
 _AT_REST, _NO_ROTORS = np.array([0.0, 0.0, -9.80665]), np.zeros(4)
 TOLERANCE = 0.15
+NEURAL_TOLERANCE = 0.05
+DEFAULT_SPEED = 0.25
+CLOCK_TOLERANCE = 0.05  # median over episodes of |SITL elapsed / twin elapsed − 1|
+CLOCK_LIMIT = 0.15  # the same, any one episode
+NEURAL_WINDOW = (0.3, 0.75)  # --rig free: NEURAL on for this part of the flight (after take-off)
 COMPARED = ("rise_ms", "peak_pct", "error")
 
 
@@ -70,9 +85,10 @@ def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, prog
 
 
 def fly_betaflight(commands: np.ndarray, throttle_ch: int, ticks: int, run_dir: Path, speed: float,
-                   rc: RcMap, progress: bool = False) -> Traces:
+                   rc: RcMap, progress: bool = False, firmware: NeuralFirmware | None = None) -> Traces:
     bar = tqdm(total=len(commands), desc="betaflight", unit="ep", disable=not progress, leave=False)
-    with BetaflightFlight(run_dir, Twin(rig="rig"), rc, speed=speed) as flight:
+    with BetaflightFlight(run_dir, Twin(rig="rig"), rc, speed=speed, firmware=firmware,
+                          neural=firmware is not None) as flight:
         traces = flight.fly_steps(commands, throttle_ch, ticks / 1000.0, on_episode=lambda _: bar.update())
     bar.close()
     return traces
@@ -114,7 +130,26 @@ def replay_residual(bf: Traces, spec: str, throttle: float, idle_us: float) -> d
             "median_episode_rms_us": dict(zip(AXES, np.round(median, 2).tolist(), strict=True))}
 
 
-def comparison(bf: EvalMetrics, fc: EvalMetrics) -> dict[str, dict[str, Any]]:
+def check_clock(bf: Traces, speed: float) -> dict[str, float]:
+    """The SITL clock's drift from the twin's per episode; refuses (BetaflightError) a run whose
+    median episode drifted more than CLOCK_TOLERANCE, or any episode more than CLOCK_LIMIT."""
+    drift = np.abs(np.asarray(bf.extra.get("clock_drift_per_episode", []), dtype=float))
+    if drift.size == 0:
+        return {}
+    median, worst = float(np.median(drift)), int(np.argmax(drift))
+    summary = {"median": round(median, 4), "max": round(float(drift[worst]), 4),
+               "tolerance": CLOCK_TOLERANCE, "limit": CLOCK_LIMIT}
+    if median > CLOCK_TOLERANCE or drift[worst] > CLOCK_LIMIT:
+        raise BetaflightError(f"the SITL's clock drifted from the twin's by {median:.1%} per episode "
+                              f"(median; "
+                              f"worst {drift[worst]:.1%}, episode {worst}; tolerance {CLOCK_TOLERANCE:.0%} "
+                              f"median, {CLOCK_LIMIT:.0%} any) at --speed {speed:g}: Betaflight ran on "
+                              f"another time base than the twin; fly slower (e.g. --speed {speed / 2:g}) "
+                              "or on a less loaded host")
+    return summary
+
+
+def comparison(bf: EvalMetrics, fc: EvalMetrics, tolerance: float = TOLERANCE) -> dict[str, dict[str, Any]]:
     """Per metric and axis: Betaflight, fcemu, relative difference, within TOLERANCE."""
     out: dict[str, dict[str, Any]] = {}
     for metric in COMPARED:
@@ -123,11 +158,12 @@ def comparison(bf: EvalMetrics, fc: EvalMetrics) -> dict[str, dict[str, Any]]:
             b, f = bf.stat(metric, axis).mean, fc.stat(metric, axis).mean
             rel = abs(f - b) / abs(b) if b else float("nan")
             out[metric][axis] = {"betaflight": round(b, 2), "fcemu": round(f, 2), "rel_diff": round(rel, 3),
-                                 "within": bool(rel <= TOLERANCE)}
+                                 "within": bool(rel <= tolerance)}
     return out
 
 
-def plot_overlay(bf: Traces, fc: Traces, path: Path, episodes: int = 3) -> None:
+def plot_overlay(bf: Traces, fc: Traces, path: Path, episodes: int = 3,
+                 labels: tuple[str, str] = ("Betaflight 4.6 SITL", "fcemu pid:betaflight")) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -140,8 +176,8 @@ def plot_overlay(bf: Traces, fc: Traces, path: Path, episodes: int = 3) -> None:
         for a, name in enumerate(AXES):
             ax = axes[i][a]
             ax.plot(t_ms, bf.setpoint[i, :, a], "k--", lw=1, label="setpoint")
-            ax.plot(t_ms, bf.rate[i, :, a], lw=1.3, label="Betaflight 4.6 SITL")
-            ax.plot(t_ms, fc.rate[i, :, a], lw=1.3, label="fcemu pid:betaflight")
+            ax.plot(t_ms, bf.rate[i, :, a], lw=1.3, label=labels[0])
+            ax.plot(t_ms, fc.rate[i, :, a], lw=1.3, label=labels[1])
             ax.set_title(f"episode {i}, {name}", fontsize=9)
             ax.grid(alpha=0.3)
             if a == 0:
@@ -155,20 +191,30 @@ def plot_overlay(bf: Traces, fc: Traces, path: Path, episodes: int = 3) -> None:
 
 
 def markdown(result: dict[str, Any], command: str) -> str:
-    lines = ["# Betaflight 4.6.0 SITL vs fcemu `pid:betaflight`", "", f"Made by `{command}`.", "",
+    title = result.get("title", "Betaflight 4.6.0 SITL vs fcemu `pid:betaflight`")
+    within = f"within {result.get('tolerance', TOLERANCE):.0%}".replace("%", " %")
+    lines = [f"# {title}", "", f"Made by `{command}`.", "",
              f"{result['episodes']} seeded episodic commands (seed {result['seed']}), each from rest on the "
              "ball-joint rig, hover collective; metrics as `fcemu eval` (mean over episodes).", "",
-             "| metric | axis | Betaflight | fcemu | rel. diff | within 15 % |", "|---|---|---|---|---|---|"]
+             f"| metric | axis | Betaflight | fcemu | rel. diff | {within} |", "|---|---|---|---|---|---|"]
     for metric, axes in result["comparison"].items():
         for axis, c in axes.items():
             lines.append(f"| {metric} | {axis} | {c['betaflight']} | {c['fcemu']} | {c['rel_diff']:.1%} | "
                          f"{'yes' if c['within'] else 'no'} |")
-    r = result["replay"]
-    lines += ["", "Open loop: fcemu's preset fed Betaflight's own gyro and commands, tick by tick; rms "
+    r = result.get("replay")
+    lines += [] if r is None else [
+              "", "Open loop: fcemu's preset fed Betaflight's own gyro and commands, tick by tick; rms "
               "difference of the per-axis motor mix from Betaflight's answers (µs; 1.0 of demand is 945 µs):",
               "", "| | roll | pitch | yaw |", "|---|---|---|---|",
               "| pooled | " + " | ".join(str(r["rms_us"][a]) for a in AXES) + " |",
               "| median episode | " + " | ".join(str(r["median_episode_rms_us"][a]) for a in AXES) + " |"]
+    clock = result.get("clock")
+    if clock:
+        lines += ["", "SITL clock vs the twin's, |elapsed ratio − 1| per episode: median "
+                  f"{clock['median']:.2%}, "
+                  f"max {clock['max']:.2%} (refused above {clock['tolerance']:.0%} median, "
+                  f"{clock['limit']:.0%} any); --speed "
+                  f"{result['setup']['speed']:g}."]
     p = result["packets"]
     lines += ["", f"Packets: {p['sent']} FDM sent, {p['received']} motor answers, {p['late']} late "
               f"(sim time slowed for them), {p['lost']} lost.", "",
@@ -191,42 +237,53 @@ def _run(args) -> int:
         raise BetaflightError("--speed must be positive")
     progress = sys.stderr.isatty() and not args.json
     rc = RcMap(rate_dps=args.rate_dps)
+    firmware = neural_firmware(args.firmware) if args.firmware else None
     if args.rig == "free":
-        return _run_free(args, rc)
+        return _run_free(args, rc, firmware)
     commands = rc.quantise(episodic_commands(args.seed, args.episodes))
     hover = load_airframe().hover_throttle()
     throttle_ch = rc.throttle_channel(hover)
     ticks = round(args.episode_s * 1000)
     run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="fcemu_betaflight_"))
-    bf = fly_betaflight(commands, throttle_ch, ticks, run_dir, args.speed, rc, progress)
+    bf = fly_betaflight(commands, throttle_ch, ticks, run_dir, args.speed, rc, progress, firmware)
+    clock = check_clock(bf, args.speed)
     bf_metrics = compute_metrics(bf)
     result: dict[str, Any] = {"betaflight": bf_metrics.to_json(), "packets": bf.extra["packets"]}
+    spec = str(firmware.policy_dir) if firmware else FCEMU_PRESET
     if args.save_traces:
         print(f"traces: {save_traces(args.save_traces, bf)}", file=sys.stderr)
     if args.crosscheck:
-        fc = fly_fcemu(FCEMU_PRESET, commands, rc.fcemu_throttle(throttle_ch), ticks, progress)
+        fc = fly_fcemu(spec, commands, rc.fcemu_throttle(throttle_ch), ticks, progress)
         fc_metrics = compute_metrics(fc)
         if args.save_traces:
             path = Path(args.save_traces)
             print(f"traces: {save_traces(path.with_name(path.stem + '_fcemu.npz'), fc)}", file=sys.stderr)
         result = {"betaflight": bf_metrics.to_json(), "fcemu": fc_metrics.to_json(),
                   "packets": bf.extra["packets"]}
+        tolerance = NEURAL_TOLERANCE if firmware else TOLERANCE
         summary = {"episodes": args.episodes, "seed": args.seed, **result,
-                   "comparison": comparison(bf_metrics, fc_metrics),
-                   "replay": replay_residual(bf, FCEMU_PRESET, rc.fcemu_throttle(throttle_ch),
-                                             1000.0 + 1000.0 * rc.motor_idle),
+                   "comparison": comparison(bf_metrics, fc_metrics, tolerance), "tolerance": tolerance,
+                   "clock": clock,
                    "setup": {"speed": args.speed, "rate_dps": args.rate_dps, "throttle_channel": throttle_ch,
-                             "fcemu_throttle": rc.fcemu_throttle(throttle_ch), "preset": FCEMU_PRESET,
+                             "fcemu_throttle": rc.fcemu_throttle(throttle_ch), "preset": spec,
                              "betaflight_cli": bf.extra["settings"],
                              "reply_us_p50": bf.extra["reply_us_p50"],
                              "reply_us_p99": bf.extra["reply_us_p99"]}}
+        if firmware:
+            summary["title"] = ("Betaflight 4.6.0 SITL with the policy compiled in (NEURAL) vs fcemu flying "
+                                f"the same exported C policy (`{firmware.policy_dir}`)")
+        else:
+            summary["replay"] = replay_residual(bf, FCEMU_PRESET, rc.fcemu_throttle(throttle_ch),
+                                                1000.0 + 1000.0 * rc.motor_idle)
         if args.out:
             out = Path(args.out)
             out.mkdir(parents=True, exist_ok=True)
             command = "fcemu " + " ".join(sys.argv[1:])
             (out / "crosscheck.json").write_text(json.dumps(summary, indent=1) + "\n")
             (out / "README.md").write_text(markdown(summary, command))
-            plot_overlay(bf, fc, out / "step_responses.png")
+            labels = ("Betaflight 4.6 SITL, NEURAL", "fcemu, same C policy") if firmware else \
+                ("Betaflight 4.6 SITL", "fcemu pid:betaflight")
+            plot_overlay(bf, fc, out / "step_responses.png", labels=labels)
             print(f"report: {out / 'README.md'}", file=sys.stderr)
         if not args.json:
             for metric, axes in summary["comparison"].items():
@@ -244,19 +301,24 @@ def _run(args) -> int:
     return 0
 
 
-def _run_free(args, rc: RcMap) -> int:
-    """The free rig: take-off, doublets on each axis, descent (`fcemu sitl --no-mavlink`'s script)."""
+def _run_free(args, rc: RcMap, firmware: NeuralFirmware | None) -> int:
+    """The free rig: take-off, doublets on each axis, descent (`fcemu sitl --no-mavlink`'s script);
+    with a neural firmware, NEURAL on from NEURAL_WINDOW[0] to NEURAL_WINDOW[1] of the flight."""
     from fcemu.firmware.sitl import scripted_flight
 
     if args.crosscheck:
         raise BetaflightError("--crosscheck flies the rig (ball joint); drop --rig free")
     run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="fcemu_betaflight_"))
-    with BetaflightFlight(run_dir, Twin(rig="free"), rc, speed=args.speed) as flight:
-        traces = flight.fly_script(scripted_flight("free"), args.duration)
+    window = (NEURAL_WINDOW[0] * args.duration, NEURAL_WINDOW[1] * args.duration) if firmware else None
+    with BetaflightFlight(run_dir, Twin(rig="free"), rc, speed=args.speed, firmware=firmware) as flight:
+        traces = flight.fly_script(scripted_flight("free"), args.duration, neural_window_s=window)
     if args.save_traces:
         print(f"traces: {save_traces(args.save_traces, traces)}", file=sys.stderr)
     result = {"betaflight": compute_metrics(traces).to_json(), "packets": traces.extra["packets"],
-              "max_altitude_m": round(traces.extra["max_altitude_m"], 3)}
+              "max_altitude_m": round(traces.extra["max_altitude_m"], 3),
+              "final_altitude_m": round(traces.extra["final_altitude_m"], 3)}
+    if window:
+        result["neural_window_s"] = list(window)
     if args.json:
         print(json.dumps(result))
     else:

@@ -9,11 +9,14 @@ import sys
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("export", help="checkpoint → ONNX with metadata and a parity check; "
-                                      "--target c: ONNX policy → C99 sources with host parity")
+                                      "--target c: ONNX policy → C99 sources with host parity; "
+                                      "--target betaflight: Betaflight 4.6 with the policy as NEURAL mode")
     p.add_argument("checkpoint", help="a run directory (runs/NAME) or a checkpoint .zip in it; "
                                       "with --target c, a policy .onnx")
     p.add_argument("--out", required=True, help="the .onnx file to write (--target c: a directory)")
-    p.add_argument("--target", choices=("onnx", "c"), default="onnx")
+    p.add_argument("--target", choices=("onnx", "c", "betaflight"), default="onnx")
+    p.add_argument("--betaflight-targets", default="SITL,STM32F405,STM32H743", metavar="T1,T2",
+                   help="--target betaflight: what to build (SITL, STM32F405, STM32H743)")
     p.add_argument("--parity-samples", type=int, default=10_000)
     _add_tanh(p)
     p.add_argument("--json", action="store_true")
@@ -50,6 +53,8 @@ def _print_report(args, report: dict, summary: str) -> int:
 def export_command(args) -> int:
     if getattr(args, "target", "onnx") == "c":
         return _export_c(args)
+    if getattr(args, "target", "onnx") == "betaflight":
+        return _export_betaflight(args)
     from fcemu.export.onnx_export import ExportError, export_policy
 
     try:
@@ -75,6 +80,23 @@ def _export_c(args) -> int:
                          f"over {report['parity_samples']} observations: max |c − onnx| = "
                          f"{report['max_abs_diff']:.2e}, max {report['max_ulp']} ULP "
                          f"(figures in {report['out']}/parity.json)")
+
+
+def _export_betaflight(args) -> int:
+    from fcemu.export.betaflight.build import BetaflightExportError, export_betaflight
+    from fcemu.export.c.build import CExportError
+
+    targets = [t.strip() for t in args.betaflight_targets.split(",") if t.strip()]
+    try:
+        report = export_betaflight(args.checkpoint, args.out, targets, args.tanh, args.parity_samples,
+                                   progress=lambda line: print(f"[betaflight] {line}", file=sys.stderr))
+    except (BetaflightExportError, CExportError) as exc:
+        return _error(exc)
+    sizes = "; ".join(f"{t}: flash {s['flash_bytes']} B ({s['flash_pct']} %), RAM {s['ram_bytes']} B "
+                      f"({s['ram_pct']} %)" for t, s in report["size"].items())
+    return _print_report(args, report, f"wrote Betaflight {report['betaflight']} with NEURAL (aux mode id "
+                                       f"{report['neural_box_permanent_id']}) to {args.out}: built "
+                                       f"{', '.join(report['builds'])}" + (f"; {sizes}" if sizes else ""))
 
 
 def bench_mcu_command(args) -> int:

@@ -5,6 +5,10 @@ Packet layouts are Betaflight 4.6's (`src/platform/SIMULATOR/target/SITL/target.
 - FDM state, us → SITL on UDP 9003: `fdm_packet`, 18 little-endian doubles: timestamp (s),
   angular velocity (3), linear acceleration (3), orientation quaternion (w, x, y, z),
   velocity (3), position (3), pressure (Pa).
+  A firmware built by `fcemu export --target betaflight` also takes the extended packet,
+  `FDM_PACKET_RPM`: the same 18 doubles and the four rotor speeds in rpm, Betaflight motor
+  order, which its SITL serves as the bidirectional DShot telemetry (`getDshotRpm`) the
+  NEURAL mode reads. Stock Betaflight accepts only the 144-byte packet.
 - RC, us → SITL on UDP 9004: `rc_packet`, timestamp (s) and 16 uint16 channels (µs), AETR1234.
 - Motors, SITL → us on UDP 9002: `servo_packet`, 4 floats, (µs − mincommand) / 1000.
 
@@ -49,6 +53,8 @@ MOTOR_PORT = 9002
 CLI_PORT = 5761
 
 FDM_PACKET = struct.Struct("<d3d3d4d3d3dd")  # 144 bytes
+FDM_PACKET_RPM = struct.Struct("<d3d3d4d3d3dd4d")  # 176 bytes: + rotor speeds, rpm
+RAD_S_TO_RPM = 60.0 / (2.0 * np.pi)
 RC_CHANNELS = 16
 RC_PACKET = struct.Struct(f"<d{RC_CHANNELS}H")  # 40 bytes
 MOTOR_PACKET = struct.Struct("<4f")  # 16 bytes
@@ -64,19 +70,27 @@ ROLL_CH, PITCH_CH, THROTTLE_CH, YAW_CH, AUX1_CH = 0, 1, 2, 3, 4
 
 def pack_fdm(timestamp_s: float, gyro_frd: Sequence[float], accel_frd: Sequence[float],
              quat_wxyz: Sequence[float], velocity_ned: Sequence[float] = (0.0, 0.0, 0.0),
-             position_ned: Sequence[float] = (0.0, 0.0, 0.0), pressure_pa: float = SEA_LEVEL_PA) -> bytes:
-    """One FDM packet from the twin's FRD gyro (rad/s), FRD specific force (m/s²) and attitude."""
+             position_ned: Sequence[float] = (0.0, 0.0, 0.0), pressure_pa: float = SEA_LEVEL_PA,
+             rotor_speed: Sequence[float] | None = None) -> bytes:
+    """One FDM packet from the twin's FRD gyro (rad/s), FRD specific force (m/s²) and attitude;
+    with `rotor_speed` (rad/s, motor order) the extended packet carrying them in rpm."""
     fx, fy, fz = accel_frd
-    return FDM_PACKET.pack(float(timestamp_s), *map(float, gyro_frd), -float(fx), float(fy), float(fz),
-                           *map(float, quat_wxyz), *map(float, velocity_ned), *map(float, position_ned),
-                           float(pressure_pa))
+    values = (float(timestamp_s), *map(float, gyro_frd), -float(fx), float(fy), float(fz),
+              *map(float, quat_wxyz), *map(float, velocity_ned), *map(float, position_ned),
+              float(pressure_pa))
+    if rotor_speed is None:
+        return FDM_PACKET.pack(*values)
+    return FDM_PACKET_RPM.pack(*values, *(float(w) * RAD_S_TO_RPM for w in rotor_speed))
 
 
 def unpack_fdm(data: bytes) -> dict[str, object]:
     """The fields of an FDM packet, as sent (for tests and debugging)."""
-    v = FDM_PACKET.unpack(data)
-    return {"timestamp": v[0], "gyro": v[1:4], "accel": v[4:7], "quat": v[7:11],
-            "velocity": v[11:14], "position": v[14:17], "pressure": v[17]}
+    v = (FDM_PACKET_RPM if len(data) == FDM_PACKET_RPM.size else FDM_PACKET).unpack(data)
+    out = {"timestamp": v[0], "gyro": v[1:4], "accel": v[4:7], "quat": v[7:11],
+           "velocity": v[11:14], "position": v[14:17], "pressure": v[17]}
+    if len(v) > 18:
+        out["rotor_rpm"] = v[18:22]
+    return out
 
 
 def pack_rc(timestamp_s: float, channels: Sequence[int]) -> bytes:
@@ -123,7 +137,7 @@ class BetaflightBridge:
     """Serves one twin to Betaflight SITL in real time: `step(rc)` = one twin step, one FDM packet."""
 
     def __init__(self, twin, host: str = "127.0.0.1", speed: float = 1.0, rc_every: int = 1,
-                 reply_timeout_s: float = 0.05,
+                 reply_timeout_s: float = 0.05, send_rotor_speed: bool = False,
                  fdm_port: int = FDM_PORT, rc_port: int = RC_PORT, motor_port: int = MOTOR_PORT) -> None:
         if not speed > 0.0:
             raise ValueError(f"speed must be positive, got {speed}")
@@ -132,6 +146,7 @@ class BetaflightBridge:
         self.speed = float(speed)
         self._wall_dt = self.dt / self.speed
         self.rc_every = max(1, int(rc_every))
+        self.send_rotor_speed = send_rotor_speed
         self.reply_timeout_s = float(reply_timeout_s)
         self.stats = PacketStats()
         self._fdm_addr = (host, fdm_port)
@@ -180,6 +195,8 @@ class BetaflightBridge:
         due = self._t0 + k * self._wall_dt
         now = time.perf_counter()
         if now < due:
+            # Slept, not spun: spinning would take a core from the SITL, whose answers then come
+            # late more often (measured: more drift of its clock, not less).
             time.sleep(due - now)
         else:
             # Behind: never catch up. The SITL sets its clock rate from each pair of FDM packets
@@ -192,8 +209,9 @@ class BetaflightBridge:
         t = k * self.dt
         truth = self.twin.truth()
         sent_at = time.perf_counter()
+        rotor = frame.rotor_speed if self.send_rotor_speed else None
         self._out.sendto(pack_fdm(t, frame.gyro, frame.accel, truth.attitude, truth.velocity,
-                                  truth.position), self._fdm_addr)
+                                  truth.position, rotor_speed=rotor), self._fdm_addr)
         self.stats.sent += 1
         if k % self.rc_every == 0:
             self._out.sendto(pack_rc(t, rc), self._rc_addr)

@@ -11,6 +11,18 @@ min_check))`, linear by default, over its output range [1000 + motor_idle, 2000]
 throttle is a fraction of [1000, 2000] µs. `RcMap.fcemu_throttle` converts, so both mixers put
 the same µs on the motors at zero demand.
 
+NEURAL. A firmware from `fcemu export --target betaflight` (`firmware=`) gets the NEURAL box on
+AUX2 and `NEURAL_SETTINGS`: its PID loop at the policy's 1 kHz (gyro 8 kHz, pid_process_denom
+8), and its gyro filters off, so that `gyro.gyroADCf`, the policy's input, is the twin's gyro
+as fcemu's policy sees it. With `neural=True` each episode raises AUX2 with the sticks; one
+tick of the step is flown before the twin is put at rest, so that Betaflight has read the RC
+packet (and switched the policy on) by the first recorded tick.
+
+Clock. The SITL's clock is not the twin's: it integrates wall time times the ratio of the last
+pair of FDM timestamp steps to their arrival interval. Each episode reads that clock over MSP
+(the RTC, which counts its millis()) before and after its ticks; `clock_drift` is the SITL's
+elapsed time over the twin's, minus 1.
+
 Episodes. Betaflight's PID state lives in the firmware, so each episode starts by disarming and
 re-arming it (which clears the I-term), then puts the twin at rest and raises the throttle and
 the sticks on the same step, as `fcemu eval` starts its episodes.
@@ -27,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from fcemu.sim_bridge.betaflight_link import BetaflightBridge
-from fcemu.sitl.betaflight_process import BetaflightError, BetaflightMsp, BetaflightSitl
+from fcemu.sitl.betaflight_process import BetaflightError, BetaflightMsp, BetaflightSitl, NeuralFirmware
 from fcemu.sitl.traces import Traces
 
 ARM_CH_US = 1900
@@ -55,6 +67,16 @@ CROSSCHECK_SETTINGS = (
     "set throttle_boost = 0",
     "set anti_gravity_gain = 0",
 )
+NEURAL_CH = 5  # AUX2
+NEURAL_ON_US = 1900
+
+
+def neural_settings(firmware: NeuralFirmware) -> list[str]:
+    """The SITL keeps its 8 kHz PID loop: its NEURAL mode ticks once per FDM packet (see
+    export/betaflight/neural.patch, flight/neural.c)."""
+    return [f"aux 1 {firmware.box_id} 1 1700 2100 0 0",  # NEURAL on AUX2 high
+            # the SITL has no dynamic notch (USE_DYN_NOTCH_FILTER is off in its target)
+            "set gyro_lpf1_static_hz = 0", "set gyro_lpf1_dyn_min_hz = 0", "set gyro_lpf2_static_hz = 0"]
 
 
 @dataclass(frozen=True)
@@ -121,7 +143,14 @@ class BetaflightFlight:
 
     def __init__(self, run_dir: str | Path, twin, rc: RcMap | None = None,
                  settings: Sequence[str] = CROSSCHECK_SETTINGS, speed: float = 1.0,
-                 ready_timeout_s: float = 20.0, retries: int = 3) -> None:
+                 ready_timeout_s: float = 20.0, retries: int = 3,
+                 firmware: NeuralFirmware | None = None, neural: bool = False) -> None:
+        if neural and firmware is None:
+            raise BetaflightError("NEURAL needs a firmware exported with `fcemu export --target betaflight`")
+        self.firmware = firmware
+        self.neural = neural
+        self.clock_drift: list[float] = []  # per accepted episode
+        self._last_drift = 0.0
         self.speed = speed
         self.retries = retries
         self.restarts = 0
@@ -129,11 +158,12 @@ class BetaflightFlight:
         self.run_dir = Path(run_dir)
         self.twin = twin
         self.rc = rc or RcMap()
-        self.settings = [*BASE_SETTINGS, *self.rc.settings(), *settings]
+        self.settings = [*BASE_SETTINGS, *self.rc.settings(), *settings,
+                         *(neural_settings(firmware) if firmware else [])]
         self.ready_timeout_s = ready_timeout_s
-        self.sitl = BetaflightSitl(self.run_dir)
+        self.sitl = BetaflightSitl(self.run_dir, firmware.binary if firmware else None)
         self.bridge: BetaflightBridge | None = None
-        self.centre = [1500, 1500, 1000, 1500, DISARM_CH_US]
+        self.centre = [1500, 1500, 1000, 1500, DISARM_CH_US, 1000]
 
     def __enter__(self) -> BetaflightFlight:
         try:
@@ -149,7 +179,8 @@ class BetaflightFlight:
     def start(self) -> None:
         self.sitl.fresh_eeprom()
         self.sitl.configure(self.settings)
-        self.bridge = BetaflightBridge(self.twin, speed=self.speed)
+        self.bridge = BetaflightBridge(self.twin, speed=self.speed,
+                                       send_rotor_speed=self.firmware is not None)
         self.wait_ready()
 
     def close(self) -> None:
@@ -159,9 +190,13 @@ class BetaflightFlight:
         self.sitl.stop()
 
     def _flags(self) -> list[str]:
+        return self._msp(lambda msp: msp.arming_disable_flags())
+
+    @staticmethod
+    def _msp(call):
         msp = BetaflightMsp()
         try:
-            return msp.arming_disable_flags()
+            return call(msp)
         finally:
             msp.close()
 
@@ -195,6 +230,7 @@ class BetaflightFlight:
             except BetaflightError:  # its TCP listener was lost at boot (see BetaflightSitl.cli)
                 return False
             if not flags:
+                self._msp(lambda msp: msp.set_clock())
                 return True
             if "BOOTGRACE" in flags and waited >= 2.0:
                 return False
@@ -207,7 +243,7 @@ class BetaflightFlight:
         failed attempt is followed by 0.3 s with the switch low. The error names the flags read
         while the switch was still high."""
         assert self.bridge is not None
-        rc = [1500, 1500, 1000, 1500, ARM_CH_US]
+        rc = [1500, 1500, 1000, 1500, ARM_CH_US, 1000]
         for _ in range(attempts):
             for _ in range(round(timeout_s / self.bridge.dt)):
                 self.bridge.step(rc)
@@ -238,6 +274,9 @@ class BetaflightFlight:
         self.restarts += 1
         self.wait_ready()
 
+    def sitl_clock_ms(self) -> int:
+        return self._msp(lambda msp: msp.clock_ms())
+
     def fly_episode(self, rates_frd: Sequence[float], throttle_ch: int, ticks: int,
                     rate: np.ndarray, pwm: np.ndarray) -> int:
         """Re-arm, put the twin at rest, hold the step for `ticks` steps; fills rate (gyro sent to
@@ -259,7 +298,9 @@ class BetaflightFlight:
                 continue
             self.episode_packets = {k: v - before[k] for k, v in stats.to_json().items()}
             lost = self.episode_packets["lost"]
-            if lost <= MAX_LOST_PER_EPISODE and pwm.min() > 1000.0:
+            # disarmed = every motor at mincommand (a policy may put one motor there, armed)
+            if lost <= MAX_LOST_PER_EPISODE and pwm.max(axis=1).min() > 1000.0:
+                self.clock_drift.append(self._last_drift)
                 return self.episode_packets["late"]
             why = f"{lost} answers lost" if lost > MAX_LOST_PER_EPISODE else "it disarmed mid-episode"
         raise BetaflightError(f"Betaflight SITL failed an episode {self.retries + 1} times (last: {why}); "
@@ -272,42 +313,56 @@ class BetaflightFlight:
         self.bridge.idle(self.centre, 0.02)  # the arm switch must be seen low before it counts
         self.arm()
         roll, pitch, yaw = self.rc.stick_channels(rates_frd)
-        rc = [roll, pitch, throttle_ch, yaw, ARM_CH_US]
+        rc = [roll, pitch, throttle_ch, yaw, ARM_CH_US, NEURAL_ON_US if self.neural else 1000]
+        if self.neural:
+            self.bridge.step(rc)  # Betaflight reads the RC packet (NEURAL on) one tick after it arrives
         self.bridge.reset_twin()
+        clock0 = self.sitl_clock_ms()
         for k in range(ticks):
             frame, out, _ = self.bridge.step(rc)
             rate[k] = frame.gyro
             pwm[k] = out
             if self.bridge.silent_steps >= STALL_STEPS:
                 raise _Stalled
+        self._last_drift = (self.sitl_clock_ms() - clock0) / (ticks * self.bridge.dt * 1000.0) - 1.0
 
-    def fly_script(self, commander, duration_s: float) -> Traces:
+    def fly_script(self, commander, duration_s: float,
+                   neural_window_s: tuple[float, float] | None = None) -> Traces:
         """Fly a `firmware.loop` commander's setpoints and throttle as sticks (e.g. the free rig's
-        take-off and doublets of `fcemu sitl --no-mavlink`); one continuous-task trace."""
+        take-off and doublets of `fcemu sitl --no-mavlink`); one continuous-task trace. With
+        `neural_window_s` = (on, off) the NEURAL switch is high between those times."""
         assert self.bridge is not None
         self.disarm()
         self.bridge.idle(self.centre, 0.02)
         self.arm()
         ticks = round(duration_s / self.bridge.dt)
         setpoint, rate, pwm = np.zeros((1, ticks, 3)), np.zeros((1, ticks, 3)), np.zeros((1, ticks, 4))
+        neural = np.zeros(ticks, dtype=bool)
+        altitude = np.zeros(ticks)
         frame = self.bridge.frame
         top = 0.0
         for k in range(ticks):
             command = commander.command(k * self.bridge.twin.dt_us, frame)
             sticks = self.rc.stick_channels(command.setpoint.rates)
+            t = k * self.bridge.dt
+            on = neural_window_s is not None and neural_window_s[0] <= t < neural_window_s[1]
             rc = [sticks[0], sticks[1], self.rc.throttle_channel(command.setpoint.throttle), sticks[2],
-                  ARM_CH_US]
+                  ARM_CH_US, NEURAL_ON_US if on else 1000]
+            neural[k] = on
             frame, out, _ = self.bridge.step(rc)
             setpoint[0, k] = self.rc.setpoint(sticks)
             rate[0, k] = frame.gyro
             pwm[0, k] = out
-            top = max(top, -float(self.twin.truth().position[2]))
+            altitude[k] = -float(self.twin.truth().position[2])
+            top = max(top, altitude[k])
         with contextlib.suppress(_Stalled):
             self.disarm()
         stats = self.bridge.stats
         return Traces(np.arange(ticks) * self.bridge.dt, setpoint, rate, pwm,
-                      controller="betaflight-4.6.0-sitl", task="continuous",
-                      extra={"rig": self.twin.rig, "max_altitude_m": top,
+                      controller="betaflight-4.6.0-sitl" + ("-neural" if self.firmware else ""),
+                      task="continuous",
+                      extra={"rig": self.twin.rig, "max_altitude_m": top, "neural_on": neural.tolist(),
+                             "altitude_m": altitude.tolist(), "final_altitude_m": float(altitude[-1]),
                              "packets": {**stats.to_json(), "sitl_restarts": self.restarts}})
 
     def fly_steps(self, commands: np.ndarray, throttle_ch: int, episode_s: float = 1.0,
@@ -326,9 +381,10 @@ class BetaflightFlight:
         setpoint = np.broadcast_to(np.asarray(commands)[:, None, :], (n, ticks, 3)).copy()
         t = np.arange(ticks) * self.bridge.dt
         stats = self.bridge.stats
-        return Traces(t, setpoint, rate, pwm, controller="betaflight-4.6.0-sitl", task="episodic",
+        name = "betaflight-4.6.0-sitl" + ("-neural" if self.neural else "")
+        return Traces(t, setpoint, rate, pwm, controller=name, task="episodic",
                       extra={"throttle_channel": throttle_ch, "rate_dps": self.rc.rate_dps,
-                             "late_per_episode": late,
+                             "late_per_episode": late, "clock_drift_per_episode": list(self.clock_drift),
                              "packets": {**stats.to_json(), "sitl_restarts": self.restarts},
                              "reply_us_p50": _pct(stats.reply_us, 50),
                              "reply_us_p99": _pct(stats.reply_us, 99),

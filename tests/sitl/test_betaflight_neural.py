@@ -1,0 +1,109 @@
+"""Betaflight 4.6 built with the shipped policy (`fcemu export --target betaflight`) on the rig:
+NEURAL on, the policy flies (its first answers are fcemu's C policy's); off, Betaflight's PID."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from fcemu.cli import main
+from fcemu.evaluation.betaflight_crosscheck import check_clock
+from fcemu.export.betaflight.build import BetaflightExportError, betaflight_source, export_betaflight
+from fcemu.firmware.c_policy import CPolicyController
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.betaflight_link import pack_fdm, unpack_fdm
+from fcemu.sim_bridge.twin import Twin
+from fcemu.sitl.betaflight import BetaflightFlight, RcMap
+from fcemu.sitl.betaflight_process import BetaflightError, neural_firmware, port_in_use
+from fcemu.sitl.traces import Traces
+from tests.export.mcu_tools import SHIPPED, require_codegen
+
+try:
+    betaflight_source()
+except BetaflightExportError as exc:
+    pytest.skip(f"Betaflight source unavailable: {exc}", allow_module_level=True)
+
+HOVER = 0.745
+TICKS = 500
+
+
+@pytest.fixture(scope="module")
+def firmware(tmp_path_factory):
+    require_codegen()
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc to build the SITL")
+    out = tmp_path_factory.mktemp("betaflight_neural_sitl")
+    export_betaflight(SHIPPED, out, ["SITL"], parity_samples=1000)
+    return neural_firmware(out)
+
+
+@pytest.fixture
+def _no_other_sitl():
+    if port_in_use(5761):
+        pytest.fail("another Betaflight SITL holds TCP 5761; its UDP ports would take our packets")
+
+
+def _fly(firmware, run_dir, neural: bool, step: np.ndarray):
+    rc = RcMap()
+    rate, pwm = np.zeros((TICKS, 3)), np.zeros((TICKS, 4))
+    with BetaflightFlight(run_dir, Twin(rig="rig"), rc, speed=0.25, firmware=firmware,
+                          neural=neural) as flight:
+        flight.fly_episode(step, rc.throttle_channel(HOVER), TICKS, rate, pwm)
+        throttle = rc.fcemu_throttle(rc.throttle_channel(HOVER))
+    return rate, pwm, throttle
+
+
+def _c_policy_first_answer(firmware, step: np.ndarray, throttle: float) -> np.ndarray:
+    """fcemu's C policy on the first recorded tick (the twin at rest, the step commanded)."""
+    twin = Twin(rig="rig")
+    frame = twin.reset()
+    policy = CPolicyController(firmware.policy_dir)
+    at_rest = SensorFrame(frame.t_us, np.zeros(3), frame.accel, frame.rotor_speed)
+    return policy.update(RateSetpoint(step, throttle), at_rest, 1e-3)
+
+
+@pytest.mark.slow
+def test_neural_on_the_policy_tracks_a_roll_step_and_off_the_pid_does(firmware, tmp_path, _no_other_sitl):
+    step = RcMap().quantise(np.array([2.0, 0.0, 0.0]))
+    for neural in (True, False):
+        rate, pwm, throttle = _fly(firmware, tmp_path / f"neural_{neural}", neural, step)
+        reached = np.flatnonzero(rate[:, 0] >= 0.9 * step[0])
+        assert reached.size and reached[0] < 150, f"NEURAL {neural}: roll rate not at 90 % within 150 ms"
+        assert np.abs(rate[-100:, 0] - step[0]).mean() < 0.1 * step[0], f"NEURAL {neural}: no tracking"
+        first = _c_policy_first_answer(firmware, step, throttle)
+        if neural:  # the policy flew: Betaflight's first answer is the C policy's (to its 1 µs output)
+            assert np.abs(pwm[0] - first).max() <= 1.5
+        else:  # Betaflight's PID answers the step differently
+            assert np.abs(pwm[0] - first).max() > 20.0
+
+
+def test_the_extended_fdm_packet_carries_the_rotor_speeds_in_rpm():
+    rotor = np.array([500.0, 600.0, 700.0, 800.0])
+    plain = pack_fdm(1.0, [0.1, 0.2, 0.3], [0.0, 0.0, -9.8], [1.0, 0.0, 0.0, 0.0])
+    extended = pack_fdm(1.0, [0.1, 0.2, 0.3], [0.0, 0.0, -9.8], [1.0, 0.0, 0.0, 0.0], rotor_speed=rotor)
+    assert len(plain) == 144 and len(extended) == 176 and extended[:144] == plain
+    assert unpack_fdm(extended)["rotor_rpm"] == pytest.approx(rotor * 60.0 / (2.0 * np.pi))
+
+
+def _episodes_with_drift(drift: list[float]) -> Traces:
+    n = len(drift)
+    return Traces(np.arange(3) * 1e-3, np.zeros((n, 3, 3)), np.zeros((n, 3, 3)), np.zeros((n, 3, 4)),
+                  controller="betaflight", task="episodic", extra={"clock_drift_per_episode": drift})
+
+
+def test_a_run_whose_sitl_clock_drifted_is_refused_and_one_that_kept_time_is_not():
+    kept = check_clock(_episodes_with_drift([0.01, -0.02, 0.03]), speed=0.25)
+    assert kept["median"] == 0.02 and kept["max"] == 0.03
+    with pytest.raises(BetaflightError, match=r"drifted .* --speed 0.5"):
+        check_clock(_episodes_with_drift([0.18, 0.2, 0.25]), speed=1.0)
+    with pytest.raises(BetaflightError, match="episode 1"):
+        check_clock(_episodes_with_drift([0.01, 0.3, 0.02]), speed=0.25)
+
+
+def test_fcemu_betaflight_rejects_a_directory_that_is_not_an_export(tmp_path, capsys):
+    assert main(["betaflight", "--firmware", str(tmp_path), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fcemu: error: ") and "not a Betaflight export" in err
