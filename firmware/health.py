@@ -59,7 +59,8 @@ class HealthMonitor:
 
     def __init__(self, rules: HealthRules | None = None, dt: float = 0.001) -> None:
         self.rules = r = rules or HealthRules()
-        self._alpha = 1.0 - math.exp(-dt / r.motor_tau_s)
+        self._keep_per_us = math.exp(-1e-6 / r.motor_tau_s)  # the model's decay per µs of sensor time
+        self._dt_us = round(dt * 1e6)
         self._speed_per_us = r.rotor_speed_max / (r.pwm_max - r.pwm_min)
         self._tolerance = r.rotor_tolerance * r.rotor_speed_max
         self.outbox: list[tuple[int, str]] = []
@@ -79,6 +80,7 @@ class HealthMonitor:
         self._held: np.ndarray | None = None
         self._stuck = 0
         self._expected: list[float] | None = None
+        self._t_us: int | None = None
         self._prev_speed = [math.nan] * 4
         self._pwm_at_change = [0.0] * 4
         self._stale = [0] * 4
@@ -94,7 +96,7 @@ class HealthMonitor:
         if self.policy_trusted:
             self.policy_trusted = False
             self.handover = why
-            self._declare("handover", WARNING, f"Policy inputs untrusted ({why}): PID flies")
+            self._declare("handover", WARNING, f"Policy hands over to PID: {why}")
 
     def _fail_gyro(self, why: str) -> None:
         self.gyro_failed = True
@@ -108,7 +110,7 @@ class HealthMonitor:
         self.ticks += 1
         p = pwm.tolist()
         gyro = self._check_gyro(frame.gyro.tolist(), p)
-        self._check_rotors(frame.rotor_speed.tolist(), p)
+        self._check_rotors(frame.rotor_speed.tolist(), p, frame.t_us)
         return frame if gyro is None else frame._replace(gyro=gyro)
 
     def _check_gyro(self, g: list[float], p: list[float]) -> np.ndarray | None:
@@ -142,13 +144,17 @@ class HealthMonitor:
         self._held = None
         return None
 
-    def _check_rotors(self, w: list[float], p: list[float]) -> None:
+    def _check_rotors(self, w: list[float], p: list[float], t_us: int) -> None:
         r = self.rules
         expected = self._expected
         if expected is None:
             expected = self._expected = [v if math.isfinite(v) else 0.0 for v in w]
             self._pwm_at_change = list(p)
-        alpha, per_us, lo = self._alpha, self._speed_per_us, r.pwm_min
+        # The model advances by the frames' own clock: ticks the loop skipped moved the rotors too.
+        elapsed = self._dt_us if self._t_us is None else min(max(t_us - self._t_us, 0), 100_000)
+        self._t_us = t_us
+        alpha = 1.0 - self._keep_per_us ** elapsed
+        per_us, lo = self._speed_per_us, r.pwm_min
         hi_speed = r.rotor_speed_max
         for i in range(4):
             v, pi = w[i], p[i]

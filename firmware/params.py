@@ -104,6 +104,7 @@ SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("FS_HOLD_T", 1.0, 0.0, 30.0, doc="failsafe: hold level and vertical speed 0 for this long, s"),
     ParamSpec("FS_DESC_SPD", 0.7, 0.1, 3.0, doc="failsafe: descent speed, m/s"),
     ParamSpec("FS_DESC_MAX_T", 20.0, 1.0, 120.0, doc="failsafe: disarm after descending this long, s"),
+    ParamSpec("SYS_FAILURE_EN", 0, 0, 1, INT32, "accept MAV_CMD_INJECT_FAILURE (1), as PX4; refused at 0"),
 )
 
 

@@ -236,3 +236,28 @@ class FaultInjector:
         for s in self._sensing:
             s.apply(values, self.rng)
         return np.array(values[:3]), np.array(values[3:])
+
+
+def mavlink_injector(twin, seed: int | None = None):
+    """MAV_CMD_INJECT_FAILURE's (unit, type, instance) → (accepted, text), acting on `twin`
+    (a `sim_bridge.twin.Twin`), whose `faults` it creates on first use."""
+
+    def inject(unit: int, failure_type: int, instance: int) -> tuple[bool, str]:
+        faults = from_mavlink(unit, failure_type, instance)
+        if isinstance(faults, str):
+            return False, faults
+        if twin.faults is None:
+            twin.faults = FaultInjector(twin.dt, twin.airframe.motor.max_rotor_speed, seed)
+        if not faults:
+            target = {UNIT_GYRO: "gyro", UNIT_BATTERY: "battery"}.get(unit)
+            if target is None:  # the motor: what it produces and what it reports
+                twin.faults.clear("motor", instance)
+                twin.faults.clear("esc-telemetry", instance)
+            else:
+                twin.faults.clear(target, instance)
+            return True, f"unit {unit}{f' {instance}' if instance else ''} ok"
+        for fault in faults:
+            twin.faults.inject(fault)
+        return True, ", ".join(f.describe() for f in faults)
+
+    return inject

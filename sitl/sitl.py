@@ -19,6 +19,7 @@ import numpy as np
 
 from fcemu.firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from fcemu.firmware.controllers import load_controller
+from fcemu.firmware.health import HealthMonitor
 from fcemu.firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
 from fcemu.firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, prioritize_loop
 
@@ -147,7 +148,7 @@ def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, real
     real = RealTimeClock() if spin_us is None else RealTimeClock(spin_us)
     clock = (real if speed == 1.0 else ScaledClock(speed)) if realtime else LockstepClock()
     loop = FlightLoop(link, frame, controllers, commander or scripted_flight(rig, selected), clock,
-                      rate_hz, sinks, fallback=FALLBACK)
+                      rate_hz, sinks, fallback=FALLBACK, health=HealthMonitor(dt=1.0 / rate_hz))
     return Sitl(loop, twin, link, selected)
 
 
@@ -227,6 +228,10 @@ def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float |
     if explicit_controller or params["CTRL_SEL"] >= len(sitl.loop.controllers):
         params.set("CTRL_SEL", ("pid", "neural").index(sitl.selected))
     vehicle = Vehicle(params, sitl.loop.controllers, fallback=FALLBACK)
+    if sitl.twin is not None:  # MAV_CMD_INJECT_FAILURE acts in the twin (sim_bridge/faults.py)
+        from fcemu.sim_bridge.faults import mavlink_injector
+
+        vehicle.failure_injector = mavlink_injector(sitl.twin)
     config.controllers = list(sitl.loop.controllers)
     config.has_position = rig == "free" and sitl.twin is not None
     proc, sock, slot, ports = start_mavlink(config, dict(params.values))

@@ -100,11 +100,17 @@ class LinkedVehicle:
         self._pos: tuple = (0.0, 0.0, 0.0)
         self._vel: tuple = (0.0, 0.0, 0.0)
         self._closed = False
+        self._health_failsafe = ""
 
     # ---- Commander ----
     def command(self, t_us: int, frame: SensorFrame) -> Command:
         if not self._closed:
             self._drain()
+        health = self.loop.health if self.loop is not None else None
+        if health is not None and health.failsafe != self._health_failsafe:
+            self._health_failsafe = health.failsafe
+            if health.failsafe:
+                self.vehicle.sensor_failsafe(health.failsafe)
         return self.vehicle.command(t_us, frame)
 
     def _drain(self) -> None:
@@ -140,6 +146,9 @@ class LinkedVehicle:
                 self._send(ipc.encode(ipc.Ack(msg.req, *reply)))
             elif kind is ipc.ParamSet:
                 v.set_param(msg.name, msg.value)
+            elif kind is ipc.FailureRequest:
+                reply = v.inject_failure(int(msg.unit), int(msg.failure_type), int(msg.instance))
+                self._send(ipc.encode(ipc.Ack(msg.req, *reply)))
             elif kind is ipc.LinkStats:
                 self.mavlink_stats = msg.counters
             else:
@@ -150,6 +159,10 @@ class LinkedVehicle:
     # ---- TelemetrySink ----
     def publish(self, sample: TickSample) -> None:
         v = self.vehicle
+        health = self.loop.health if self.loop is not None else None
+        if health is not None and health.outbox:
+            v.events.outbox.extend(health.outbox)
+            health.outbox.clear()
         outbox = v.events.outbox
         if outbox:
             for severity, text in outbox:

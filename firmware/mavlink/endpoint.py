@@ -72,6 +72,7 @@ class Endpoint:
         except OSError:
             pass
         self.kernel_dropped = 0  # datagrams the kernel dropped with our receive buffer full
+        self.muted = False  # the MAVLink signal failed by injection: nothing goes out
         self.mav = mavlink.MAVLink(_Writer(self), srcSystem=sysid, srcComponent=1)
         self.mav.robust_parsing = True
         self.tx = self.tx_errors = self.rx = self.bad = 0
@@ -144,7 +145,8 @@ class Endpoint:
         mav.expected_length = mavlink.HEADER_LEN_V1 + 2
 
     def send(self, msg) -> None:
-        self.mav.send(msg)
+        if not self.muted:
+            self.mav.send(msg)
 
     def close(self) -> None:
         self.sock.close()

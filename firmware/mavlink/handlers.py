@@ -24,6 +24,7 @@ from fcemu.firmware.mavlink.outputs import (
     Checks,
     Forward,
     Link,
+    MavlinkSignal,
     Output,
     Say,
     SendTelemetry,
@@ -170,12 +171,33 @@ class Handlers(Checks):
             if not ok:
                 self._count("rx_unsupported")
             return command_ack(link, msg, cmd, M.MAV_RESULT_ACCEPTED if ok else M.MAV_RESULT_UNSUPPORTED)
+        if cmd == M.MAV_CMD_INJECT_FAILURE:
+            return self._inject_failure(link, msg, p)
         if cmd == M.MAV_CMD_GET_MESSAGE_INTERVAL:
             msgid = int(p[0]) if p[0] is not None and 0 <= p[0] < 1 << 24 else 0
             command_ack(link, msg, cmd, M.MAV_RESULT_ACCEPTED)
             return link.send(link.mav.message_interval_encode(msgid, link.scheduler.interval(msgid)))
         self._count("rx_unsupported")
         return command_ack(link, msg, cmd, M.MAV_RESULT_UNSUPPORTED)
+
+    def _inject_failure(self, link: Link, msg, p: tuple) -> list[Output] | None:
+        """PX4's rule: refused unless SYS_FAILURE_EN is 1. The MAVLink signal is this process's; every
+        other unit goes to the flight process, whose twin decides (sim_bridge/faults.py)."""
+        cmd = M.MAV_CMD_INJECT_FAILURE
+        if self.params["SYS_FAILURE_EN"] != 1:
+            self._deny(link, msg, cmd)
+            return [Say(4, "Failure injection disabled (SYS_FAILURE_EN 0)", to_sender=True, limited=True)]
+        unit, kind, instance = p[0], p[1], 0.0 if p[2] is None else p[2]
+        if unit is None or kind is None or not (0 <= unit < 256 and 0 <= kind < 256 and 0 <= instance < 256):
+            return self._deny(link, msg, cmd)
+        unit, kind, instance = round(unit), round(kind), round(instance)
+        if unit == M.FAILURE_UNIT_SYSTEM_MAVLINK_SIGNAL:
+            if kind not in (M.FAILURE_TYPE_OK, M.FAILURE_TYPE_OFF):
+                return command_ack(link, msg, cmd, M.MAV_RESULT_UNSUPPORTED)
+            command_ack(link, msg, cmd, M.MAV_RESULT_ACCEPTED)
+            on = kind == M.FAILURE_TYPE_OK
+            return [Say(4, f"Failure injected: MAVLink signal {'ok' if on else 'off'}"), MavlinkSignal(on)]
+        return [Forward(ipc.FailureRequest(unit, kind, instance), cmd, msg)]
 
     def _request_message(self, link: Link, msg, cmd: int, param1: float | None) -> list[Output] | None:
         if cmd == M.MAV_CMD_REQUEST_MESSAGE and (param1 is None or not 0 <= param1 < 1 << 24):

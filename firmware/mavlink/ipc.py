@@ -7,7 +7,8 @@ AF_UNIX SOCK_SEQPACKET socket pair, non-blocking on the flight side (a stalled M
 process costs a dropped message, never a blocked tick), one typed message per datagram
 (`encode` / `decode`):
 
-  MAVLink → flight: Setpoint, Sticks, ArmRequest, ModeRequest, ParamSet, LinkStats, Ready.
+  MAVLink → flight: Setpoint, Sticks, ArmRequest, ModeRequest, ParamSet, LinkStats, Ready,
+  FailureRequest.
   Flight → MAVLink: Ack (to an ArmRequest or ModeRequest, by `req`), Text; and the snapshot.
 """
 
@@ -59,6 +60,15 @@ class Ready(NamedTuple):
     ports: dict[str, int]  # the MAVLink process's local UDP port per peer
 
 
+class FailureRequest(NamedTuple):
+    """MAV_CMD_INJECT_FAILURE for the twin: MAVLink FAILURE_UNIT, FAILURE_TYPE, instance (0: all)."""
+
+    unit: int
+    failure_type: int
+    instance: int
+    req: int = 0
+
+
 class Ack(NamedTuple):
     req: int
     result: int  # MAV_RESULT
@@ -70,9 +80,10 @@ class Text(NamedTuple):
     text: str
 
 
-Message = Setpoint | Sticks | ArmRequest | ModeRequest | ParamSet | LinkStats | Ready | Ack | Text
+Message = (Setpoint | Sticks | ArmRequest | ModeRequest | ParamSet | LinkStats | Ready | Ack | Text
+           | FailureRequest)
 MESSAGES: tuple[type, ...] = (Setpoint, Sticks, ArmRequest, ModeRequest, ParamSet, LinkStats, Ready, Ack,
-                              Text)
+                              Text, FailureRequest)
 _TAGS = {cls: tag for tag, cls in enumerate(MESSAGES)}
 _ARITY = tuple(len(cls._fields) for cls in MESSAGES)
 _build = tuple.__new__  # NamedTuple construction from a tuple of fields, without re-checking

@@ -31,7 +31,7 @@ class Forward(NamedTuple):
     """A request for the vehicle; `origin` (the message) is answered with a COMMAND_ACK once the
     vehicle replies, unless it is None (SET_MODE has no ACK)."""
 
-    request: ipc.ArmRequest | ipc.ModeRequest
+    request: ipc.ArmRequest | ipc.ModeRequest | ipc.FailureRequest
     command: int
     origin: mavlink.MAVLink_message | None
 
@@ -56,7 +56,14 @@ class SendTelemetry(NamedTuple):
     msgid: int
 
 
-Output = ipc.Setpoint | ipc.Sticks | Forward | ParamChanged | ParamListRequested | Say | SendTelemetry
+class MavlinkSignal(NamedTuple):
+    """FAILURE_UNIT_SYSTEM_MAVLINK_SIGNAL: `on` False stops every link sending and receiving."""
+
+    on: bool
+
+
+Output = (ipc.Setpoint | ipc.Sticks | Forward | ParamChanged | ParamListRequested | Say | SendTelemetry
+          | MavlinkSignal)
 NOTHING: list[Output] = []
 
 

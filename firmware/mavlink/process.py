@@ -77,6 +77,12 @@ def read_signing_key(source: str | int) -> bytes:
     return load_signing_key(source)
 
 
+def _restores_signal(msg) -> bool:
+    """MAV_CMD_INJECT_FAILURE, MAVLink signal, OK: the one message a vehicle with its signal off hears."""
+    return (msg.get_type() in ("COMMAND_LONG", "COMMAND_INT") and msg.command == M.MAV_CMD_INJECT_FAILURE
+            and msg.param1 == M.FAILURE_UNIT_SYSTEM_MAVLINK_SIGNAL and msg.param2 == M.FAILURE_TYPE_OK)
+
+
 class Station:
     def __init__(self, config: dict, params: dict, ipc_sock: socket.socket, slot: ipc.SnapshotSlot) -> None:
         self.slot = slot
@@ -97,7 +103,7 @@ class Station:
         self.handlers = Handlers(self.sysid, self.params, self.controllers, self.has_position,
                                    lambda: self.snap.t_us)
         self.param_streams = ParamStreams(lambda: len(self.params), self._send_param_index)
-        self.counters = {"ipc_bad": 0, "snapshots": 0}
+        self.counters = {"ipc_bad": 0, "snapshots": 0, "rx_signal_off": 0}
         self.pending = PendingCommands()
         self.texts = StatusTexts(self.endpoints)
         self.say = self.texts.say
@@ -108,6 +114,12 @@ class Station:
 
     # ---- what the handlers ask for ----
     def receive(self, ep: Endpoint, msg) -> None:
+        if ep.muted:  # the signal is off: the one message heard is its way back
+            if not _restores_signal(msg):
+                self.counters["rx_signal_off"] += 1
+                return
+            for link in self.endpoints:
+                link.muted = False
         for output in self.handlers.handle(ep, msg):
             kind = type(output)
             if kind is ipc.Setpoint:
@@ -125,6 +137,9 @@ class Station:
                          output.limited)
             elif kind is out.SendTelemetry:
                 self._send_one(ep, output.msgid)
+            elif kind is out.MavlinkSignal:
+                for link in self.endpoints:
+                    link.muted = not output.on
 
     def _forward(self, ep: Endpoint, fwd: out.Forward) -> None:
         req = self.pending.open(ep if fwd.origin is not None else None, fwd.command, fwd.origin)

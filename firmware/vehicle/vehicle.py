@@ -15,7 +15,7 @@ controller (the PID), whichever controller flies the other modes.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -38,15 +38,18 @@ from fcemu.firmware.vehicle.flight_tasks import (
 )
 from fcemu.firmware.vehicle.land_detector import LandDetector
 from fcemu.firmware.vehicle.modes import (
+    ACCEPTED,
     ACRO,
     AUTO_MODES,
     HOLD,
+    INFO,
     LAND,
     MANUAL,
     OFFBOARD,
     ON_GROUND,
     STABILIZED,
     STICKS_LOSS,
+    UNSUPPORTED,
     WARNING,
     Events,
     Mode,
@@ -81,6 +84,8 @@ class Vehicle:
             MANUAL: stabilized, STABILIZED: stabilized, ACRO: StickTask(self.inputs, acro=True),
             OFFBOARD: OffboardTask(self.inputs), HOLD: HoldTask(self.inputs), LAND: self.land}
         self._last_est_us: int | None = None
+        # MAV_CMD_INJECT_FAILURE's (unit, type, instance) → (accepted, text); set where a twin can take it.
+        self.failure_injector: Callable[[int, int, int], tuple[bool, str]] | None = None
         self._setpoint = IDLE
         self._command = Command(False, self._setpoint, self.fallback)
         self._apply_params()
@@ -182,6 +187,22 @@ class Vehicle:
         self.inputs.sticks = values
         self.inputs.sticks_us = self.now_us
         return True
+
+    def inject_failure(self, unit: int, failure_type: int, instance: int) -> Reply:
+        """MAV_CMD_INJECT_FAILURE (SYS_FAILURE_EN was checked by the MAVLink process); said on every link."""
+        if self.failure_injector is None:
+            return Reply(UNSUPPORTED, "no simulated hardware to fail")
+        accepted, text = self.failure_injector(unit, failure_type, instance)
+        self.events.count("failure_injected" if accepted else "failure_unsupported")
+        self.events.say(WARNING if accepted else INFO, f"Failure injected: {text}" if accepted
+                        else f"Failure injection unsupported: {text}")
+        return Reply(ACCEPTED if accepted else UNSUPPORTED, text)
+
+    def sensor_failsafe(self, reason: str) -> None:
+        """The health monitor lost a sensor the vehicle cannot fly without (firmware/health.py): LAND."""
+        if self.modes.armed and self.modes.mode != LAND:
+            self.modes.enter_land(reason)
+            self._activate(on_ground=self.landed_state == ON_GROUND, failsafe=True)
 
     def position_fix(self, position: tuple[float, float, float],
                      velocity: tuple[float, float, float]) -> bool:

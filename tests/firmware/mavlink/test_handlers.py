@@ -93,7 +93,8 @@ def test_ipc_messages_round_trip_and_garbage_is_refused() -> None:
     messages = [ipc.Setpoint((0.1, 0.2, 0.3), 0.5), ipc.Sticks(0.0, 0.1, -0.1, 0.4),
                 ipc.ArmRequest(True, False, 3), ipc.ModeRequest(4, 3, 7), ipc.ParamSet("FS_HOLD_T", 2.0),
                 ipc.LinkStats({"rx_frames": 3}),
-                ipc.Ready({"gcs": 14550}), ipc.Ack(7, 0, ""), ipc.Text(6, "Mode HOLD")]
+                ipc.Ready({"gcs": 14550}), ipc.Ack(7, 0, ""), ipc.Text(6, "Mode HOLD"),
+                ipc.FailureRequest(101, 2, 1, 9)]
     assert {type(m) for m in messages} == set(ipc.MESSAGES)
     for m in messages:
         assert ipc.decode(ipc.encode(m)) == m and type(ipc.decode(ipc.encode(m))) is type(m)
