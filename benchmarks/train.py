@@ -4,8 +4,9 @@ Trains with the defaults of `fcemu train`, evaluating the deterministic policy e
 `--eval-every` steps on a fixed set of commands at hover (the in-training evaluation of
 `training.train.PidRaceCallback`), and stops when it beats the best PID preset's Error sum
 (`--target beat`) or meets the deployable bar's nominal lines (`--target bar`,
-`fcemu.evaluation.bar`), or at the cap. Wall time includes the evaluations and a `--warm-start` (its environment steps are reported apart,
-not in the steps to beat); steps/s does not. The machine's load is reported with it.
+`fcemu.evaluation.bar`), or at the cap. Wall time includes the evaluations and a
+`--warm-start` (its environment steps are reported apart, not in the steps to beat);
+steps/s does not. The machine's load is reported with it.
 """
 
 from __future__ import annotations
