@@ -1,0 +1,60 @@
+"""examples/mavsdk_failure_handover.py against a real `fcemu sitl` flying the default policy on the
+free rig: MAVSDK's failure plugin sticks motor 1's ESC telemetry in OFFBOARD hover, the policy hands
+over to the PID (said once), the vehicle flies on and lands; against the PID the script exits 1."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from tests.firmware.mavlink.conftest import free_udp_port, start_sitl
+from tests.test_examples import run_example
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture
+def sitl(tmp_path):
+    started = []
+
+    def factory(**kw):
+        s = start_sitl(tmp_path, **kw)
+        started.append(s)
+        return s
+
+    yield factory
+    for s in started:
+        s.stop()
+
+
+@pytest.mark.timeout(180)
+def test_motor_telemetry_stuck_hands_the_policy_over_and_the_vehicle_lands(sitl, tmp_path: Path) -> None:
+    pytest.importorskip("mavsdk.asyncio", reason="MAVSDK-Python 4.x is not installed")
+    from fcemu.firmware.controllers import DEFAULT_POLICY
+
+    offboard = free_udp_port()
+    s = sitl(rig="free", offboard=offboard, controller=str(DEFAULT_POLICY))
+    summary_path = tmp_path / "handover.json"
+    script = run_example("mavsdk_failure_handover.py", "--connect", f"udpin://127.0.0.1:{offboard}",
+                         "--summary", str(summary_path))
+    assert script.returncode == 0, script.stdout[-2000:] + script.stderr[-3000:] + s.stop()[-2000:]
+    summary = json.loads(summary_path.read_text())
+    assert summary["failure_text"] == "Failure injected: esc-telemetry 1 stuck", summary
+    assert summary["handover_text"] == "Policy hands over to PID: rotor speed 1 stale", summary
+    texts = summary["status_texts"]
+    assert sum("hands over" in t for t in texts) == 1, texts
+    assert summary["mode_after_handover"] == "OFFBOARD" and summary["altitude_after_handover_m"] > 2.0
+    assert summary["landed"] and texts[-1] == "INFO: Disarmed: landed", texts
+
+
+@pytest.mark.timeout(120)
+def test_exits_1_when_no_policy_flies_to_hand_over(sitl, tmp_path: Path) -> None:
+    pytest.importorskip("mavsdk.asyncio", reason="MAVSDK-Python 4.x is not installed")
+    offboard = free_udp_port()
+    sitl(rig="free", offboard=offboard, controller="pid")
+    script = run_example("mavsdk_failure_handover.py", "--connect", f"udpin://127.0.0.1:{offboard}",
+                         "--timeout", "1")
+    assert script.returncode == 1, script.stdout[-2000:] + script.stderr[-3000:]
+    assert "no 'Policy hands over to PID' within 1 s of the injection" in script.stderr
