@@ -122,11 +122,11 @@ def bench_mcu_command(args) -> int:
     cycles = details["cycles"]
     print(f"RAM = {target['static_ram_bytes']} static + {target['stack_bytes']} stack (painted); "
           f"tanh: {details['tanh']}")
-    print(f"time: {cycles['instructions']} instructions traced → {cycles['cycles']} cycles by the "
-          f"Cortex-M4 TRM tables (refill 1–3 and VLDR pipelining: {cycles['cycles_low']}–"
-          f"{cycles['cycles_high']}) + {cycles['art_wait_cycles']} flash wait cycles behind the ART = "
-          f"{report['est_cycles']} → {report['est_us_at_168mhz']} µs at 168 MHz; every taken branch and "
-          f"weight line missing the flash cache: {report['est_us_at_168mhz_flash_bound']} µs; "
-          f"instructions × CPI {details['cpi_assumed']}: {report['est_us_at_168mhz_cpi']} µs")
+    print(f"cycles: {cycles['instructions']} instructions traced → {cycles['cycles']} by the Cortex-M4 "
+          f"TRM tables (band {cycles['cycles_low']}–{cycles['cycles_high']}) + {cycles['art_wait_cycles']} "
+          f"flash wait behind the F405's ART = {report['est_cycles']}: {report['est_us_at_168mhz']} µs at "
+          f"168 MHz")
+    print(f"  every taken branch and weight line waiting on flash: {report['est_us_at_168mhz_flash_bound']} "
+          f"µs; instructions × CPI {details['cpi_assumed']}: {report['est_us_at_168mhz_cpi']} µs")
     print(budget_verdict(report))
     return 0

@@ -6,10 +6,13 @@ Source: ARM Cortex-M4 Processor Technical Reference Manual (ARM DDI 0439B), sect
 
 - data processing, shifts, compare, extend, bit field, reverse, saturate, CLZ, MUL/MLA/MLS and
   the long multiplies, IT, NOP: 1. SDIV/UDIV: 2 to 12 (early termination; taken here as 12).
-- LDR/LDRB/LDRH/LDRSB/LDRSH, STR/STRB/STRH: 2; "neighboring load and store single
-  instructions can pipeline their address and data phases", so one that follows another
-  completes in 1 (not after a STR with register offset, nor when its address register is the
-  previous load's destination: rules of 3.3.2 "Load/store timings"). LDRD/STRD: 1+N = 3.
+- LDR/LDRB/LDRH/LDRSB/LDRSH: 2; STR/STRB/STRH: 2 in Table 3-1, but 3.3.2 "Load/store
+  timings" has "STR Rx,[Ry,#imm] is always one cycle", so 1 with an immediate offset and 2
+  with a register offset. 3.3.2 also: an LDR, or a STR with register offset, right behind an
+  LDR whose destination it does not address with takes one cycle less ("LDR [any] are
+  pipelined when possible"; nothing pipelines behind a store); "any load or store that
+  generates an address dependent on the result of a preceding data processing operation"
+  takes one more. LDRD/STRD: 1+N = 3, never pipelined.
 - LDM/STM/PUSH/POP: 1+N for N registers; with PC in a load list 1+N+P.
 - B<cc>/CBZ/CBNZ: 1 if not taken, 1+P taken; B/BL/BX/BLX: 1+P; TBB/TBH: 2+P; an instruction
   that writes PC (MOV/ADD PC: 1+P, LDR PC: 2+P). P, the pipeline refill, is 1 to 3 cycles
@@ -24,13 +27,17 @@ Source: ARM Cortex-M4 Processor Technical Reference Manual (ARM DDI 0439B), sect
   types take one cycle longer if their result is consumed by the following instruction."
 
 What the count cannot see: a conditional instruction inside an IT block that fails its
-condition is costed as if it executed (an upper bound there); VDIV/VSQRT are costed 14 though
+condition is costed as if it executed (QEMU's trace shows it either way); VDIV/VSQRT are costed 14 though
 integer instructions after them run on; the TRM leaves open whether VLDR/VSTR pipeline like
 LDR/STR (`fp_load_store_pipelining` chooses; by default they do not, as Table 7-1 reads).
 
 The histogram that `weigh` returns is keyed so that `histogram_cycles` of it, plus the
-context adjustments it lists (pipelined loads −1, a floating-point result used at once +1,
-a folded IT −1), is the stream's cycle count.
+context adjustments it lists (a pipelined load −1, an address from the instruction before +1,
+a floating-point result used at once +1, a folded IT −1), is the stream's cycle count.
+
+`flash_waits` adds what the memory costs: an STM32F405 at 168 MHz reads flash with 5 wait
+states (RM0090, "Relation between CPU clock frequency and Flash memory read time", 2.7-3.6 V)
+behind its ART accelerator (64 cached 128-bit instruction lines, sequential prefetch).
 """
 
 from __future__ import annotations
@@ -39,6 +46,7 @@ import re
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cache
 
 DEFAULT_REFILL = 2
 CONDITIONS = ("eq", "ne", "cs", "hs", "cc", "lo", "mi", "pl", "vs", "vc", "hi", "ls", "ge", "lt", "gt",
@@ -88,6 +96,9 @@ class Instruction:
     mnemonic: str
     operands: str = ""
 
+    def __hash__(self) -> int:  # the address alone: streams hash every executed instruction
+        return self.address
+
 
 @dataclass(frozen=True)
 class Decoded:
@@ -96,6 +107,7 @@ class Decoded:
     data_types: tuple[str, ...]
 
 
+@cache
 def decode(mnemonic: str) -> Decoded:
     """`bne.n` → b, conditional; `vmul.f32` → vmul; `adds.w` → add; `addseq` → add; `itte` → it."""
     parts = mnemonic.lower().split(".")
@@ -112,7 +124,8 @@ def decode(mnemonic: str) -> Decoded:
     return Decoded(word, conditional, data_types)
 
 
-def split_operands(operands: str) -> list[str]:
+@cache
+def split_operands(operands: str) -> tuple[str, ...]:
     """Operands split at top-level commas, the disassembler's comment dropped."""
     text = operands.split("@")[0].split(";")[0]
     out, depth, current = [], 0, ""
@@ -125,10 +138,11 @@ def split_operands(operands: str) -> list[str]:
             current += ch
     if current.strip():
         out.append(current.strip())
-    return out
+    return tuple(out)
 
 
-def registers(text: str) -> set[str]:
+@cache
+def registers(text: str) -> frozenset[str]:
     """Register names in operand text as core r0..r15 and single-precision s0..s31 (d = two s)."""
     text = REGISTER_RANGE.sub(lambda m: ", ".join(f"{m[1]}{i}" for i in range(int(m[2]), int(m[3]) + 1)),
                               text.lower())
@@ -139,31 +153,33 @@ def registers(text: str) -> set[str]:
             found |= {f"s{2 * int(name[1:])}", f"s{2 * int(name[1:]) + 1}"}
         else:
             found.add(name)
-    return found
+    return frozenset(found)
 
 
-def _list_registers(operands: str) -> set[str]:
-    return registers(operands[operands.index("{"):]) if "{" in operands else set()
+@cache
+def _list_registers(operands: str) -> frozenset[str]:
+    return registers(operands[operands.index("{"):]) if "{" in operands else frozenset()
 
 
-def _address_registers(operands: str) -> set[str]:
-    return set().union(*(registers(o) for o in split_operands(operands) if o.startswith("[")))
+@cache
+def _address_registers(operands: str) -> frozenset[str]:
+    return frozenset().union(*(registers(o) for o in split_operands(operands) if o.startswith("[")))
 
 
-def written_and_read(ins: Instruction) -> tuple[set[str], set[str]]:
+@cache
+def written_and_read(ins: Instruction) -> tuple[frozenset[str], frozenset[str]]:
     """The registers an instruction writes and those it reads (flags and write-back aside)."""
     ops = split_operands(ins.operands)
     base = decode(ins.mnemonic).base
     if not ops:
-        return set(), set()
-    every = set().union(*(registers(o) for o in ops))
+        return frozenset(), frozenset()
+    every = frozenset().union(*(registers(o) for o in ops))
     if base in LIST_LOADS:
         listed = _list_registers(ins.operands)
         return listed, every - listed
     if base in FIRST_OPERAND_READ:
-        return set(), every
-    first = registers(ops[0])
-    return first, set().union(*(registers(o) for o in ops[1:])) if ops[1:] else set()
+        return frozenset(), every
+    return registers(ops[0]), frozenset().union(*(registers(o) for o in ops[1:]))
 
 
 def cost_key(ins: Instruction, next_address: int | None) -> str:
@@ -172,12 +188,17 @@ def cost_key(ins: Instruction, next_address: int | None) -> str:
     words; `.64` on a double-precision load or store; `.x2` on a VMOV of two core registers;
     `>pc` on a data-processing or load instruction that writes PC."""
     decoded = decode(ins.mnemonic)
-    base, ops = decoded.base, split_operands(ins.operands)
-    if base in BRANCH:
-        may_fall_through = decoded.conditional or base in ("cbz", "cbnz")
+    if decoded.base in BRANCH:
+        may_fall_through = decoded.conditional or decoded.base in ("cbz", "cbnz")
         if may_fall_through and next_address == ins.address + ins.size:
-            return f"{base}(nt)"
-        return base
+            return f"{decoded.base}(nt)"
+        return decoded.base
+    return _static_key(ins)
+
+
+@cache
+def _static_key(ins: Instruction) -> str:
+    base, ops = decode(ins.mnemonic).base, split_operands(ins.operands)
     if base in REGISTER_LIST or base in FP_REGISTER_LIST:
         listed = _list_registers(ins.operands)
         return f"{base}{{{len(listed)}{',pc' if 'r15' in listed and base in LIST_LOADS else ''}}}"
@@ -192,6 +213,7 @@ def cost_key(ins: Instruction, next_address: int | None) -> str:
     return base
 
 
+@cache
 def _base_cycles(key: str, refill: int) -> int:
     if key.endswith("(nt)"):
         return 1
@@ -238,21 +260,30 @@ class CycleCount:
     taken_branches: int = 0
 
 
+@cache
 def _register_offset(ins: Instruction) -> bool:
     memory = [o for o in split_operands(ins.operands) if o.startswith("[")]
     return bool(memory) and "," in memory[0] and bool(REGISTER.search(memory[0].split(",", 1)[1]))
 
 
+@cache
 def _memory_context(prev: Instruction | None, ins: Instruction, fp_load_store: bool) -> int:
-    """The 3.3.2 adjustments to a load or store single: −1 behind a load whose result it does not
-    address with, +1 when its address comes from the data-processing instruction just before."""
+    """The 3.3.2 adjustments to a load or store: −1 for a load single behind a load whose result
+    it does not address with, +1 when its address comes from the data-processing instruction
+    just before."""
     loads = LOAD_SINGLE | ({"vldr"} if fp_load_store else frozenset())
     singles = loads | STORE_SINGLE | ({"vstr"} if fp_load_store else frozenset())
     here = decode(ins.mnemonic).base
-    if prev is None or (here not in singles and here not in FP_LOAD_STORE):
+    lists = REGISTER_LIST | FP_REGISTER_LIST | DOUBLE_WORD
+    if prev is None or (here not in singles and here not in FP_LOAD_STORE and here not in lists):
         return 0
     before = decode(prev.mnemonic).base
-    address = _address_registers(ins.operands)
+    if here in ("push", "pop", "vpush", "vpop"):
+        address = frozenset({"r13"})
+    elif here in REGISTER_LIST or here in FP_REGISTER_LIST:
+        address = registers(split_operands(ins.operands)[0])
+    else:
+        address = _address_registers(ins.operands)
     if before in ONE_CYCLE and not before.startswith("v") and before not in ("cmp", "cmn", "tst", "teq"):
         return 1 if written_and_read(prev)[0] & address else 0
     key = cost_key(ins, None)

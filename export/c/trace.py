@@ -124,8 +124,9 @@ def constant_bytes(obj: Path) -> int:
 def inference_timing(elf: Path, net_object: Path, function: str = "fcemu_policy_infer",
                      top: int = 12) -> dict:
     """Cycles per call of `function`, the mean over the traced calls, weighed by `cycles.weigh`:
-    `cycles` at a 2-cycle refill with VLDR/VSTR as Table 7-1 gives them, `cycles_low` at a
-    1-cycle refill with VLDR/VSTR pipelined like LDR/STR, `cycles_high` at a 3-cycle refill.
+    `cycles` at a 2-cycle refill with VLDR/VSTR as Table 7-1 gives them; `cycles_low` (a 1-cycle
+    refill, VLDR/VSTR pipelined like LDR/STR) and `cycles_high` (a 3-cycle refill) shift it by
+    their difference on the last call.
     Flash (STM32F405, 5 wait states): `art_wait_cycles` in the steady state of an ART-style
     cache (`cycles.flash_waits`), `flash_bound_cycles` charging every taken branch into another
     flash line and every 16-byte line of the network's constants (read once per inference
@@ -145,8 +146,8 @@ def inference_timing(elf: Path, net_object: Path, function: str = "fcemu_policy_
         "calls_traced": len(runs),
         "instructions": mean([c.instructions for c in counts]),
         "cycles": cycles,
-        "cycles_low": mean([weigh(run, refill=1, fp_load_store_pipelining=True).cycles for run in runs]),
-        "cycles_high": mean([weigh(run, refill=3).cycles for run in runs]),
+        "cycles_low": weigh(runs[-1], refill=1, fp_load_store_pipelining=True).cycles - last.cycles + cycles,
+        "cycles_high": weigh(runs[-1], refill=3).cycles - last.cycles + cycles,
         "taken_branches": mean([c.taken_branches for c in counts]),
         "histogram": dict(last.histogram.most_common(top)),
         "adjustments": dict(last.adjustments),

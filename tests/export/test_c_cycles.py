@@ -34,6 +34,22 @@ known_loop:                     @ r0 = iterations, r1 = three words
     bx       lr                 @ 1 + P
     .size known_loop, . - known_loop
 """
+IT_LOOP = """\
+    .syntax unified
+    .thumb
+    .text
+    .global known_loop
+    .type known_loop, %function
+known_loop:                     @ r0 = iterations
+1:  cmp      r0, #50            @ 1
+    ite      lt                 @ 0: folded onto the 16-bit cmp
+    addlt    r2, r2, #1         @ 1 (the TRM's 1 also when the condition fails)
+    addge    r3, r3, #1         @ 1
+    subs     r0, r0, #1         @ 1
+    bne      1b                 @ 1 + P taken, 1 not taken
+    bx       lr                 @ 1 + P
+    .size known_loop, . - known_loop
+"""
 KNOWN_MAIN = """\
 void known_loop(unsigned n, const float *words);
 static const float words[3] = {1.0f, 2.0f, 3.0f};
@@ -93,6 +109,9 @@ def test_stream_context_rules() -> None:
                       fp_load_store_pipelining=True)
     assert pipelined.cycles == 2 + 1
     assert weigh(_stream(("vldr", "s0, [r0]", 4), ("vldr", "s1, [r0, #4]", 4))).cycles == 4
+    based = weigh(_stream(("mov", "r0, r6", 2), ("vldmia", "r0!, {s1}", 4), ("push", "{r4, lr}", 2)))
+    assert based.cycles == 1 + (1 + 1 + 1) + (1 + 2)
+    assert based.histogram == {"mov": 1, "vldmia{1}": 1, "push{2}": 1}
 
 
 def test_flash_waits_of_a_loop_in_the_cache() -> None:
@@ -105,19 +124,22 @@ def test_flash_waits_of_a_loop_in_the_cache() -> None:
     assert waits.branches_to_another_line == 3 and waits.bound_cycles == 15
 
 
-@pytest.fixture(scope="module")
-def known_loop_elf(tmp_path_factory) -> Path:
+def _build(build: Path, loop_source: str, main_source: str) -> Path:
     require_target_tools()
-    build = tmp_path_factory.mktemp("known_loop")
     (build / "link.ld").write_text(image.LINKER_SCRIPT)
     (build / "startup.c").write_text(image.STARTUP)
-    (build / "known_loop.S").write_text(KNOWN_LOOP)
-    (build / "main.c").write_text(KNOWN_MAIN % ITERATIONS)
-    elf = build / "known_loop.elf"
+    (build / "loop.S").write_text(loop_source)
+    (build / "main.c").write_text(main_source)
+    elf = build / "loop.elf"
     subprocess.run(["arm-none-eabi-gcc", *image.ARM_FLAGS, "-nostartfiles", "-T", str(build / "link.ld"),
-                    str(build / "startup.c"), str(build / "known_loop.S"), str(build / "main.c"),
+                    str(build / "startup.c"), str(build / "loop.S"), str(build / "main.c"),
                     "-o", str(elf)], check=True, capture_output=True)
     return elf
+
+
+@pytest.fixture(scope="module")
+def known_loop_elf(tmp_path_factory) -> Path:
+    return _build(tmp_path_factory.mktemp("known_loop"), KNOWN_LOOP, KNOWN_MAIN % ITERATIONS)
 
 
 def test_known_loop_traced_in_qemu_counts_its_hand_count(known_loop_elf: Path) -> None:
@@ -134,3 +156,15 @@ def test_known_loop_traced_in_qemu_counts_its_hand_count(known_loop_elf: Path) -
     waits = flash_waits([call])
     assert waits.lines_touched == 2  # 26 bytes from a 16-byte boundary
     assert waits.branches_to_another_line == ITERATIONS  # each bne back to the first line, and bx lr
+
+
+def test_it_block_traced_in_qemu(tmp_path: Path) -> None:
+    """QEMU steps through an IT block one instruction at a time, both arms included."""
+    elf = _build(tmp_path, IT_LOOP, "void known_loop(unsigned n);\nint main(void) {\n    known_loop(100);\n"
+                                    "    return 0;\n}\n")
+    (call,) = traced_calls(elf, "known_loop")
+    assert len(call) == 6 * 100 + 1
+    count = weigh(call, refill=REFILL)
+    assert count.histogram["it"] == 100 and count.adjustments == {"folded IT": -100}
+    lap = 1 + 0 + 1 + 1 + 1 + 1
+    assert count.cycles == 99 * (lap + REFILL) + lap + (1 + REFILL) == 701
