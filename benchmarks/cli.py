@@ -13,6 +13,17 @@ from fcemu.training import config
 from fcemu.training.cli import BENCH_DEFAULTS
 
 
+def fault_spec(text: str):
+    """--fault SPEC as a sim_bridge Fault; argparse names a bad one on one line."""
+    from fcemu.evaluation.faults import parse_fault
+    from fcemu.sim_bridge.faults import FaultSpecError
+
+    try:
+        return parse_fault(text)
+    except FaultSpecError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     sim = bench_sub.add_parser("sim", help="twin, UDP link and environment throughput")
     sim.add_argument("--seconds", type=float, default=2.0, help="time per measurement")
@@ -28,6 +39,9 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     loop.add_argument("--rig", choices=("free", "rig"), default="rig")
     loop.add_argument("--mavlink", action="store_true",
                       help="also run with MAVLink telemetry streaming and a peer sending setpoints at 100 Hz")
+    loop.add_argument("--fault", type=fault_spec, default=None, metavar="SPEC",
+                      help="repeat each measurement with this fault active in the twin (fcemu eval --fault's "
+                           "SPEC, e.g. esc-telemetry:stuck); the figures with it go under with_fault")
     loop.add_argument("--json", action="store_true")
     loop.set_defaults(handler="fcemu.benchmarks.loop:bench_loop")
 

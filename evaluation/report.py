@@ -359,7 +359,7 @@ def write_report(
             "each episode (the same time for every controller). Upright: the attitude stayed within 90° of "
             "the one the commanded rates lead to from the fault on. Error Σ: from the fault tick to the "
             "episode's end, summed over the axes, mean per episode. The answer is the firmware's health "
-            "monitor's (docs/DESIGN.md, \"Sensor health\").", "", fault_table(rows), ""]
+            "monitor's (docs/DESIGN.md, \"Faults and the firmware's answers\").", "", fault_table(rows), ""]
     if any(r.step is not None for r in results):
         plot_step_responses(results, out / "step_response.png", episode=step_episode)
         parts += [f"Step response of evaluation command {step_episode}, every controller:", "",

@@ -2,7 +2,8 @@
 
 `HealthMonitor.check(frame, pwm)` runs once per tick before the controller, on plain floats (a
 few µs), and returns the frame the controller should read: the same object while nothing is
-wrong. The rules, with `HealthRules`' defaults at 1 kHz (docs/DESIGN.md, "Sensor health"):
+wrong. The rules, with `HealthRules`' defaults at 1 kHz (docs/DESIGN.md, "Faults and the
+firmware's answers"):
 
 - Gyro sample implausible: not finite, beyond the gyro's full scale (±2000 deg/s), or a jump of
   more than `gyro_jump` rad/s from the last good sample in one tick (no airframe accelerates that
