@@ -108,6 +108,7 @@ async def fly(url: str, motor: int, failure_type: FailureType, timeout: float) -
             said = texts.first(HANDOVER, injected_at)
             injected = texts.first("Failure injected", injected_at)
             summary["failure_text"] = injected[2] if injected else None
+            summary["failure_text_ms"] = round(1e3 * (injected[0] - injected_at)) if injected else None
             summary["handover_text"] = said[2] if said else None
             summary["handover_ms"] = round(1e3 * (said[0] - injected_at)) if said else None
             if said is None:
