@@ -83,7 +83,7 @@ class HealthMonitor:
         self._expected: list[float] | None = None
         self._t_us: int | None = None
         self._prev_speed = [math.nan] * 4
-        self._pwm_at_change = [0.0] * 4
+        self._pwm_at_change = [math.nan] * 4  # each motor's PWM when its reading last changed
         self._stale = [0] * 4
         self._rotor_score = [0.0] * 4
 
@@ -150,9 +150,9 @@ class HealthMonitor:
         expected = self._expected
         if expected is None:
             expected = self._expected = [v if math.isfinite(v) else 0.0 for v in w]
-            self._pwm_at_change = list(p)
         # The model advances by the frames' own clock: ticks the loop skipped moved the rotors too.
-        elapsed = self._dt_us if self._t_us is None else min(max(t_us - self._t_us, 0), 100_000)
+        first = self._t_us is None
+        elapsed = self._dt_us if first else min(max(t_us - self._t_us, 0), 100_000)
         self._t_us = t_us
         alpha = 1.0 - self._keep_per_us ** elapsed
         per_us, lo = self._speed_per_us, r.pwm_min
@@ -165,13 +165,17 @@ class HealthMonitor:
                 self._hand_over(f"rotor speed {i + 1} absent")
                 continue
             if v == self._prev_speed[i]:
-                if abs(pi - self._pwm_at_change[i]) > r.stale_pwm_us:
+                if self._pwm_at_change[i] != self._pwm_at_change[i]:  # NaN: no reference yet
+                    self._pwm_at_change[i] = pi
+                elif abs(pi - self._pwm_at_change[i]) > r.stale_pwm_us:
                     self._stale[i] += 1
                     if self._stale[i] >= r.rotor_stale_ticks:
                         self._hand_over(f"rotor speed {i + 1} stale")
             else:
                 self._stale[i] = 0
-                self._pwm_at_change[i] = pi
+                # The first frame after arming was read under the PWM written before it (disarmed),
+                # whatever the rotors were doing: its reading is judged from the first armed PWM.
+                self._pwm_at_change[i] = math.nan if first else pi
                 self._prev_speed[i] = v
             if abs(v - expected[i]) > self._tolerance:
                 self._rotor_score[i] += 1.0

@@ -112,3 +112,18 @@ def test_the_loop_flies_the_pid_once_the_policy_cannot_be_trusted() -> None:
         flown.append(loop.tick(k * 1000).controller)
     assert set(flown[:200]) == {"main"} and flown[-1] == "pid" and not loop.faults
     assert loop.health.handover == "rotor speed 2 absent"
+
+
+def test_a_vehicle_armed_at_steady_hover_is_not_stale() -> None:
+    """Armed with the rotors already at hover (the in-flight task): the first frame was read under the
+    disarmed PWM, yet the steady reading matches the hover PWM that follows; once that PWM moves and
+    the reading does not, it is stale."""
+    m = HealthMonitor()
+    hover_pwm, speed = np.full(4, 1700.0), [770.0] * 4
+    m.check(_frame(0, [0, 0, 0], speed), np.full(4, 1000.0))  # the PWM written while disarmed
+    for k in range(1, 200):
+        m.check(_frame(k, [0, 0, 0], speed), hover_pwm)
+    assert m.policy_trusted and not m.detected
+    for k in range(200, 221):
+        m.check(_frame(k, [0, 0, 0], speed), hover_pwm + [0.0, 0.0, 0.0, 10.0])
+    assert m.handover == "rotor speed 4 stale" and m.detected["handover"] == 220
