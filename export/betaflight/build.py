@@ -98,6 +98,7 @@ def copy_tree(src: Path, dst: Path) -> None:
         except OSError:
             shutil.copy2(s, d)
 
+    dst.mkdir(parents=True)
     for entry in src.iterdir():
         if entry.name == "obj":
             continue
@@ -167,7 +168,10 @@ def elf_size(elf: Path, size_tool: str = "arm-none-eabi-size") -> dict[str, int]
 def size_report(chip: Chip, elf: Path) -> dict:
     size = elf_size(elf)
     flash, ram = size["text"] + size["data"], size["data"] + size["bss"]
-    return {**size, "flash_bytes": flash, "flash_of_chip": chip.flash_bytes,
+    # The network and contract code, compiled outside LTO, as objects (neural.c itself is LTO IR).
+    objects = sorted((elf.parent / chip.target / NEURAL_SRC_DIR.relative_to("src/main")).glob("*.o"))
+    policy = {o.name: elf_size(o)["text"] for o in objects}
+    return {**size, "policy_objects_text": policy, "flash_bytes": flash, "flash_of_chip": chip.flash_bytes,
             "flash_pct": round(100.0 * flash / chip.flash_bytes, 1), "ram_bytes": ram,
             "ram_of_chip": chip.ram_bytes, "ram_pct": round(100.0 * ram / chip.ram_bytes, 1),
             "ram_note": chip.ram_note}
