@@ -124,6 +124,7 @@ def test_a_vehicle_armed_at_steady_hover_is_not_stale() -> None:
     for k in range(1, 200):
         m.check(_frame(k, [0, 0, 0], speed), hover_pwm)
     assert m.policy_trusted and not m.detected
+    moved = np.array([1700.0, 1700.0, 1700.0, 1710.0])
     for k in range(200, 221):
-        m.check(_frame(k, [0, 0, 0], speed), hover_pwm + [0.0, 0.0, 0.0, 10.0])
+        m.check(_frame(k, [0, 0, 0], speed), moved)
     assert m.handover == "rotor speed 4 stale" and m.detected["handover"] == 220
