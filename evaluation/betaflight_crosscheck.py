@@ -15,10 +15,10 @@ betaflight`) with NEURAL on, against fcemu flying the same exported C policy (DI
 
 Pace. The SITL's clock follows the FDM timestamps only as far as the packets' arrival allows
 (see `sitl.betaflight`); each episode's drift of that clock from the twin's is measured and a
-run in which it exceeds `CLOCK_TOLERANCE` (median) or `CLOCK_LIMIT` is refused, since
-Betaflight's filters, rates and RX
-then run on another time base than the twin's. The default pace, `DEFAULT_SPEED` × real time,
-keeps it within tolerance on a loaded two-core host.
+PID run in which it exceeds `CLOCK_TOLERANCE` (median) or `CLOCK_LIMIT` is refused, since
+Betaflight's 8 kHz loop, filters and RX then run on another time base than the twin's. The
+default pace (`--speed 0.25`) keeps it within tolerance on a lightly loaded host; a heavily
+loaded one is told to fly slower.
 """
 
 from __future__ import annotations
@@ -52,7 +52,6 @@ FCEMU_PRESET = "pid:betaflight"
 _AT_REST, _NO_ROTORS = np.array([0.0, 0.0, -9.80665]), np.zeros(4)
 TOLERANCE = 0.15
 NEURAL_TOLERANCE = 0.05
-DEFAULT_SPEED = 0.25
 CLOCK_TOLERANCE = 0.05  # median over episodes of |SITL elapsed / twin elapsed − 1|
 CLOCK_LIMIT = 0.15  # the same, any one episode
 # --rig free with a neural firmware: NEURAL on from after the 1 s climb to after the doublets

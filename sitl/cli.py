@@ -121,10 +121,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--crosscheck", action="store_true",
                    help="also fly fcemu's pid:betaflight preset on the same commands and compare")
     p.add_argument("--speed", type=float, default=0.25,
-                   help="pace of the twin against wall time (Betaflight follows the FDM timestamps); "
-                        "a run whose SITL clock drifts from the twin's (median episode > 5 %%, any > 15 %%) "
-                        "is refused "
-                        "(default 0.25)")
+                   help="pace of the twin against wall time (Betaflight follows the FDM timestamps; "
+                        "default 0.25): episodes on the rig measure the SITL's clock against the twin's, "
+                        "and a PID run drifting more than 5 %% (median episode) or 15 %% (any) is refused")
     p.add_argument("--firmware", default=None, metavar="DIR",
                    help="a Betaflight built with a policy (`fcemu export POLICY --target betaflight --out "
                         "DIR`): it flies with NEURAL on (--crosscheck: against fcemu flying the same C "
