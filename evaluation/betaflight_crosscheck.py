@@ -283,11 +283,10 @@ def _run(args) -> int:
             path = Path(args.save_traces)
             print(f"traces: {save_traces(path.with_name(path.stem + '_fcemu.npz'), fc)}", file=sys.stderr)
         result = {"betaflight": bf_metrics.to_json(), "fcemu": fc_metrics.to_json(),
-                  "packets": bf.extra["packets"]}
+                  "packets": bf.extra["packets"], "clock": clock}
         tolerance = NEURAL_TOLERANCE if firmware else TOLERANCE
         summary = {"episodes": args.episodes, "seed": args.seed, **result,
                    "comparison": comparison(bf_metrics, fc_metrics, tolerance), "tolerance": tolerance,
-                   "clock": clock,
                    "setup": {"speed": args.speed, "rate_dps": args.rate_dps, "throttle_channel": throttle_ch,
                              "fcemu_throttle": rc.fcemu_throttle(throttle_ch), "preset": spec,
                              "betaflight_cli": bf.extra["settings"],
