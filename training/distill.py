@@ -33,6 +33,7 @@ import torch
 from fcemu.firmware.neural import META_PREFIX
 from fcemu.firmware.observation import FIELD_DEFS, FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS, ObservationSpec
 
+COLLECTIVE_WEIGHT = 0.1
 OPTIONAL_FIELDS = {INTEGRAL: "integral", RMS: "error_rms", MOTOR_OUTPUT: "motor_output"}
 
 
@@ -177,6 +178,19 @@ class Dataset:
                 torch.as_tensor(np.concatenate(self.next_row)))
 
 
+def differential(a: torch.Tensor) -> torch.Tensor:
+    """The part of four motor actions the mixer keeps: a − mean(a) (`firmware.action`, both mappings
+    up to the collective, which the throttle mapping takes from the outer loop)."""
+    return a - a.mean(dim=-1, keepdim=True)
+
+
+def differential_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """The squared error of the differential, and a tenth of the collective's: the clip before the
+    mixer still sees the collective, so it must not drift."""
+    error = pred - target
+    return differential(error).pow(2).mean() + COLLECTIVE_WEIGHT * error.mean(dim=-1).pow(2).mean()
+
+
 def fit(student: Student, data: Dataset, steps: int, cfg: DistillConfig, gen: torch.Generator) -> dict:
     """Adam on the imitation error (and the smoothness penalty) over the aggregate; the final losses."""
     x, y, nxt = data.tensors()
@@ -185,17 +199,18 @@ def fit(student: Student, data: Dataset, steps: int, cfg: DistillConfig, gen: to
     with_next = torch.nonzero(nxt >= 0).squeeze(1)
     for _ in range(steps):
         idx = torch.randint(len(x), (cfg.batch_size,), generator=gen)
-        loss = torch.nn.functional.mse_loss(student(x[idx]), y[idx])
+        loss = differential_mse(student(x[idx]), y[idx])
         if cfg.smoothness:
             pair = with_next[torch.randint(len(with_next), (cfg.batch_size,), generator=gen)]
-            loss = loss + cfg.smoothness * (student(x[pair]) - student(x[nxt[pair]])).pow(2).sum(1).mean()
+            step = differential(student(x[pair]) - student(x[nxt[pair]]))
+            loss = loss + cfg.smoothness * step.pow(2).sum(1).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
     with torch.no_grad():
         probe = torch.randint(len(x), (min(len(x), 65536),), generator=gen)
-        mse = float(torch.nn.functional.mse_loss(student(x[probe]), y[probe]))
+        mse = float(differential_mse(student(x[probe]), y[probe]))
     return {"imitation_mse": mse}
 
 
@@ -276,6 +291,8 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
             venv.obs_rms.var = s_obs.reshape(-1, s_obs.shape[-1]).var(0).astype(np.float64)
             venv.obs_rms.count = float(s_obs.shape[0] * s_obs.shape[1])
             student = Student(model, venv.obs_rms.mean, venv.obs_rms.var, venv.epsilon)
+        if bar is not None:
+            bar.set_postfix_str(f"fitting on {data.size} samples")
         losses = fit(student, data, cfg.fit_steps * (3 if r == cfg.rounds - 1 else 1), cfg, gen)
         history.append({"round": r, "teacher_share": share, "samples": data.size,
                         "student_flown_error": flown_error, **losses})
