@@ -8,18 +8,51 @@ import pytest
 
 from fcemu.evaluation.metrics import AXES, compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
-from fcemu.firmware.controllers import load_controller
+from fcemu.firmware.controllers import DEFAULT_POLICY, load_controller
 
 POLICY_DIR = Path(__file__).parents[1] / "policies"
 POLICIES = sorted(POLICY_DIR.glob("*.onnx"))
+DEFAULT_MEMORY, DEFAULT_HIDDEN = 2, [48, 48]  # policies/README.md: the distilled default
 
 
-def test_there_are_shipped_policies():
-    assert {p.name for p in POLICIES} >= {"iris_rate_ppo.onnx", "iris_rate_ppo_smooth.onnx",
-                                          "iris_rate_ppo_robust.onnx", "iris_rate_ppo_quiet.onnx",
-                                          "iris_rate_ppo_quiet64.onnx", "iris_rate_ppo_quiet64_roll.onnx",
-                                          "iris_rate_ppo_rms64.onnx", "iris_rate_ppo_rms64_ft.onnx",
-                                          "iris_rate_ppo_rms64_mo.onnx"}
+def _catalogue() -> dict[str, list[str]]:
+    """The table at the top of policies/README.md: file name → its cells."""
+    rows = {}
+    for line in (POLICY_DIR / "README.md").read_text().split("\n## ")[0].splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if line.startswith("| `") and cells[0].endswith(".onnx`"):
+            rows[cells[0].strip("`")] = cells
+    return rows
+
+
+def test_the_catalogue_table_lists_exactly_the_shipped_files_with_their_input_width():
+    rows = _catalogue()
+    assert set(rows) == {p.name for p in POLICIES}
+    for name, cells in rows.items():
+        spec = load_controller(str(POLICY_DIR / name), 1000.0).spec
+        assert cells[1].startswith(f"{spec.size} "), (name, cells[1])
+
+
+def test_the_default_is_the_shipped_file_and_observes_a_short_history_of_five_fields():
+    assert (POLICY_DIR / "iris_rate_ppo.onnx").resolve() == DEFAULT_POLICY.resolve()
+    spec = load_controller(str(DEFAULT_POLICY), 1000.0).spec
+    assert spec.fields == ("rate_error", "rotor_speed", "rate_error_integral", "rate_error_rms",
+                           "motor_output")
+    assert spec.memory == DEFAULT_MEMORY and spec.size == 17 * DEFAULT_MEMORY
+    assert _widths(DEFAULT_POLICY) == [*DEFAULT_HIDDEN, 4]
+
+
+@pytest.mark.slow
+def test_the_default_fits_a_quarter_of_the_1khz_period_on_an_f405():
+    """`fcemu bench mcu`: the cycle estimate at 168 MHz (or, without it, the flat-CPI one) ≤ 250 µs."""
+    from tests.export.mcu_tools import require_target_tools
+
+    require_target_tools()
+    from fcemu.export.c.target import LOOP_BUDGET_SHARE, bench_mcu
+
+    report = bench_mcu(DEFAULT_POLICY, target_vectors=64)
+    us = report.get("est_us_at_168mhz", report.get("est_us_at_168mhz_cpi"))
+    assert us <= LOOP_BUDGET_SHARE * 1000.0, report
 
 
 @pytest.mark.parametrize("path", POLICIES, ids=lambda p: p.name)
@@ -29,35 +62,20 @@ def test_a_shipped_policy_loads_and_tracks(path: Path):
     assert all(metrics.stat("success_pct", a).mean >= 75.0 for a in AXES)
 
 
-def test_the_smooth_policy_is_about_as_smooth_as_the_pid_and_the_old_one_is_not():
-    """policies/README.md: 1.77 vs the PID's 1.42 µs/step on 1000 commands (the older policy: 5.32)."""
-    cfg = EvalConfig(episodes=8, seed=7)
-    specs = {"pid": "pid", "smooth": str(POLICY_DIR / "iris_rate_ppo_smooth.onnx"),
-             "old": str(POLICY_DIR / "iris_rate_ppo.onnx")}
-    smooth = {name: compute_metrics(run_controller(spec, cfg, progress=False)).stat("smoothness", "roll").mean
-              for name, spec in specs.items()}
-    assert smooth["smooth"] <= 1.5 * smooth["pid"]
-    assert smooth["old"] > 2.5 * smooth["pid"]
-
-
-def test_the_64_wide_policies_have_the_actor_their_inference_budget_rests_on():
-    """policies/README.md: 9.1–9.4 µs median against 11.5–11.9 µs for the 128 × 128 quiet policy."""
+def _widths(path: Path) -> list[int]:
+    """The output width of each Gemm of an exported actor, input to output."""
     import onnx
     from onnx import numpy_helper
 
-    def widths(name: str) -> list[int]:
-        graph = onnx.load(str(POLICY_DIR / name)).graph
-        weights = {w.name: numpy_helper.to_array(w) for w in graph.initializer}
-        gemms = [n for n in graph.node if n.op_type == "Gemm"]
-        transposed = [any(a.name == "transB" and a.i for a in g.attribute) for g in gemms]
-        return [int(weights[g.input[1]].shape[0 if t else 1]) for g, t in zip(gemms, transposed, strict=True)]
+    graph = onnx.load(str(path)).graph
+    weights = {w.name: numpy_helper.to_array(w) for w in graph.initializer}
+    gemms = [n for n in graph.node if n.op_type == "Gemm"]
+    transposed = [any(a.name == "transB" and a.i for a in g.attribute) for g in gemms]
+    return [int(weights[g.input[1]].shape[0 if t else 1]) for g, t in zip(gemms, transposed, strict=True)]
 
-    assert widths("iris_rate_ppo_quiet64.onnx") == [64, 64, 4]
-    assert widths("iris_rate_ppo_quiet64_roll.onnx") == [64, 64, 4]  # its 256-wide critic is not exported
-    assert widths("iris_rate_ppo_rms64.onnx") == [64, 64, 4]
-    assert widths("iris_rate_ppo_rms64_ft.onnx") == [64, 64, 4]  # its normalisation unfolded: Sub, Mul first
-    assert widths("iris_rate_ppo_rms64_mo.onnx") == [64, 64, 4]  # 1/σ folded, μ a Sub; 272 inputs
-    assert widths("iris_rate_ppo_quiet.onnx") == [128, 128, 4]
+
+def test_the_teacher_has_the_actor_its_inference_budget_rests_on():
+    assert _widths(POLICY_DIR / "iris_rate_ppo_rms64_mo.onnx") == [64, 64, 4]  # 1/σ folded, μ a Sub
 
 
 @pytest.mark.parametrize("path", sorted((POLICY_DIR / "sweeps").glob("*.yaml")), ids=lambda p: p.name)

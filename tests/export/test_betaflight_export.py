@@ -62,7 +62,7 @@ def test_a_policy_for_another_loop_rate_is_refused_before_anything_is_written(tm
 def test_a_policy_observing_a_field_the_firmware_lacks_is_refused(tmp_path, capsys):
     meta = {p.key: p.value for p in onnx.load(str(SHIPPED)).metadata_props}
     observation = json.loads(meta["fcemu.observation"])
-    observation["fields"] = [*observation["fields"], "attitude"]
+    observation["fields"] = ["attitude", *observation["fields"]]  # first: the error shows 40 characters
     policy = _with_metadata(tmp_path, observation=json.dumps(observation))
     code, err = _export([str(policy), "--target", "betaflight", "--out", str(tmp_path / "bf")], capsys)
     assert code == 2

@@ -14,6 +14,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from fcemu.export.c.build import CExportError, export_c, ulp_distance
+from fcemu.firmware.observation import ObservationSpec
 from tests.export.mcu_tools import SHIPPED, require_codegen
 
 ALLOWED_INCLUDES = {"<math.h>", "<stdint.h>", "<float.h>", '"fcemu_policy.h"', '"fcemu_tanh.h"'}
@@ -54,7 +55,7 @@ def test_contract_constants_come_from_the_metadata(exported) -> None:
     header = (out / "fcemu_policy.h").read_text()
     meta = json.loads((out / "contract.json").read_text())["metadata"]
     spec = json.loads(meta["observation"])
-    assert f"#define FCEMU_OBS_SIZE {7 * spec['memory']}" in header
+    assert f"#define FCEMU_OBS_SIZE {ObservationSpec.from_json(meta['observation']).size}" in header
     assert f'#define FCEMU_ACTION_MAPPING "{meta["action_mapping"]}"' in header
     scale = float.fromhex(re.search(r"#define FCEMU_RATE_SCALE (\S+)f\n", header).group(1))
     assert scale == pytest.approx(spec["rate_scale"], rel=1e-7)
