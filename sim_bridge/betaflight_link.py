@@ -232,6 +232,11 @@ class BetaflightBridge:
         self._k = k + 1
         return frame, pwm, fresh
 
+    def send_rc(self, rc: Sequence[int]) -> None:
+        """An RC packet alone, between steps (the twin does not move)."""
+        self._out.sendto(pack_rc(self._k * self.dt, rc), self._rc_addr)
+        self.stats.rc_sent += 1
+
     def idle(self, rc: Sequence[int], seconds: float) -> None:
         """Keep the link alive (and the SITL's clock running) for `seconds` of twin time."""
         for _ in range(max(1, round(seconds / self.dt))):

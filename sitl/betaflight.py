@@ -12,11 +12,12 @@ throttle is a fraction of [1000, 2000] µs. `RcMap.fcemu_throttle` converts, so 
 the same µs on the motors at zero demand.
 
 NEURAL. A firmware from `fcemu export --target betaflight` (`firmware=`) gets the NEURAL box on
-AUX2 and `NEURAL_SETTINGS`: its PID loop at the policy's 1 kHz (gyro 8 kHz, pid_process_denom
-8), and its gyro filters off, so that `gyro.gyroADCf`, the policy's input, is the twin's gyro
-as fcemu's policy sees it. With `neural=True` each episode raises AUX2 with the sticks; one
-tick of the step is flown before the twin is put at rest, so that Betaflight has read the RC
-packet (and switched the policy on) by the first recorded tick.
+AUX2 and its gyro filters off (`neural_settings`), so that `gyro.gyroADCf`, the policy's input,
+is the twin's gyro as fcemu's policy sees it. In the SITL the policy steps once per FDM packet,
+the first time on the first packet after NEURAL is seen on. With `neural=True` each episode
+sends the sticks and AUX2 high in an RC packet alone and waits until Betaflight reports them
+read (MSP_RC; its RX task runs on its own schedule) before the first tick, so the policy starts
+fresh on that tick, as fcemu's does.
 
 Clock. The SITL's clock is not the twin's: it integrates wall time times the ratio of the last
 pair of FDM timestamp steps to their arrival interval. Each episode reads that clock over MSP
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -69,6 +71,8 @@ CROSSCHECK_SETTINGS = (
 )
 NEURAL_CH = 5  # AUX2
 NEURAL_ON_US = 1900
+RC_MATCH_US = 2  # MSP_RC reports the channels as read, to the µs
+RC_POLL_S = 0.005
 
 
 def neural_settings(firmware: NeuralFirmware) -> list[str]:
@@ -274,6 +278,19 @@ class BetaflightFlight:
         self.restarts += 1
         self.wait_ready()
 
+    def _await_rc(self, rc: Sequence[int], timeout_s: float = 2.0) -> None:
+        """Until Betaflight has read `rc` (MSP_RC), which its RX task does on its own schedule."""
+        end = time.monotonic() + timeout_s
+        while True:
+            seen = self._msp(lambda msp: msp.rc_channels())[:len(rc)]
+            seen[2:4] = seen[3:1:-1]  # MSP_RC is in Betaflight's order (roll, pitch, yaw, throttle)
+            if len(seen) == len(rc) and max(abs(a - b) for a, b in zip(seen, rc, strict=True)) <= RC_MATCH_US:
+                return
+            if time.monotonic() > end:
+                raise BetaflightError(f"Betaflight did not read the RC channels {list(rc)} within "
+                                      f"{timeout_s:g} s (it reads {seen})")
+            time.sleep(RC_POLL_S)
+
     def sitl_clock_ms(self) -> int:
         return self._msp(lambda msp: msp.clock_ms())
 
@@ -314,9 +331,10 @@ class BetaflightFlight:
         self.arm()
         roll, pitch, yaw = self.rc.stick_channels(rates_frd)
         rc = [roll, pitch, throttle_ch, yaw, ARM_CH_US, NEURAL_ON_US if self.neural else 1000]
-        if self.neural:
-            self.bridge.step(rc)  # Betaflight reads the RC packet (NEURAL on) one tick after it arrives
         self.bridge.reset_twin()
+        if self.neural:  # NEURAL on before the first tick: the policy's first step is that tick's
+            self.bridge.send_rc(rc)
+            self._await_rc(rc)
         clock0 = self.sitl_clock_ms()
         for k in range(ticks):
             frame, out, _ = self.bridge.step(rc)

@@ -179,6 +179,7 @@ ARMING_DISABLE_FLAGS = (
 )
 MSP_STATUS_EX = 150
 MSP_RTC, MSP_SET_RTC = 247, 246
+MSP_RC_CHANNELS = 105
 RTC_EPOCH_S = 1_000_000_000  # any date: only differences of the clock are read
 
 
@@ -223,6 +224,11 @@ class BetaflightMsp:
             if not chunk:
                 raise BetaflightError("Betaflight SITL closed the MSP connection")
             buf += chunk
+
+    def rc_channels(self) -> list[int]:
+        """The RC channels (µs) as the firmware last read them (MSP_RC)."""
+        body = self.request(MSP_RC_CHANNELS)
+        return [int.from_bytes(body[i:i + 2], "little") for i in range(0, len(body) - 1, 2)]
 
     def set_clock(self, seconds: int = RTC_EPOCH_S) -> None:
         """Start Betaflight's RTC at `seconds` (MSP_SET_RTC): from then on it counts the SITL's
