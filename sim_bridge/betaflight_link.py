@@ -232,6 +232,18 @@ class BetaflightBridge:
         self._k = k + 1
         return frame, pwm, fresh
 
+    def drain(self) -> int:
+        """Drop motor packets waiting unread (an answer that came after its step gave up on it
+        would otherwise be taken for the next step's, and every answer after it would be one
+        step behind); returns how many."""
+        dropped = 0
+        while True:
+            try:
+                self._motors.recv(64)
+            except BlockingIOError:
+                return dropped
+            dropped += 1
+
     def send_rc(self, rc: Sequence[int]) -> None:
         """An RC packet alone, between steps (the twin does not move)."""
         self._out.sendto(pack_rc(self._k * self.dt, rc), self._rc_addr)

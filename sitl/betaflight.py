@@ -336,6 +336,7 @@ class BetaflightFlight:
             self.bridge.send_rc(rc)
             self._await_rc(rc)
         clock0 = self.sitl_clock_ms()
+        self.bridge.drain()
         for k in range(ticks):
             frame, out, _ = self.bridge.step(rc)
             rate[k] = frame.gyro
