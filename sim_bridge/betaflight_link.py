@@ -188,9 +188,12 @@ class BetaflightBridge:
         self.frame = self.twin.reset(seed, state)
         return self.frame
 
-    def step(self, rc: Sequence[int]) -> tuple[SensorFrame, np.ndarray, bool]:
+    def step(self, rc: Sequence[int],
+             reply_timeout_s: float | None = None) -> tuple[SensorFrame, np.ndarray, bool]:
         """Send the current frame, wait (until the next step is due) for Betaflight's answer,
-        step the twin with it. Returns (the frame sent, the PWM applied, whether it was fresh)."""
+        step the twin with it. Returns (the frame sent, the PWM applied, whether it was fresh).
+        `reply_timeout_s` overrides how long a late answer is waited for (the first step after
+        a pause: the SITL's clock then runs at the pause's slow rate until the next packet)."""
         k = self._k
         due = self._t0 + k * self._wall_dt
         now = time.perf_counter()
@@ -223,7 +226,8 @@ class BetaflightBridge:
             # next FDM packet: two packets queued at the SITL arrive back to back, and its clock
             # rate, taken from that one pair, would jump.
             self.stats.late += 1
-            fresh = self._await_motors(time.perf_counter() + self.reply_timeout_s, sent_at)
+            wait_s = self.reply_timeout_s if reply_timeout_s is None else reply_timeout_s
+            fresh = self._await_motors(time.perf_counter() + wait_s, sent_at)
             if not fresh:
                 self.stats.lost += 1
         self.silent_steps = 0 if fresh else self.silent_steps + 1

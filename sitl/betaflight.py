@@ -73,6 +73,7 @@ NEURAL_CH = 5  # AUX2
 NEURAL_ON_US = 1900
 RC_MATCH_US = 2  # MSP_RC reports the channels as read, to the µs
 RC_POLL_S = 0.005
+FIRST_REPLY_TIMEOUT_S = 1.0
 
 
 def neural_settings(firmware: NeuralFirmware) -> list[str]:
@@ -337,8 +338,8 @@ class BetaflightFlight:
             self._await_rc(rc)
         clock0 = self.sitl_clock_ms()
         self.bridge.drain()
-        for k in range(ticks):
-            frame, out, _ = self.bridge.step(rc)
+        for k in range(ticks):  # the first answer after the pauses above may take long (see step)
+            frame, out, _ = self.bridge.step(rc, FIRST_REPLY_TIMEOUT_S if k == 0 else None)
             rate[k] = frame.gyro
             pwm[k] = out
             if self.bridge.silent_steps >= STALL_STEPS:
