@@ -45,6 +45,19 @@ HANDOVER = "Policy hands over to PID"
 TELEMETRY_TYPES = ("stuck", "garbage", "slow", "delayed", "intermittent")  # SYSTEM_MOTOR → ESC telemetry
 HOVER_BEFORE_S = 1.0
 HOVER_AFTER_S = 2.0
+YAW_DEG_S = 30.0
+
+
+async def manoeuvre(pilot: Pilot, seconds: float) -> None:
+    """Fly on as a pilot would, yawing ±YAW_DEG_S every half second: a stuck ESC reading is told
+    from a steady one only once the motor's command moves (docs/DESIGN.md, the stale rule), and a
+    hover with a smooth policy hardly moves it."""
+    end = time.monotonic() + seconds
+    sign = 1.0
+    while (left := end - time.monotonic()) > 0:
+        roll, pitch, _ = pilot.level_rates()
+        await pilot.fly(min(0.5, left), (roll, pitch, sign * YAW_DEG_S))
+        sign = -sign
 
 
 class Texts:
@@ -95,7 +108,7 @@ async def fly(url: str, motor: int, failure_type: FailureType, timeout: float) -
                 raise RuntimeError(f"the policy handed over before any fault: {texts.first(HANDOVER)[2]}")
 
             # The pilot keeps streaming setpoints while the injection and its answer are awaited.
-            hovering = asyncio.create_task(pilot.fly(timeout + HOVER_AFTER_S))
+            hovering = asyncio.create_task(manoeuvre(pilot, timeout + HOVER_AFTER_S))
             injected_at = time.monotonic()
             try:
                 await failure.inject(FailureUnit.SYSTEM_MOTOR, failure_type, motor)

@@ -21,7 +21,9 @@ firmware's answers"):
   the reading last changed. Rotor speed implausible: a reading farther than `rotor_tolerance`
   × the top speed from a first-order model of the commanded speed, scored as the gyro's, at
   `rotor_fail_score`. Each hands the policy over to the PID (latched until the next arming) and
-  is said once; the PID does not read rotor speed, so the vehicle flies on.
+  is said once; the PID does not read rotor speed, so the vehicle flies on. While the PID
+  flies (`policy_flying` False, set by the loop each tick) there is nothing to hand over and
+  nothing is said about rotor speed.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ class HealthMonitor:
         self._speed_per_us = r.rotor_speed_max / (r.pwm_max - r.pwm_min)
         self._tolerance = r.rotor_tolerance * r.rotor_speed_max
         self.outbox: list[tuple[int, str]] = []
+        self.policy_flying = True  # the loop says which controller flies; only a policy hands over
         self.reset()
 
     def reset(self) -> None:
@@ -94,7 +97,7 @@ class HealthMonitor:
             self.outbox.append((severity, text))
 
     def _hand_over(self, why: str) -> None:
-        if self.policy_trusted:
+        if self.policy_trusted and self.policy_flying:
             self.policy_trusted = False
             self.handover = why
             self._declare("handover", WARNING, f"Policy hands over to PID: {why}")

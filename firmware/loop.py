@@ -126,6 +126,7 @@ class FlightLoop:
             if command.armed and not self._armed:
                 health.reset()
             written = self.last_sample.pwm if self.last_sample is not None else DISARMED_PWM
+            health.policy_flying = name != self.fallback
             frame = health.check(frame, written)
             if not health.policy_trusted and self.fallback in self.controllers:
                 name = self.fallback

@@ -64,7 +64,7 @@ LIES = {
     "memory_float": ({"observation": obs(memory=1.5)}, "memory"),
     "memory_bool": ({"observation": obs(memory=True)}, "memory"),
     "memory_huge": ({"observation": obs(memory=10**9)}, "memory"),
-    "memory_vs_graph": ({"observation": obs(memory=2)}, "input shape"),
+    "memory_vs_graph": ({"observation": obs(memory=SPEC["memory"] + 1)}, "input shape"),
     "fields_swapped_sizes": ({"observation": obs(fields=["rate_error", "rate_error_integral"])},
                              "input shape"),
     "fields_not_a_list": ({"observation": obs(fields="rate_error")}, "fields"),

