@@ -100,10 +100,10 @@ def test_size_and_instruction_count_are_plausible(shipped) -> None:
 
 def test_shipped_policy_timing_budget(shipped) -> None:
     """A 1 kHz loop with 25 % of the period for the policy: by the M4 cycle count the shipped
-    policy fits on the STM32H743 and takes about a quarter of the period on the STM32F405."""
+    policy fits on the STM32H743 and on the STM32F405 (the deployable bar's budget)."""
     report, details = shipped
-    assert within_budget(report, "480")
-    assert report["est_us_at_168mhz"] <= 1.1 * 250.0
+    assert within_budget(report, "480") and within_budget(report, "168")
+    assert report["est_us_at_168mhz"] <= 250.0
     assert report["est_us_at_168mhz"] == pytest.approx(report["est_us_at_480mhz"] * 480 / 168, rel=1e-2)
     verdict = budget_verdict(report)
     assert "STM32F405 @ 168 MHz" in verdict and "STM32H743 @ 480 MHz" in verdict
