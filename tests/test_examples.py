@@ -12,24 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from tests.firmware.mavlink.conftest import ROOT, SitlProcess, free_udp_port, start_sitl
+from tests.firmware.mavlink.conftest import ROOT, free_udp_port
 
 EXAMPLES = ROOT / "examples"
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture
-def sitl(tmp_path):
-    started: list[SitlProcess] = []
-
-    def factory(**kw) -> SitlProcess:
-        s = start_sitl(tmp_path, **kw)
-        started.append(s)
-        return s
-
-    yield factory
-    for s in started:
-        s.stop()
 
 
 def run_example(name: str, *argv: str, timeout: float = 150.0) -> subprocess.CompletedProcess:

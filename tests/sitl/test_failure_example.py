@@ -9,24 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from tests.firmware.mavlink.conftest import free_udp_port, start_sitl
+from tests.firmware.mavlink.conftest import free_udp_port
 from tests.test_examples import run_example
 
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture
-def sitl(tmp_path):
-    started = []
-
-    def factory(**kw):
-        s = start_sitl(tmp_path, **kw)
-        started.append(s)
-        return s
-
-    yield factory
-    for s in started:
-        s.stop()
 
 
 @pytest.mark.timeout(180)
