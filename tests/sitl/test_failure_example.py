@@ -32,7 +32,9 @@ def test_motor_telemetry_stuck_hands_the_policy_over_and_the_vehicle_lands(sitl,
     texts = summary["status_texts"]
     assert sum("hands over" in t for t in texts) == 1, texts
     assert summary["mode_after_handover"] == "OFFBOARD" and summary["altitude_after_handover_m"] > 2.0
-    assert summary["landed"] and texts[-1] == "INFO: Disarmed: landed", texts
+    # the script clears the fault once disarmed; that report may arrive before it stops listening
+    flown = [t for t in texts if "Failure injected: unit 101" not in t]
+    assert summary["landed"] and flown[-1] == "INFO: Disarmed: landed", texts
 
 
 @pytest.mark.timeout(120)
