@@ -6,7 +6,8 @@ unclipped action out. A run trained without an observation clip (`--obs-clip 0`)
 its normalisation folded into the first layer's weights, so the graph is the bare MLP:
 every node costs the firmware about half a microsecond of onnxruntime dispatch per tick.
 The file's metadata carries the contract `firmware.neural` checks. A parity check
-against the unfolded actor in torch on ≥ 10,000 observations is printed and stored.
+against the unfolded actor in torch on ≥ 10,000 observations is printed and stored: within
+1e-5, or twice the float32 actor's own distance from float64 where that is larger.
 """
 
 from __future__ import annotations
@@ -208,11 +209,19 @@ def export_policy(target: str | Path, out: str | Path, parity_samples: int = 10_
     obs = parity_observations(spec, max(parity_samples, 1))
     with torch.no_grad():
         expected = actor(torch.as_tensor(obs)).numpy()
+        own_error = 0.0
+        if actor.flat:  # SB3's feature extractors cast to float32: only the bare MLP runs in float64
+            exact = actor.double()(torch.as_tensor(obs, dtype=torch.float64)).numpy()  # and back: exact
+            actor.float()
+            own_error = float(np.abs(expected - exact).max())
+    # A wide input sums hundreds of terms: the float32 network itself is then further than 1e-5
+    # from exact arithmetic, and no graph can promise more than twice its own error.
+    tolerance = max(PARITY_TOLERANCE, 2.0 * own_error)
     for label, module in graph_modules(actor):
         # The full fold's W'·x and b' = −W'·μ cancel in float32 where μ/σ is large; the
         # centred fold and the unfolded graph subtract μ first.
         normalisation, max_diff = label, _write_graph(module, spec.size, out, obs, expected)
-        if max_diff <= PARITY_TOLERANCE:
+        if max_diff <= tolerance:
             break
     steps = int(getattr(model, "num_timesteps", 0) or cfg.get("trained_steps", 0))  # a checkpoint's own
     metadata = {
@@ -235,10 +244,11 @@ def export_policy(target: str | Path, out: str | Path, parity_samples: int = 10_
     onnx.save(proto, str(out))
     NeuralRateController(out)  # the firmware must accept what we just wrote
     report = {"out": str(out), "bytes": out.stat().st_size, "parity_max_abs_diff": max_diff,
-              "parity_samples": len(obs), "parity_ok": max_diff <= PARITY_TOLERANCE, **{
+              "parity_tolerance": tolerance, "parity_samples": len(obs),
+              "parity_ok": max_diff <= tolerance, **{
                   k: metadata[k] for k in ("algorithm", "training_steps", "seed", "action_mapping")},
               "normalisation": normalisation}
     out.with_suffix(".parity.json").write_text(json.dumps(report, indent=2) + "\n")
     if not report["parity_ok"]:
-        raise ExportError(f"parity check failed: max |onnx - torch| = {max_diff:.3e} > {PARITY_TOLERANCE}")
+        raise ExportError(f"parity check failed: max |onnx - torch| = {max_diff:.3e} > {tolerance:.3e}")
     return report

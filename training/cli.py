@@ -85,6 +85,12 @@ def register_distill(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--smoothness", type=float, default=0.0,
                    help="weight of the mean squared change of the student's action from one step to the "
                         "next in the loss (default 0)")
+    p.add_argument("--gain-weight", type=float, default=0.0, metavar="W",
+                   help="weight of the gain match: each sample is also nudged along the student's inputs and "
+                        "the change of the student's action fitted to the teacher's, so the student's slopes "
+                        "match, not only its values (default 0)")
+    p.add_argument("--gain-step", type=float, default=0.05, metavar="S",
+                   help="the nudge, in standard deviations of each input (default 0.05)")
     p.add_argument("--task", default="episodic", choices=("episodic", "continuous"), help="the flights")
     p.add_argument("--randomize", default="iris_esc2", metavar="NAME|FILE",
                    help="the twins' airframe ranges, as `fcemu train --randomize` (default iris_esc2; none: "

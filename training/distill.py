@@ -56,6 +56,8 @@ class DistillConfig:
     batch_size: int = 4096
     learning_rate: float = 1e-3
     smoothness: float = 0.0  # weight of the mean squared change of the student's action per step
+    gain_weight: float = 0.0  # weight of the gain match (`nudge`)
+    gain_step: float = 0.05  # the nudge, in the student's normalised input units
     task: str = "episodic"
     randomize: str | None = "iris_esc2"
     randomize_share: float = 0.5
@@ -159,6 +161,8 @@ class Dataset:
 
     obs: list[np.ndarray] = field(default_factory=list)
     labels: list[np.ndarray] = field(default_factory=list)
+    nudged_obs: list[np.ndarray] = field(default_factory=list)
+    nudged_labels: list[np.ndarray] = field(default_factory=list)
     next_row: list[np.ndarray] = field(default_factory=list)
     size: int = 0
 
@@ -173,9 +177,19 @@ class Dataset:
         self.next_row.append(nxt.reshape(-1))
         self.size += steps * n
 
-    def tensors(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        return (torch.as_tensor(np.concatenate(self.obs)), torch.as_tensor(np.concatenate(self.labels)),
-                torch.as_tensor(np.concatenate(self.next_row)))
+    def add_nudged(self, obs: np.ndarray, labels: np.ndarray) -> None:
+        """The round's observations nudged (`nudge`), in `add`'s order, and the teacher's labels there."""
+        self.nudged_obs.append(obs.reshape(-1, obs.shape[-1]))
+        self.nudged_labels.append(np.clip(labels, -1.0, 1.0).reshape(-1, 4))
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        out = {"obs": np.concatenate(self.obs), "labels": np.concatenate(self.labels),
+               "next_row": np.concatenate(self.next_row)}
+        if self.nudged_obs:
+            out.update(nudged_obs=np.concatenate(self.nudged_obs),
+                       nudged_labels=np.concatenate(self.nudged_labels))
+        return {k: torch.as_tensor(v) for k, v in out.items()}
+
 
 
 def differential(a: torch.Tensor) -> torch.Tensor:
@@ -193,13 +207,18 @@ def differential_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def fit(student: Student, data: Dataset, steps: int, cfg: DistillConfig, gen: torch.Generator) -> dict:
     """Adam on the imitation error (and the smoothness penalty) over the aggregate; the final losses."""
-    x, y, nxt = data.tensors()
+    t = data.tensors()
+    x, y, nxt = t["obs"], t["labels"], t["next_row"]
     opt = torch.optim.Adam(student.params, lr=cfg.learning_rate)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=cfg.learning_rate * 0.05)
     with_next = torch.nonzero(nxt >= 0).squeeze(1)
     for _ in range(steps):
         idx = torch.randint(len(x), (cfg.batch_size,), generator=gen)
         loss = differential_mse(student(x[idx]), y[idx])
+        if cfg.gain_weight:
+            response = differential_mse(student(t["nudged_obs"][idx]) - student(x[idx]),
+                                        t["nudged_labels"][idx] - y[idx])
+            loss = loss + cfg.gain_weight * response / cfg.gain_step**2
         if cfg.smoothness:
             pair = with_next[torch.randint(len(with_next), (cfg.batch_size,), generator=gen)]
             step = differential(student(x[pair]) - student(x[nxt[pair]]))
@@ -210,24 +229,33 @@ def fit(student: Student, data: Dataset, steps: int, cfg: DistillConfig, gen: to
         sched.step()
     with torch.no_grad():
         probe = torch.randint(len(x), (min(len(x), 65536),), generator=gen)
-        mse = float(differential_mse(student(x[probe]), y[probe]))
-    return {"imitation_mse": mse}
+        losses = {"imitation_mse": float(differential_mse(student(x[probe]), y[probe]))}
+        if "nudged_obs" in t:  # the slopes' error, per unit nudge
+            response = student(t["nudged_obs"][probe]) - student(x[probe])
+            losses["gain_mse"] = float(differential_mse(response, t["nudged_labels"][probe] - y[probe])
+                                       / cfg.gain_step**2)
+    return losses
 
 
 # ── DAgger ─────────────────────────────────────────────────────────────────────────────
 def fly(env, teacher: Teacher, student: Student | None, cols: tuple[np.ndarray, np.ndarray], steps: int,
-        teacher_share: float, rng: np.random.Generator, obs: np.ndarray, bar) -> tuple:
+        teacher_share: float, rng: np.random.Generator, obs: np.ndarray, bar,
+        keep_union: bool = False) -> tuple:
     """One round: every twin `steps` steps; the student's observations, the teacher's labels,
-    the episode ends, the tracking error |Ω* − Ω| of the student's episodes, the next observation."""
+    the episode ends, the tracking error |Ω* − Ω| of the student's episodes, the next observation,
+    and (`keep_union`) the whole observations both read."""
     t_cols, s_cols = cols
     n = env.num_envs
     by_teacher = np.ones(n, dtype=bool) if student is None else rng.random(n) < teacher_share
     s_obs = np.empty((steps, n, len(s_cols)), dtype=np.float32)
     labels = np.empty((steps, n, 4), dtype=np.float32)
     ended = np.empty((steps, n), dtype=bool)
+    union = np.empty((steps, *obs.shape), dtype=np.float32) if keep_union else None
     errors: list[float] = []
     for k in range(steps):
         s_obs[k] = obs[:, s_cols]
+        if union is not None:
+            union[k] = obs
         labels[k] = teacher.act(np.ascontiguousarray(obs[:, t_cols]))
         action = labels[k] if student is None else np.where(by_teacher[:, None], labels[k],
                                                               student.act(s_obs[k]))
@@ -239,7 +267,23 @@ def fly(env, teacher: Teacher, student: Student | None, cols: tuple[np.ndarray, 
             by_teacher[truncated] = rng.random(int(truncated.sum())) < teacher_share
         if bar is not None and k % 50 == 49:
             bar.update(50)
-    return s_obs, labels, ended, (float(np.mean(errors)) if errors else None), obs
+    return s_obs, labels, ended, (float(np.mean(errors)) if errors else None), obs, union
+
+
+def nudge(union: np.ndarray, teacher: Teacher, cols: tuple[np.ndarray, np.ndarray], std: np.ndarray,
+          step: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Each observation with the student's columns moved by `step` standard deviations in a random
+    direction (the teacher's other columns as they were), and the teacher's action there.
+
+    Fitting the difference of the two actions to the teacher's fits the student's local gains, the
+    slope of the action against each input it sees, which decide how the closed loop rings; the
+    squared error alone fits the values and leaves the slopes to chance."""
+    t_cols, s_cols = cols
+    flat = union.reshape(-1, union.shape[-1]).copy()
+    flat[:, s_cols] += (step * std * rng.standard_normal((len(flat), len(s_cols)))).astype(np.float32)
+    labels = np.concatenate([teacher.act(np.ascontiguousarray(chunk[:, t_cols]))
+                             for chunk in np.array_split(flat, max(1, len(flat) // 8192))])
+    return flat[:, s_cols], labels
 
 
 def distill(cfg: DistillConfig) -> dict[str, Any]:
@@ -252,6 +296,12 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
 
     if cfg.memory < 1 or cfg.rounds < 1 or cfg.steps < 1 or cfg.envs < 1 or not 0.0 <= cfg.beta <= 1.0:
         raise DistillError("--memory, --rounds, --steps and --envs must be >= 1 and --beta in [0, 1]")
+    for name in ("gain_weight", "gain_step"):
+        value = getattr(cfg, name)
+        if not (np.isfinite(value) and value >= 0.0):
+            raise DistillError(f"--{name.replace('_', '-')} must be finite and >= 0, got {value}")
+    if cfg.gain_weight and not cfg.gain_step:
+        raise DistillError("--gain-weight needs a --gain-step above 0")
     teacher = Teacher(cfg.teacher)
     train_cfg, spec = student_train_config(cfg, teacher)
     torch.set_num_threads(train_cfg.threads)
@@ -283,14 +333,17 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     for r in range(cfg.rounds):
         share = cfg.beta ** r
-        s_obs, labels, ended, flown_error, obs = fly(env, teacher, student, cols, cfg.steps, share, rng, obs,
-                                                     bar)
+        s_obs, labels, ended, flown_error, obs, union_obs = fly(
+            env, teacher, student, cols, cfg.steps, share, rng, obs, bar, keep_union=bool(cfg.gain_weight))
         data.add(s_obs, labels, ended)
         if student is None:  # the observation statistics, from the teacher's flights (as VecNormalize's)
             venv.obs_rms.mean = s_obs.reshape(-1, s_obs.shape[-1]).mean(0).astype(np.float64)
             venv.obs_rms.var = s_obs.reshape(-1, s_obs.shape[-1]).var(0).astype(np.float64)
             venv.obs_rms.count = float(s_obs.shape[0] * s_obs.shape[1])
             student = Student(model, venv.obs_rms.mean, venv.obs_rms.var, venv.epsilon)
+        if union_obs is not None:
+            data.add_nudged(*nudge(union_obs, teacher, cols, np.sqrt(venv.obs_rms.var), cfg.gain_step, rng))
+            del union_obs
         if bar is not None:
             bar.set_postfix_str(f"fitting on {data.size} samples")
         losses = fit(student, data, cfg.fit_steps * (3 if r == cfg.rounds - 1 else 1), cfg, gen)
@@ -325,7 +378,8 @@ def distill_command(args) -> int:
                         rounds=args.rounds, steps=args.steps, envs=args.envs, beta=args.beta,
                         fit_steps=args.fit_steps, batch_size=args.batch_size,
                         learning_rate=args.learning_rate,
-                        smoothness=args.smoothness, task=args.task,
+                        smoothness=args.smoothness, gain_weight=args.gain_weight, gain_step=args.gain_step,
+                        task=args.task,
                         randomize=None if args.randomize == "none" else args.randomize,
                         randomize_share=args.randomize_share, seed=args.seed, threads=args.threads,
                         progress=args.progress)

@@ -21,7 +21,15 @@ from fcemu.firmware.observation import (
     ObservationSpec,
     observe_step,
 )
-from fcemu.training.distill import DistillConfig, DistillError, columns, distill, union_spec
+from fcemu.training.distill import (
+    DistillConfig,
+    DistillError,
+    Teacher,
+    columns,
+    distill,
+    nudge,
+    union_spec,
+)
 
 TEACHER = Path(__file__).parents[2] / "policies" / "iris_rate_ppo_rms64_mo.onnx"
 
@@ -56,6 +64,39 @@ def test_a_student_with_other_leaks_than_the_teacher_is_refused():
     with pytest.raises(DistillError, match="rms_leak"):
         union_spec(ObservationSpec(fields=("rate_error", "rotor_speed", RMS)),
                    ObservationSpec(fields=("rate_error", "rotor_speed", RMS), rms_leak=0.9))
+
+
+def test_a_nudge_moves_only_the_students_columns_and_the_teacher_labels_the_moved_state():
+    teacher = Teacher(TEACHER)
+    student = ObservationSpec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL, RMS, MOTOR_OUTPUT),
+                              integral_leak=teacher.spec.integral_leak, rms_leak=teacher.spec.rms_leak)
+    union = union_spec(teacher.spec, student)
+    cols = (columns(teacher.spec, union), columns(student, union))
+    rng = np.random.default_rng(0)
+    flown = rng.normal(size=(3, 5, union.size)).astype(np.float32)  # (steps, twins, observation)
+    std = rng.uniform(0.5, 2.0, student.size)
+    moved, labels = nudge(flown, teacher, cols, std, 0.05, np.random.default_rng(1))
+    flat = flown.reshape(15, -1)
+    step = (moved - flat[:, cols[1]]) / std
+    assert 0.03 < step.std() < 0.07 and moved.shape == (15, student.size)
+    hidden = np.setdiff1d(cols[0], cols[1])  # the teacher's older steps, which the student never sees
+    assert len(hidden) == teacher.spec.size - student.size
+    again = flat.copy()
+    again[:, cols[1]] = moved
+    np.testing.assert_allclose(labels, teacher.act(np.ascontiguousarray(again[:, cols[0]])), atol=1e-6)
+
+
+def test_the_gain_match_fits_the_teachers_slopes(tmp_path):
+    """A student fitted with the gain match responds to a nudge more like the teacher than one fitted
+    with it at a negligible weight (which still measures it)."""
+    runs = {}
+    for weight in (1e-9, 1.0):
+        out = tmp_path / f"g{weight}"
+        distill(DistillConfig(teacher=str(TEACHER), out=str(out), memory=2, net_arch=(16, 16), rounds=2,
+                              steps=100, envs=4, fit_steps=300, batch_size=256, gain_weight=weight,
+                              threads=1, progress=False))
+        runs[weight] = json.loads((out / "summary.json").read_text())["history"][-1]
+    assert runs[1.0]["gain_mse"] < 0.7 * runs[1e-9]["gain_mse"]
 
 
 def test_a_short_distillation_leaves_a_run_that_exports_and_flies(tmp_path):
