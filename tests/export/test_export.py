@@ -144,6 +144,20 @@ def test_a_fold_that_loses_parity_falls_back_to_a_cheaper_one_then_to_the_graph(
     assert [n.op_type for n in onnx.load(str(tmp_path / "p.onnx")).graph.node][:len(ops)] == ops
 
 
+def test_parity_allows_a_wide_sum_four_times_the_float32_networks_own_error(runs, tmp_path, monkeypatch):
+    """Observations far out (as a long history of random errors is) make the float32 actor itself
+    miss exact arithmetic by more than 1e-5; the graph is held to four times that, no looser."""
+    import fcemu.export.onnx_export as onnx_export
+
+    near = export_policy(runs["ppo_unclipped"], tmp_path / "near.onnx")
+    assert near["parity_tolerance"] == onnx_export.PARITY_TOLERANCE
+    usual = onnx_export.parity_observations
+    monkeypatch.setattr(onnx_export, "parity_observations", lambda spec, n, seed=0: 3e4 * usual(spec, n))
+    far = export_policy(runs["ppo_unclipped"], tmp_path / "far.onnx")
+    assert far["parity_ok"] and far["parity_tolerance"] > onnx_export.PARITY_TOLERANCE
+    assert far["parity_max_abs_diff"] <= far["parity_tolerance"]
+
+
 def test_checkpoint_zip_exports_with_its_own_normalisation(runs, tmp_path):
     ckpts = sorted((runs["ppo"] / "checkpoints").glob("ppo_*_steps.zip"))
     assert ckpts, "CheckpointCallback wrote no checkpoint"
