@@ -66,12 +66,14 @@ def register_distill(sub: argparse._SubParsersAction) -> None:
                                        "randomised twins; a `fcemu train`-style run directory")
     p.add_argument("teacher", help="the teacher policy (.onnx made by `fcemu export`)")
     p.add_argument("--out", default="runs/distill", help="run directory (default runs/distill)")
-    p.add_argument("--memory", type=int, default=2, help="the student's history length (default 2)")
+    p.add_argument("--memory", type=int, default=None,
+                   help="the student's history length (default: the teacher's)")
     p.add_argument("--fields", nargs="+", default=None, metavar="FIELD",
                    help="the student's observation fields, rate_error rotor_speed first "
                         "(default: the teacher's)")
-    p.add_argument("--net-arch", nargs="+", type=int, default=[64, 64], metavar="H",
-                   help="the student's hidden layers, tanh (default 64 64)")
+    p.add_argument("--net-arch", nargs="+", type=int, default=[8, 32, 32], metavar="H",
+                   help="the student's hidden layers, tanh (default 8 32 32: a narrow first layer reads a "
+                        "long history cheaply)")
     p.add_argument("--rounds", type=int, default=8,
                    help="DAgger rounds; the teacher flies the first (default 8)")
     p.add_argument("--steps", type=int, default=1000, help="steps per twin and round (default 1000)")
@@ -85,12 +87,12 @@ def register_distill(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--smoothness", type=float, default=0.0,
                    help="weight of the mean squared change of the student's action from one step to the "
                         "next in the loss (default 0)")
-    p.add_argument("--gain-weight", type=float, default=0.0, metavar="W",
+    p.add_argument("--gain-weight", type=float, default=0.1, metavar="W",
                    help="weight of the gain match: each sample is also nudged along the student's inputs and "
                         "the change of the student's action fitted to the teacher's, so the student's slopes "
-                        "match, not only its values (default 0)")
-    p.add_argument("--gain-step", type=float, default=0.05, metavar="S",
-                   help="the nudge, in standard deviations of each input (default 0.05)")
+                        "match, not only its values (default 0.1; 0: off)")
+    p.add_argument("--gain-step", type=float, default=0.2, metavar="S",
+                   help="the nudge, in standard deviations of each input (default 0.2)")
     p.add_argument("--task", default="episodic", choices=("episodic", "continuous"), help="the flights")
     p.add_argument("--randomize", default="iris_esc2", metavar="NAME|FILE",
                    help="the twins' airframe ranges, as `fcemu train --randomize` (default iris_esc2; none: "

@@ -28,6 +28,7 @@ from fcemu.training.distill import (
     columns,
     distill,
     nudge,
+    student_train_config,
     union_spec,
 )
 
@@ -58,6 +59,14 @@ def test_each_policy_reads_from_the_union_what_the_firmware_builds_for_it(studen
     flown = _history(union, steps)
     for spec in (teacher, student):
         np.testing.assert_array_equal(flown[columns(spec, union)], _history(spec, steps))
+
+
+def test_by_default_the_student_reads_the_teachers_whole_history_and_a_bad_memory_is_refused(tmp_path):
+    teacher = Teacher(TEACHER)
+    _, spec = student_train_config(DistillConfig(teacher=str(TEACHER)), teacher)
+    assert spec.memory == teacher.spec.memory == 16 and spec.fields == teacher.spec.fields
+    with pytest.raises(DistillError, match="--memory"):
+        distill(DistillConfig(teacher=str(TEACHER), out=str(tmp_path / "s"), memory=0))
 
 
 def test_a_student_with_other_leaks_than_the_teacher_is_refused():
