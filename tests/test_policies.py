@@ -12,7 +12,7 @@ from fcemu.firmware.controllers import DEFAULT_POLICY, load_controller
 
 POLICY_DIR = Path(__file__).parents[1] / "policies"
 POLICIES = sorted(POLICY_DIR.glob("*.onnx"))
-DEFAULT_MEMORY, DEFAULT_HIDDEN = 2, [48, 48]  # policies/README.md: the distilled default
+DEFAULT_MEMORY, DEFAULT_HIDDEN = 16, [8, 32, 32]  # policies/README.md: the distilled default
 
 
 def _catalogue() -> dict[str, list[str]]:
@@ -33,7 +33,7 @@ def test_the_catalogue_table_lists_exactly_the_shipped_files_with_their_input_wi
         assert cells[1].startswith(f"{spec.size} "), (name, cells[1])
 
 
-def test_the_default_is_the_shipped_file_and_observes_a_short_history_of_five_fields():
+def test_the_default_is_the_shipped_file_and_reads_its_teachers_history_through_a_narrow_layer():
     assert (POLICY_DIR / "iris_rate_ppo.onnx").resolve() == DEFAULT_POLICY.resolve()
     spec = load_controller(str(DEFAULT_POLICY), 1000.0).spec
     assert spec.fields == ("rate_error", "rotor_speed", "rate_error_integral", "rate_error_rms",
