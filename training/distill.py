@@ -195,7 +195,6 @@ class Dataset:
         return {k: torch.as_tensor(v) for k, v in out.items()}
 
 
-
 def differential(a: torch.Tensor) -> torch.Tensor:
     """The part of four motor actions the mixer keeps: a − mean(a) (`firmware.action`, both mappings
     up to the collective, which the throttle mapping takes from the outer loop)."""
@@ -210,7 +209,8 @@ def differential_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def fit(student: Student, data: Dataset, steps: int, cfg: DistillConfig, gen: torch.Generator) -> dict:
-    """Adam on the imitation error (and the smoothness penalty) over the aggregate; the final losses."""
+    """Adam on the imitation error (and the gain match, the smoothness penalty) over the aggregate;
+    the final losses."""
     t = data.tensors()
     x, y, nxt = t["obs"], t["labels"], t["next_row"]
     opt = torch.optim.Adam(student.params, lr=cfg.learning_rate)
