@@ -218,9 +218,10 @@ def fit(student: Student, data: Dataset, steps: int, cfg: DistillConfig, gen: to
     with_next = torch.nonzero(nxt >= 0).squeeze(1)
     for _ in range(steps):
         idx = torch.randint(len(x), (cfg.batch_size,), generator=gen)
-        loss = differential_mse(student(x[idx]), y[idx])
+        pred = student(x[idx])
+        loss = differential_mse(pred, y[idx])
         if cfg.gain_weight:
-            response = differential_mse(student(t["nudged_obs"][idx]) - student(x[idx]),
+            response = differential_mse(student(t["nudged_obs"][idx]) - pred,
                                         t["nudged_labels"][idx] - y[idx])
             loss = loss + cfg.gain_weight * response / cfg.gain_step**2
         if cfg.smoothness:
