@@ -8,18 +8,30 @@ twin boundary.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
 
 from fcemu.firmware.action import PWM_MIN, PWM_SPAN
+from fcemu.sim_bridge.airframe_file import (
+    GRAVITY,
+    OPTIONAL,
+    REQUIRED,
+    AirframeError,
+    check_airframe_file,
+    check_keys,
+    number,
+    read_json,
+    suggestion,
+    vector,
+)
 
 AIRFRAME_DIR = Path(__file__).parent / "airframes"
 FLU_FROM_FRD = np.array([1.0, -1.0, -1.0])  # also NED <-> (north, west, up)
 RIGS = ("rig", "free")
 LEG_RADIUS = 0.01
+ROTOR_BODY_INERTIA = (1e-6, 1e-6, 2e-6)  # kg·m², each rotor body's, unless the file gives its own
 
 
 @dataclass(frozen=True)
@@ -33,6 +45,7 @@ class MotorSpec:
     tau_down: float  # s
     pwm_min: float = 1000.0
     pwm_max: float = 2000.0
+    poles: int | None = None  # magnet poles of a brushless motor (eRPM = poles / 2 × RPM); None: brushed
 
     def pwm_for_rotor_speed(self, omega: float | np.ndarray) -> float | np.ndarray:
         span = self.pwm_max - self.pwm_min
@@ -51,6 +64,7 @@ class Airframe:
     spin: np.ndarray  # (4,) +1 counter-clockwise, -1 clockwise, seen from above
     motor: MotorSpec
     gear_half_height: float
+    rotor_body_inertia: tuple[float, float, float] = ROTOR_BODY_INERTIA  # kg·m², each rotor body (FRD axes)
     # What a real airframe adds (`sim_bridge.plant`); all off by default, as in the paper's twin.
     rate_damping: tuple[float, float, float] = (0.0, 0.0, 0.0)  # N·m·s/rad, FRD torque −D·Ω
     rotor_inertia: float = 0.0  # kg·m² about the spin axis: spin-up reaction and gyroscopic moment
@@ -87,6 +101,33 @@ class Airframe:
     def yaw_sign(self) -> np.ndarray:
         """FRD yaw moment per unit thrust sign: a CW prop twists the body CCW (negative yaw)."""
         return self.spin.astype(float)
+
+    def thrust_to_weight(self, gravity: float = GRAVITY) -> float:
+        """The four rotors' thrust at top speed over the weight."""
+        return 4 * self.motor.kf * self.motor.max_rotor_speed**2 / (self.mass * gravity)
+
+    def inertia(self) -> np.ndarray:
+        """(3,) kg·m²: the whole airframe's moments about its centre of mass (body axes), rotors included."""
+        rotors = self.rotor_positions
+        com = rotors.sum(axis=0) * self.rotor_mass / self.mass
+        base_offset = -com  # the base body's own centre sits at the body origin
+        total = np.array(self.base_inertia, dtype=float) + 4 * np.array(self.rotor_body_inertia, dtype=float)
+        for offset, mass in [(base_offset, self.base_mass), *((r - com, self.rotor_mass) for r in rotors)]:
+            total += mass * (offset @ offset - offset**2)  # parallel axis, diagonal terms
+        return total
+
+    def max_angular_acceleration(self, gravity: float = GRAVITY) -> np.ndarray:
+        """(3,) rad/s² on roll, pitch, yaw from the full differential thrust around hover.
+
+        Each rotor's thrust moves by the same δ either way from hover, the weight still held:
+        δ = min(T_max − T_hover, T_hover). Roll takes δ·Σ|y|, pitch δ·Σ|x|, yaw δ·k_M per rotor.
+        """
+        m = self.motor
+        hover = self.mass * gravity / 4
+        delta = min(m.kf * m.max_rotor_speed**2 - hover, hover)
+        arms = np.abs(self.rotor_positions[:, :2]).sum(axis=0)
+        torque = delta * np.array([arms[1], arms[0], 4 * m.km])
+        return torque / self.inertia()
 
     def hover_rotor_speed(self, gravity: float = 9.81) -> float:
         return float(np.sqrt(self.mass * gravity / (4 * self.motor.kf)))
@@ -141,16 +182,21 @@ def airframe_names() -> list[str]:
     return sorted(p.stem for p in AIRFRAME_DIR.glob("*.json") if "." not in p.stem)
 
 
-def _read(name_or_path: str | Path) -> tuple[Path, dict]:
+def _read(name_or_path: str | Path, variants: tuple[Path, ...] = ()) -> tuple[Path, dict]:
     path = Path(name_or_path)
     if not path.suffix:
         path = AIRFRAME_DIR / f"{name_or_path}.json"
     if not path.exists():
         raise FileNotFoundError(f"no airframe file {path} (shipped airframes: {', '.join(airframe_names())})")
-    raw = json.loads(path.read_text())
+    if path in variants:
+        raise AirframeError(variants[-1], "base", f"{path} is its own base")
+    raw = read_json(path)
     if "base" in raw:  # a variant: the base airframe's file with these keys (effects merged) replaced
+        check_keys(path, "", raw, (), REQUIRED + OPTIONAL)
+        if not isinstance(raw["base"], str) or not raw["base"]:
+            raise AirframeError(path, "base", "must name the airframe this one varies")
         beside = path.parent / f"{raw['base']}.json"
-        _, base = _read(beside if beside.exists() else raw["base"])
+        _, base = _read(beside if beside.exists() else raw["base"], (*variants, path))
         effects = {**base.get("effects", {}), **raw.get("effects", {})}
         raw = {**base, **raw, "effects": effects}
     return path, raw
@@ -160,20 +206,23 @@ def _effects(path: Path, raw: dict) -> dict:
     values: dict = {}
     sources = []
     for key, entry in raw.get("effects", {}).items():
+        where = f"effects.{key}"
         if key not in EFFECT_KEYS:
-            raise ValueError(f"{path}: unknown effect {key!r}; known: {', '.join(EFFECT_KEYS)}")
+            raise AirframeError(path, where, f"unknown effect {key!r}{suggestion(key, tuple(EFFECT_KEYS))}")
+        if not isinstance(entry, dict) or "value" not in entry:
+            raise AirframeError(path, where, "expected an object {\"value\": ..., \"source\": ...}")
         name = EFFECT_KEYS[key]
         value = entry["value"]
         if isinstance(value, list):
-            value = tuple(float(v) for v in value)
-            if len(value) != 3:
-                raise ValueError(f"{path}: {key} needs 3 values (roll, pitch, yaw)")
+            value = vector(path, f"{where}.value", value, strict=False)
         elif name.endswith("_ticks"):
-            if int(value) != value or value < 0:
-                raise ValueError(f"{path}: {key} must be a whole number of ticks >= 0, got {value}")
+            whole = isinstance(value, int | float) and not isinstance(value, bool) and int(value) == value
+            if not whole or value < 0:
+                raise AirframeError(path, f"{where}.value",
+                                    f"must be a whole number of ticks >= 0, got {value}")
             value = int(value)
         else:
-            value = float(value)
+            value = number(path, f"{where}.value", value, strict=name == "battery_voltage_full")
         values[name] = value
         sources.append((name, str(entry.get("source", ""))))
     values["effect_sources"] = tuple(sources)
@@ -186,10 +235,10 @@ def effect_fields() -> tuple[str, ...]:
 
 
 def load_airframe(name_or_path: str | Path = "iris") -> Airframe:
+    """The airframe of a shipped name or a file; an `AirframeError` names the field of any problem."""
     path, raw = _read(name_or_path)
+    check_airframe_file(path, raw)
     motors = raw["motors"]
-    if len(motors) != 4:
-        raise ValueError(f"{path}: a Quad X airframe needs 4 motors, found {len(motors)}")
     m = raw["motor"]
     return Airframe(
         name=raw["name"],
@@ -208,8 +257,11 @@ def load_airframe(name_or_path: str | Path = "iris") -> Airframe:
             tau_down=float(m["time_constant_down_s"]),
             pwm_min=float(m.get("pwm_min_us", 1000)),
             pwm_max=float(m.get("pwm_max_us", 2000)),
+            poles=m.get("poles"),
         ),
         gear_half_height=float(raw["landing_gear_half_height_m"]),
+        rotor_body_inertia=tuple(float(v) for v in raw.get("rotor_body_inertia_kg_m2",  # type: ignore[arg-type]
+                                                           ROTOR_BODY_INERTIA)),
         **_effects(path, raw),
     )
 
@@ -227,7 +279,8 @@ def build_mjcf(airframe: Airframe, rig: str, dt: float = 0.001) -> str:
     bx, by, bz = (s / 2 for s in airframe.base_box)
     rotors = "\n".join(
         f'      <body name="rotor{i + 1}" pos="{_vec(p)}">'
-        f'<inertial pos="0 0 0" mass="{airframe.rotor_mass}" diaginertia="1e-6 1e-6 2e-6"/>'
+        f'<inertial pos="0 0 0" mass="{airframe.rotor_mass}"'
+        f' diaginertia="{_vec(airframe.rotor_body_inertia)}"/>'
         f'<geom type="cylinder" size="{airframe.rotor_radius} 0.003" contype="0" conaffinity="0"'
         f' rgba="{".2 .2 .2" if airframe.spin[i] < 0 else ".7 .2 .2"} .5"/>'
         f'<site name="rotor{i + 1}" pos="0 0 0"/></body>'
