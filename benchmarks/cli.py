@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from fcemu.sitl.cli import loop_rate, seconds
+from fcemu.sitl.cli import add_airframe_option, loop_rate, seconds
 from fcemu.training import config
 from fcemu.training.cli import BENCH_DEFAULTS
 
@@ -43,12 +43,14 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
                       help="repeat each measurement with this fault active in the twin (fcemu eval --fault's "
                            "SPEC, e.g. esc-telemetry:stuck); the figures with it go under with_fault")
     loop.add_argument("--json", action="store_true")
+    add_airframe_option(loop)
     loop.set_defaults(handler="fcemu.benchmarks.loop:bench_loop")
 
     inference = bench_sub.add_parser("inference", help="ONNX policy inference time per tick")
     inference.add_argument("--model", default=None, help="a policy .onnx (default: the shipped policy)")
     inference.add_argument("--samples", type=int, default=20_000)
     inference.add_argument("--json", action="store_true")
+    add_airframe_option(inference, "the policy is checked against (envelope), whose rotor speeds it reads")
     inference.set_defaults(handler="fcemu.benchmarks.inference:bench_inference")
 
     p = bench_sub.add_parser("train", help="training steps/s and wall time until the policy beats the PID")

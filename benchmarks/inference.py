@@ -7,14 +7,16 @@ import time
 
 import numpy as np
 
+from fcemu.firmware.airframe_spec import AirframeSpec
 from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.neural import NeuralRateController
 from fcemu.firmware.sensors import SensorFrame
 
 
-def measure_inference(model: str, n: int = 20_000, warmup: int = 2_000) -> dict:
-    """Median and p99 of one `infer` (onnxruntime only) and of one full `update` (tick cost), in µs."""
-    ctl = NeuralRateController(model)
+def measure_inference(model: str, airframe: AirframeSpec, n: int = 20_000, warmup: int = 2_000) -> dict:
+    """Median and p99 of one `infer` (onnxruntime only) and of one full `update` (tick cost), in µs,
+    on rotor speeds up to `airframe`'s top speed."""
+    ctl = NeuralRateController(model, airframe=airframe)
     rng = np.random.default_rng(0)
     obs = rng.standard_normal((n + warmup, ctl.spec.size)).astype(np.float32)
     infer_ns = np.empty(n, dtype=np.int64)
@@ -23,7 +25,8 @@ def measure_inference(model: str, n: int = 20_000, warmup: int = 2_000) -> dict:
         ctl.infer(obs[i])
         if i >= warmup:
             infer_ns[i - warmup] = time.perf_counter_ns() - t0
-    frames = [SensorFrame(0, rng.uniform(-5, 5, 3), np.array([0, 0, -9.81]), rng.uniform(0, 1100, 4))
+    top = airframe.max_rotor_speed
+    frames = [SensorFrame(0, rng.uniform(-5, 5, 3), np.array([0, 0, -9.81]), rng.uniform(0, top, 4))
               for _ in range(256)]
     setpoint = RateSetpoint(np.array([1.0, -2.0, 0.5]), 0.6)
     update_ns = np.empty(n, dtype=np.int64)
@@ -44,7 +47,9 @@ def bench_inference(args) -> int:
     model = args.model or default_controller()
     if not model.endswith(".onnx"):
         raise SystemExit("fcemu bench inference: no policy given and none shipped; pass --model FILE.onnx")
-    r = measure_inference(model, args.samples)
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    r = measure_inference(model, airframe_spec(getattr(args, "airframe", "iris")), args.samples)
     print(json.dumps(r) if args.json else
           f"{r['model']}: onnxruntime median {r['median_us']:.1f} µs, p99 {r['p99_us']:.1f} µs; "
           f"full controller update (observation + inference + mapping) median "

@@ -10,7 +10,7 @@ import sys
 
 from fcemu.firmware.timing import give_loop_a_core
 from fcemu.sim_bridge.faults import Fault, FaultInjector
-from fcemu.sitl.sitl import build_sitl, flying_line, load_controllers
+from fcemu.sitl.sitl import build_sitl, firmware_airframe, flying_line, load_controllers
 
 
 def _free_port() -> int:
@@ -36,13 +36,13 @@ def _answers(sitl, fault: Fault | None, start: int) -> dict:
 
 
 def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "rig",
-                 mavlink: bool = False, fault: Fault | None = None) -> dict:
+                 mavlink: bool = False, fault: Fault | None = None, airframe: str = "iris") -> dict:
     """DESIGN.md's `bench loop` figures in real time: the scripted doublets, or with `mavlink`
     the Vehicle flown in OFFBOARD by a peer process sending 100 Hz setpoints while every
     telemetry stream goes out to two peers. `fault` is injected into the twin when the measured
     seconds begin (with `mavlink`, once the vehicle flies OFFBOARD)."""
     if not mavlink:
-        sitl = build_sitl(controller, rig=rig, rate_hz=rate_hz, realtime=True)
+        sitl = build_sitl(controller, rig=rig, rate_hz=rate_hz, realtime=True, airframe=airframe)
         _inject(sitl, fault)
         start = 0
         release_core = give_loop_a_core(())
@@ -58,7 +58,7 @@ def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "ri
         gcs, offboard = _free_port(), _free_port()
         config = MavlinkConfig(peers=[PeerConfig("gcs", "127.0.0.1", gcs),
                                       PeerConfig("offboard", "127.0.0.1", offboard)], params_file=None)
-        vs = start_vehicle_sitl(controller, rig, rate_hz, 1.0, config)
+        vs = start_vehicle_sitl(controller, rig, rate_hz, 1.0, config, airframe=airframe)
         peer = subprocess.Popen([sys.executable, "-m", "fcemu.benchmarks.loadpeer",
                                  str(gcs), str(offboard)])
         sitl = vs.sitl
@@ -98,12 +98,13 @@ def _measure(controller: str, seconds: float, rate: float, args, fault: Fault | 
     tag = "" if fault is None else f" with {fault.describe()}"
     if not quiet:
         print(f"running {controller} at {rate:.0f} Hz for {seconds:g} s{tag} ...", file=sys.stderr)
-    result = measure_loop(controller, seconds, rate, args.rig, False, fault)
+    airframe = getattr(args, "airframe", "iris")
+    result = measure_loop(controller, seconds, rate, args.rig, False, fault, airframe)
     if getattr(args, "mavlink", False):
         if not quiet:
             print(f"running {controller} at {rate:.0f} Hz for {seconds:g} s with MAVLink{tag} ...",
                   file=sys.stderr)
-        with_mavlink = measure_loop(controller, seconds, rate, args.rig, True, fault)
+        with_mavlink = measure_loop(controller, seconds, rate, args.rig, True, fault, airframe)
         link = with_mavlink.pop("mavlink")
         for key in ("rate_hz", "seconds", "controller"):
             with_mavlink.pop(key)
@@ -121,7 +122,8 @@ def bench_loop(args) -> int:
     controller = args.controller or default_controller()
     rates = args.rate or [1000.0]
     fault: Fault | None = getattr(args, "fault", None)
-    load_controllers(controller, rates[0])  # a bad --controller fails here, before the line below
+    # A bad --controller, or one not for the airframe, fails here, before the line below.
+    load_controllers(controller, rates[0], firmware_airframe(getattr(args, "airframe", "iris"))[1])
     print(flying_line(controller), file=sys.stderr)
     results = []
     for rate in rates:

@@ -25,7 +25,7 @@ from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from fcemu.firmware.controllers import load_controller
-from fcemu.firmware.health import HealthMonitor
+from fcemu.firmware.health import HealthMonitor, HealthRules
 from fcemu.firmware.loop import Command, FlightLoop, TickSample
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.firmware.timing import LockstepClock
@@ -156,10 +156,13 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     unless `cfg.throttle` is set. `faults` injects its faults into the twin at its tick of each
     episode and records what the firmware's health monitor made of them.
     """
-    controllers = {"main": load_controller(spec, cfg.rate_hz)}
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    configured = airframe_spec(airframe or cfg.airframe)  # what the firmware is set up for
+    controllers = {"main": load_controller(spec, cfg.rate_hz, configured)}
     neural = not spec.startswith("pid")
     if neural:
-        controllers[FALLBACK] = load_controller(FALLBACK)
+        controllers[FALLBACK] = load_controller(FALLBACK, airframe=configured)
     setpoints = setpoint_schedules(cfg)
     n, ticks = cfg.episodes, cfg.warmup_ticks + cfg.n_ticks
     rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))
@@ -176,7 +179,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
         recorder.start()
         loop = FlightLoop(InProcessLink(twin), first, controllers, commander, LockstepClock(), cfg.rate_hz,
                           [recorder], fallback=FALLBACK if neural else None,
-                          health=HealthMonitor(dt=1.0 / cfg.rate_hz))
+                          health=HealthMonitor(HealthRules.for_airframe(configured), dt=1.0 / cfg.rate_hz))
         at = -1 if faults is None else faults.ticks[i]
         for k in range(ticks):
             if k == at:

@@ -5,7 +5,8 @@ normalisation folded in: raw observation (as `firmware.observation` builds it) i
 unclipped action out. A run trained without an observation clip (`--obs-clip 0`) has
 its normalisation folded into the first layer's weights, so the graph is the bare MLP:
 every node costs the firmware about half a microsecond of onnxruntime dispatch per tick.
-The file's metadata carries the contract `firmware.neural` checks. A parity check
+The file's metadata carries the contract `firmware.neural` checks, with the airframe the run
+trained on and the envelope of airframes its randomisation spanned. A parity check
 against the unfolded actor in torch on ≥ 10,000 observations is printed and stored: within
 1e-5, or four times the float32 actor's own distance from float64 where that is larger.
 """
@@ -26,8 +27,10 @@ from stable_baselines3.common.torch_layers import FlattenExtractor
 from torch import nn
 
 from fcemu import __version__
+from fcemu.firmware.airframe_spec import AirframeSpec, Envelope
 from fcemu.firmware.neural import META_PREFIX, NeuralRateController
 from fcemu.firmware.observation import ObservationSpec, observe_step
+from fcemu.sim_bridge.airframe_spec import airframe_spec, envelope
 
 ALGORITHMS = ("ppo", "trpo", "ddpg", "td3", "sac")
 PARITY_TOLERANCE = 1e-5
@@ -176,14 +179,15 @@ def build_actor(model, checkpoint: Checkpoint, spec: ObservationSpec) -> Determi
     return actor.eval()
 
 
-def parity_observations(spec: ObservationSpec, n: int, seed: int = 0) -> np.ndarray:
-    """Observations spread over what flight produces: errors to ±2× the command bound, any rotor speed."""
+def parity_observations(spec: ObservationSpec, n: int, max_rotor_speed: float, seed: int = 0) -> np.ndarray:
+    """Observations spread over what flight produces: errors to ±2× the command bound, any rotor
+    speed up to the airframe's `max_rotor_speed`."""
     rng = np.random.default_rng(seed)
     steps = []
     for _ in range(spec.memory):
         setpoint = rng.uniform(-10.5, 10.5, (n, 3))
         gyro = rng.uniform(-10.5, 10.5, (n, 3))
-        rotor = rng.uniform(0.0, 1100.0, (n, 4))
+        rotor = rng.uniform(0.0, max_rotor_speed, (n, 4))
         steps.append(observe_step(spec, setpoint, gyro, rotor))
     return np.concatenate(steps, axis=-1).astype(np.float32)
 
@@ -199,15 +203,43 @@ def _write_graph(module: nn.Module, size: int, out: Path, obs: np.ndarray, expec
     return float(np.abs(session.run(None, {"observation": obs})[0] - expected).max())
 
 
+def trained_on(cfg: dict) -> tuple[AirframeSpec, Envelope]:
+    """The airframe a run's config names and the envelope its randomisation spanned (± a margin
+    where the run names no randomisation file)."""
+    airframe = cfg.get("airframe", "iris")
+    randomize = cfg.get("randomize")
+    try:
+        return airframe_spec(airframe), envelope(airframe, randomize if isinstance(randomize, str) else None)
+    except (OSError, ValueError, KeyError) as exc:
+        raise ExportError(f"the run's airframe {airframe!r} or randomisation {randomize!r}: {exc}") from None
+
+
+def record_envelope(path: str | Path, airframe: AirframeSpec, env: Envelope) -> None:
+    """Write `fcemu.airframe` and `fcemu.envelope` into an exported policy's metadata, its graph
+    untouched (an export from before they were recorded)."""
+    proto = onnx.load(str(path))
+    graph = proto.graph.SerializeToString()
+    kept = [(p.key, p.value) for p in proto.metadata_props
+            if p.key not in (META_PREFIX + "airframe", META_PREFIX + "envelope")]
+    del proto.metadata_props[:]
+    for k, v in [*kept, (META_PREFIX + "airframe", airframe.name), (META_PREFIX + "envelope", env.to_json())]:
+        proto.metadata_props.add(key=k, value=v)
+    if proto.graph.SerializeToString() != graph:
+        raise ExportError(f"{path}: the graph changed while writing its metadata")
+    onnx.save(proto, str(path))
+    NeuralRateController(path, airframe=airframe)
+
+
 def export_policy(target: str | Path, out: str | Path, parity_samples: int = 10_000) -> dict:
     checkpoint = find_checkpoint(target)
     cfg = checkpoint.config
+    airframe, env = trained_on(cfg)
     spec = ObservationSpec.from_json(json.dumps(cfg["observation"]))
     model = load_model(checkpoint)
     actor = build_actor(model, checkpoint, spec)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    obs = parity_observations(spec, max(parity_samples, 1))
+    obs = parity_observations(spec, max(parity_samples, 1), airframe.max_rotor_speed)
     with torch.no_grad():
         expected = actor(torch.as_tensor(obs)).numpy()
         own_error = 0.0
@@ -238,13 +270,15 @@ def export_policy(target: str | Path, out: str | Path, parity_samples: int = 10_
         "source": str(checkpoint.model_path),
         "parity_max_abs_diff": f"{max_diff:.3e}",
         "parity_samples": str(len(obs)),
+        "airframe": airframe.name,
+        "envelope": env.to_json(),
     }
     proto = onnx.load(str(out))
     for k, v in metadata.items():
         proto.metadata_props.add(key=META_PREFIX + k, value=v)
     proto.producer_name = "fcemu export"
     onnx.save(proto, str(out))
-    NeuralRateController(out)  # the firmware must accept what we just wrote
+    NeuralRateController(out, airframe=airframe)  # the firmware must accept it, for its airframe
     report = {"out": str(out), "bytes": out.stat().st_size, "parity_max_abs_diff": max_diff,
               "parity_tolerance": tolerance, "parity_samples": len(obs),
               "parity_ok": max_diff <= tolerance, **{

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fcemu.firmware.airframe_spec import AirframeSpec
 from fcemu.firmware.contract import PolicyContract
 from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.neural import PolicyContractError, PolicyOutputError
@@ -31,7 +32,8 @@ def is_c_policy_dir(spec: str) -> bool:
 class CPolicyController:
     """Runs the exported C policy; one state buffer per instance, so instances are independent."""
 
-    def __init__(self, directory: str | Path, loop_rate_hz: float | None = None) -> None:
+    def __init__(self, directory: str | Path, loop_rate_hz: float | None = None,
+                 airframe: AirframeSpec | None = None) -> None:
         self.path = Path(directory)
         lib_path, contract_path = self.path / LIBRARY, self.path / CONTRACT
         if not lib_path.is_file() or not contract_path.is_file():
@@ -46,6 +48,8 @@ class CPolicyController:
             raise PolicyContractError(f"{contract_path}: metadata is not a table of strings")
         self.metadata: dict[str, str] = metadata
         contract = PolicyContract.from_metadata(self.metadata, str(self.path), loop_rate_hz)
+        if airframe is not None:
+            contract.check_airframe(airframe, str(self.path))
         trained_rate = contract.loop_rate_hz
         try:
             self._lib = ctypes.CDLL(str(lib_path.resolve()))

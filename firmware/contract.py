@@ -11,12 +11,13 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Protocol
 
 import numpy as np
 
 from fcemu.firmware.action import ACTION_MAPPINGS
+from fcemu.firmware.airframe_spec import AirframeSpec, Envelope
 from fcemu.firmware.errors import UserError
 from fcemu.firmware.observation import FIELD_DEFS, LEAKS, OBS_VERSION, ObservationSpec, observe_step
 
@@ -25,10 +26,13 @@ REQUIRED_META = ("observation", "action_mapping", "loop_rate_hz")
 LOOP_RATE_RANGE_HZ = (50.0, 20_000.0)
 MAX_MEMORY = 64
 # The observation is scaled to about ±1 in training; a scale that maps the physical range
-# (±RATE_BOUND rad/s of rate error, 0..ROTOR_SPEED_MAX rad/s) outside [1/20, 20] is not one
-# a policy was trained with (swapped or corrupted metadata).
-RATE_BOUND, ROTOR_SPEED_MAX = 5.24, 1100.0
+# (±RATE_BOUND rad/s of rate error, 0..the top rotor speed of the envelope) outside [1/20, 20]
+# is not one a policy was trained with (swapped or corrupted metadata).
+RATE_BOUND = 5.24
 SCALED_RANGE = (1.0 / 20.0, 20.0)
+# A model without an envelope (exported before they were recorded) flies an airframe whose top
+# rotor speed its observation's scale maps to 1 within this fraction.
+LEGACY_SCALE_TOLERANCE = 0.01
 # Actions are in [-1, 1] and clipped there; a model answering ordinary observations with
 # outputs beyond this bound was not trained for this action space.
 OUTPUT_LIMIT = 100.0
@@ -53,6 +57,8 @@ class PolicyContract:
     action_mapping: str
     loop_rate_hz: float
     throttle: float | tuple[float, float] | None  # the collective range trained on; None: hover
+    airframe: str | None = None  # the airframe it was made for (None: not recorded)
+    envelope: Envelope | None = None  # the airframes it was trained across (None: not recorded)
 
     @classmethod
     def from_metadata(cls, meta: Mapping[str, str], where: str = "policy",
@@ -63,7 +69,10 @@ class PolicyContract:
             raise PolicyContractError(
                 f"{where}: metadata lacks {', '.join(META_PREFIX + k for k in missing)}; "
                 "export policies with `fcemu export`")
-        spec = _observation(meta["observation"], where)
+        envelope = _envelope(meta.get("envelope"), where)
+        top = None if envelope is None or "max_rotor_speed" not in envelope.ranges \
+            else envelope.ranges["max_rotor_speed"][1]
+        spec = _observation(meta["observation"], where, top)  # type: ignore[arg-type]
         mapping = meta["action_mapping"]
         if mapping not in ACTION_MAPPINGS:
             raise PolicyContractError(
@@ -73,7 +82,25 @@ class PolicyContract:
             raise PolicyContractError(f"{where}: trained for a {rate:g} Hz loop, asked to run at "
                                       f"{loop_rate_hz:g} Hz")
         throttle = _throttle(meta.get("throttle", "null"), where)
-        return cls(spec, mapping, rate, throttle)
+        return cls(spec, mapping, rate, throttle, meta.get("airframe"), envelope)
+
+    def check_airframe(self, airframe: AirframeSpec, where: str = "policy") -> None:
+        """Refuse, in one line, to fly an airframe outside the envelope the policy was trained across."""
+        made_for = self.airframe or "an airframe it does not name"
+        if self.envelope is None:
+            top = 1.0 / self.observation.rotor_speed_scale
+            if abs(self.observation.rotor_speed_scale * airframe.max_rotor_speed - 1.0) \
+                    > LEGACY_SCALE_TOLERANCE:
+                raise PolicyContractError(
+                    f"policy {where} records no envelope and was made for a top rotor speed of "
+                    f"{top:,.0f} rad/s; "
+                    f"{airframe.name}'s is {airframe.max_rotor_speed:,.0f} rad/s")
+            return
+        outside = self.envelope.outside(airframe)
+        if outside:
+            raise PolicyContractError(f"policy {where} was made for {made_for} ({self.envelope.describe()}); "
+                                      f"{airframe.name}'s {', '.join(outside)} "
+                                      f"{'is' if len(outside) == 1 else 'are'} outside it")
 
     def check_graph(self, inputs: Sequence[TensorInfo], outputs: Sequence[TensorInfo],
                     where: str = "policy") -> None:
@@ -93,11 +120,11 @@ class PolicyContract:
 
     def probe_observations(self, n: int = 64, seed: int = 0) -> np.ndarray:
         """Observations over the range the policy flies in: rate errors within ±RATE_BOUND, rotor
-        speeds within 0..ROTOR_SPEED_MAX, each step repeated through the memory."""
+        speeds within 0..the top speed its observation scales to 1, each step repeated through the memory."""
         rng = np.random.default_rng(seed)
         error = rng.uniform(-RATE_BOUND, RATE_BOUND, (n, 3))
         error[0] = 0.0
-        rotor = rng.uniform(0.0, ROTOR_SPEED_MAX, (n, 4))
+        rotor = rng.uniform(0.0, 1.0 / self.observation.rotor_speed_scale, (n, 4))
         step = observe_step(self.observation, error, np.zeros((n, 3)), rotor)
         return np.tile(step, (1, self.observation.memory)).astype(np.float32)
 
@@ -130,7 +157,20 @@ def _finite(value: object) -> bool:
         return False
 
 
-def _observation(text: str, where: str) -> ObservationSpec:
+def _envelope(text: str | None, where: str) -> Envelope | None:
+    if text is None:
+        return None
+    try:
+        return Envelope.from_json(text)
+    except ValueError as exc:
+        raise PolicyContractError(f"{where}: envelope not understood ({exc})") from None
+
+
+_DEFAULTS = {f.name: f.default for f in fields(ObservationSpec)}
+
+
+def _observation(text: str, where: str, top_rotor_speed: float | None) -> ObservationSpec:
+    """The spec; `top_rotor_speed` (the envelope's, if any) is what rotor_speed_scale must map near 1."""
     try:
         raw = json.loads(text)
     except (ValueError, RecursionError) as exc:
@@ -153,23 +193,25 @@ def _observation(text: str, where: str) -> ObservationSpec:
             or set(fields) - set(FIELD_DEFS) or len(set(fields)) != len(fields)):
         raise PolicyContractError(f"{where}: observation spec not understood (fields {_short(fields)}; "
                                   f"known: {sorted(FIELD_DEFS)}, each at most once)")
-    defaults = ObservationSpec()
-    for key, physical in (("rate_scale", RATE_BOUND), ("rotor_speed_scale", ROTOR_SPEED_MAX)):
-        value = raw.get(key, getattr(defaults, key))
+    if "rotor_speed_scale" not in raw:
+        raise PolicyContractError(f"{where}: observation spec lacks rotor_speed_scale")
+    for key, physical in (("rate_scale", RATE_BOUND), ("rotor_speed_scale", top_rotor_speed)):
+        value = raw.get(key, _DEFAULTS[key])
         lo, hi = SCALED_RANGE
-        if not _finite(value):
-            raise PolicyContractError(f"{where}: observation {key} {_short(value)} is not a finite number")
-        if not lo <= value * physical <= hi:
+        if not _finite(value) or not value > 0:
+            raise PolicyContractError(f"{where}: observation {key} {_short(value)} is not a finite "
+                                      "number > 0")
+        if physical is not None and not lo <= value * physical <= hi:
             raise PolicyContractError(f"{where}: observation {key} {value:.3g} maps {physical:g} rad/s to "
                                       f"{value * physical:.3g}, outside [{lo:g}, {hi:g}] as trained")
     leaks = {}
     for key in sorted(LEAKS):
-        leak = raw.get(key, getattr(defaults, key))
+        leak = raw.get(key, _DEFAULTS[key])
         if not _finite(leak) or not 0.0 <= leak < 1.0:
             raise PolicyContractError(f"{where}: observation {key} {_short(leak)} is not in [0, 1)")
         leaks[key] = float(leak)
-    return ObservationSpec(memory=memory, rate_scale=float(raw.get("rate_scale", defaults.rate_scale)),
-                           rotor_speed_scale=float(raw.get("rotor_speed_scale", defaults.rotor_speed_scale)),
+    return ObservationSpec(memory=memory, rate_scale=float(raw.get("rate_scale", _DEFAULTS["rate_scale"])),
+                           rotor_speed_scale=float(raw["rotor_speed_scale"]),
                            fields=tuple(fields), version=version, **leaks)
 
 

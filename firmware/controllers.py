@@ -1,15 +1,17 @@
-"""Controllers by name: `pid` (the Iris tune), `pid:<preset>`, an ONNX policy, or an exported C policy."""
+"""Controllers by name: `pid` (the airframe's tune), `pid:<preset>`, an ONNX policy, an exported C policy."""
 
 from __future__ import annotations
 
 from importlib.resources import files
 from pathlib import Path
 
+from fcemu.firmware.airframe_spec import AirframeSpec
 from fcemu.firmware.controller import RateController
 from fcemu.firmware.errors import UserError
 
 # Package data, so an installed wheel flies it as a checkout does.
 DEFAULT_POLICY = Path(str(files("fcemu.firmware") / "policies" / "iris_rate_ppo.onnx"))
+PRESET_DIR = Path(str(files("fcemu.firmware") / "presets"))
 FALLBACK_CONTROLLER = "pid"  # what flies when a policy faults, and in LAND and HOLD
 
 
@@ -29,22 +31,41 @@ def is_policy(spec: str) -> bool:
     return spec.endswith(".onnx") or is_c_policy_dir(spec)
 
 
-def load_controller(spec: str, loop_rate_hz: float | None = None) -> RateController:
-    """`loop_rate_hz`: the rate the loop will run it at; a policy trained for another rate is refused."""
-    if spec == "pid" or spec.startswith("pid:"):
-        from fcemu.firmware.pid_controller import PIDRateController
+def airframe_preset(airframe: AirframeSpec) -> Path:
+    """`firmware/presets/pid_<name>.json` of the airframe; a variant named `<base>_<what>` (iris_realistic)
+    flies its base's tune when it has none of its own."""
+    parts = airframe.name.split("_")
+    for n in range(len(parts), 0, -1):
+        path = PRESET_DIR / f"pid_{'_'.join(parts[:n])}.json"
+        if path.exists():
+            return path
+    raise ControllerSpecError(
+        f"no PID tuned for {airframe.name}: `fcemu tune --airframe {airframe.name} --out DIR`, "
+        "then --controller pid:DIR/pid.json")
 
+
+def load_controller(spec: str, loop_rate_hz: float | None = None,
+                    airframe: AirframeSpec | None = None) -> RateController:
+    """`loop_rate_hz`: the rate the loop will run it at; a policy trained for another rate is refused.
+    `airframe`: the one it will fly: `pid` is that airframe's tune, and a policy whose envelope does
+    not hold it is refused. Without one nothing is checked and `pid` is the default preset."""
+    if spec == "pid" or spec.startswith("pid:"):
+        from fcemu.firmware.pid_controller import DEFAULT_PRESET, PIDRateController
+
+        preset = spec.partition(":")[2]
+        if not preset:
+            preset = DEFAULT_PRESET if airframe is None else str(airframe_preset(airframe))
         try:
-            return PIDRateController.from_preset(spec.partition(":")[2] or "iris")
+            return PIDRateController.from_preset(preset)
         except (ValueError, KeyError, TypeError) as exc:  # an unknown preset or a preset file that is not one
             raise ControllerSpecError(f"controller {spec!r}: {exc}") from exc
     if spec.endswith(".onnx"):
         from fcemu.firmware.neural import NeuralRateController
 
-        return NeuralRateController(spec, loop_rate_hz=loop_rate_hz)
+        return NeuralRateController(spec, loop_rate_hz=loop_rate_hz, airframe=airframe)
     from fcemu.firmware.c_policy import CPolicyController, is_c_policy_dir
 
     if is_c_policy_dir(spec):  # a directory written by `fcemu export --target c`
-        return CPolicyController(spec, loop_rate_hz=loop_rate_hz)
+        return CPolicyController(spec, loop_rate_hz=loop_rate_hz, airframe=airframe)
     raise ControllerSpecError(f"unknown controller {spec!r}: use pid, pid:<preset>, a .onnx file "
                               "or a directory from `fcemu export --target c`")

@@ -29,10 +29,11 @@ firmware's answers"):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from fcemu.firmware.airframe_spec import AirframeSpec
 from fcemu.firmware.sensors import SensorFrame
 
 CRITICAL, WARNING = 2, 4  # MAV_SEVERITY
@@ -41,27 +42,37 @@ _ZERO3 = np.zeros(3)
 
 @dataclass(frozen=True)
 class HealthRules:
+    """The thresholds; the motors' (top speed, PWM range, speed model) come from `for_airframe`."""
+
+    rotor_speed_max: float = field(kw_only=True)  # rad/s at pwm_max
+    motor_tau_s: float = field(kw_only=True)  # the speed model's time constant
+    pwm_min: float = field(kw_only=True)
+    pwm_max: float = field(kw_only=True)
     gyro_range: float = math.radians(2000.0)  # rad/s
     gyro_jump: float = 5.0  # rad/s in one tick (5000 rad/s² at 1 kHz)
     gyro_fail_score: float = 20.0
     gyro_stuck_ticks: int = 50
     torque_spread_us: float = 20.0  # max − min PWM of the four motors
     recovery: float = 0.25  # score taken off per good sample
-    rotor_speed_max: float = 1100.0  # rad/s at PWM 2000 (the Iris)
-    motor_tau_s: float = 0.02  # the speed model's time constant
     rotor_tolerance: float = 0.3  # × rotor_speed_max
     rotor_fail_score: float = 10.0
     rotor_stale_ticks: int = 20
     stale_pwm_us: float = 5.0
-    pwm_min: float = 1000.0
-    pwm_max: float = 2000.0
+
+    @classmethod
+    def for_airframe(cls, airframe: AirframeSpec, **thresholds: float) -> HealthRules:
+        """The rules for `airframe`: its top rotor speed and PWM range, a speed model between its
+        motors' spin-up and spin-down time constants; `thresholds` replace the defaults above."""
+        return cls(rotor_speed_max=airframe.max_rotor_speed, pwm_min=airframe.pwm_min,
+                   pwm_max=airframe.pwm_max, **thresholds,
+                   motor_tau_s=0.5 * (airframe.motor_tau_up + airframe.motor_tau_down))
 
 
 class HealthMonitor:
     """The rules above for one vehicle; `detected` maps each verdict to the tick it was reached."""
 
-    def __init__(self, rules: HealthRules | None = None, dt: float = 0.001) -> None:
-        self.rules = r = rules or HealthRules()
+    def __init__(self, rules: HealthRules, dt: float = 0.001) -> None:
+        self.rules = r = rules
         self._keep_per_us = math.exp(-1e-6 / r.motor_tau_s)  # the model's decay per µs of sensor time
         self._dt_us = round(dt * 1e6)
         self._speed_per_us = r.rotor_speed_max / (r.pwm_max - r.pwm_min)

@@ -20,6 +20,7 @@ import numpy as np
 import onnxruntime as ort
 
 from fcemu.firmware.action import action_to_pwm, motor_output
+from fcemu.firmware.airframe_spec import AirframeSpec
 from fcemu.firmware.contract import META_PREFIX, PolicyContract, PolicyContractError
 from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.observation import ObservationHistory, observe_step
@@ -59,7 +60,9 @@ def _session(path: Path) -> ort.InferenceSession:
 class NeuralRateController:
     """Runs an exported policy; see the module docstring for what it refuses and contains."""
 
-    def __init__(self, path: str | Path, loop_rate_hz: float | None = None) -> None:
+    def __init__(self, path: str | Path, loop_rate_hz: float | None = None,
+                 airframe: AirframeSpec | None = None) -> None:
+        """`airframe`: the one it will fly; refused outside the policy's envelope (None: not checked)."""
         self.path = Path(path)
         if not self.path.exists():
             raise FileNotFoundError(f"no policy file {self.path}")
@@ -70,6 +73,8 @@ class NeuralRateController:
         self.metadata = _fcemu_metadata(self._session)
         self.contract = PolicyContract.from_metadata(self.metadata, str(self.path), loop_rate_hz)
         self.contract.check_graph(self._session.get_inputs(), self._session.get_outputs(), str(self.path))
+        if airframe is not None:
+            self.contract.check_airframe(airframe, str(self.path))
         self.spec, self.action_mapping = self.contract.observation, self.contract.action_mapping
         self.trained_rate_hz = self.contract.loop_rate_hz
         self._input_name = self._session.get_inputs()[0].name

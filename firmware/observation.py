@@ -14,7 +14,7 @@ feature.) Optional field `motor_output` (4): the motor outputs u = (PWM − 1000
 controller commanded on the previous tick. A penalty on |Δu| in the reward depends on them,
 and the rotor speeds show them only through the motors' lag; at a start there is no previous tick, and u is
 taken as the steady-state command of the rotors' speeds, clip(ω · rotor_speed_scale, 0, 1)
-(exact for the Iris, whose speed is linear in u up to 1100 rad/s). The spec
+(exact for an airframe whose speed is linear in u up to its top speed). The spec
 travels in the model's metadata and the firmware refuses a model whose spec differs.
 
 `FIELD_DEFS` declares each field (its source signal, the spec's scale for it, whether it
@@ -28,7 +28,8 @@ the model) and a batch (arrays with any leading shape), with the same IEEE opera
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+import warnings
+from dataclasses import InitVar, asdict, dataclass
 from functools import cached_property
 from operator import itemgetter, mul
 
@@ -81,17 +82,35 @@ FIELD_DEFS: dict[str, FieldDef] = {
 LEAKS = frozenset(d.leak for d in FIELD_DEFS.values() if d.leak)  # the spec's λ attributes
 
 
+# What a spec built without its airframe scaled rotor speed by (the shipped policies' 1/1100):
+# kept while callers move to `max_rotor_speed=`; each such build warns.
+_UNSCALED_FALLBACK = 1.0 / 1100.0  # airframe-constant: allowed until every caller passes max_rotor_speed
+
+
 @dataclass(frozen=True)
 class ObservationSpec:
+    """`rotor_speed_scale` is 1 / the airframe's max rotor speed: give it, or `max_rotor_speed`."""
+
     memory: int = 1
     rate_scale: float = 1.0 / 5.24  # rad/s -> about ±1 at the paper's command bound
-    rotor_speed_scale: float = 1.0 / 1100.0  # rad/s -> 0..1 at the Iris' max rotor speed
+    rotor_speed_scale: float = None  # type: ignore[assignment]  # rad/s -> 0..1 at the airframe's top speed
     fields: tuple[str, ...] = FIELDS
     version: int = OBS_VERSION
     integral_leak: float = DEFAULT_LEAK  # only with INTEGRAL
     rms_leak: float = DEFAULT_RMS_LEAK  # only with RMS
+    max_rotor_speed: InitVar[float | None] = None  # rad/s: sets rotor_speed_scale = 1 / it
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, max_rotor_speed: float | None) -> None:
+        if max_rotor_speed is not None:
+            if self.rotor_speed_scale is not None:
+                raise ValueError("give rotor_speed_scale or max_rotor_speed, not both")
+            if not max_rotor_speed > 0:
+                raise ValueError(f"max_rotor_speed must be > 0 rad/s, got {max_rotor_speed}")
+            object.__setattr__(self, "rotor_speed_scale", 1.0 / max_rotor_speed)
+        elif self.rotor_speed_scale is None:
+            warnings.warn("ObservationSpec without max_rotor_speed: pass the airframe's "
+                          "(motor.max_rotor_speed)", DeprecationWarning, stacklevel=3)
+            object.__setattr__(self, "rotor_speed_scale", _UNSCALED_FALLBACK)
         if self.memory < 1:
             raise ValueError(f"memory must be >= 1, got {self.memory}")
         unknown = set(self.fields) - set(FIELD_DEFS)

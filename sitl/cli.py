@@ -66,6 +66,12 @@ _rate_dps = _number(float, lambda value: value % 10 == 0 and 10 <= value <= 2550
 _peer = _accepted_by(_check_peer)
 
 
+def add_airframe_option(p: argparse.ArgumentParser, what: str = "the twin flies and the firmware is "
+                        "configured for (its PID tune, health rules, hover throttle)") -> None:
+    p.add_argument("--airframe", default="iris", metavar="NAME|FILE",
+                   help=f"the airframe {what}: sim_bridge/airframes/NAME.json or a file (default iris)")
+
+
 def add_mavlink_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("MAVLink")
     g.add_argument("-i", "--instance", type=_instance, default=0, metavar="N",
@@ -98,6 +104,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     sitl.add_argument("--rate", type=loop_rate, default=1000.0, help="loop rate in Hz")
     sitl.add_argument("--quiet", action="store_true", help="no live status line")
     sitl.add_argument("--no-mavlink", action="store_true", help="fly the scripted doublets, no MAVLink")
+    add_airframe_option(sitl)
     add_mavlink_options(sitl)
     sitl.set_defaults(handler="fcemu.sitl.sitl:sitl_command")
 
@@ -135,4 +142,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None, help="--crosscheck: write the report (Markdown, JSON, plot) here")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save Betaflight's traces (fcemu eval's format)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_airframe_option(p, "the twin flies (Betaflight's motor_poles and fcemu's controllers are for it)")
     p.set_defaults(handler="fcemu.evaluation.betaflight_crosscheck:betaflight_command")

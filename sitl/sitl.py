@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
+from fcemu.firmware.airframe_spec import AirframeSpec
 from fcemu.firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from fcemu.firmware.controllers import load_controller
-from fcemu.firmware.health import HealthMonitor
+from fcemu.firmware.health import HealthMonitor, HealthRules
 from fcemu.firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
 from fcemu.firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, prioritize_loop
 
@@ -34,6 +35,7 @@ class Sitl:
     twin: object  # sim_bridge.twin.Twin when in-process, None over UDP
     link: object
     selected: str = "pid"  # the controller key the --controller option chose
+    airframe: AirframeSpec | None = None  # what the firmware was configured for
 
 
 class ScaledClock:
@@ -90,11 +92,14 @@ def parse_speed(text: str) -> float | None:
     return value
 
 
-def scripted_flight(rig: str, controller: str = "pid") -> ScriptedCommander:
-    """What `fcemu sitl --no-mavlink` flies: rate doublets on each axis in turn."""
-    from fcemu.sim_bridge.airframe import load_airframe
+def scripted_flight(rig: str, controller: str = "pid", hover: float | None = None,
+                    airframe: str = "iris") -> ScriptedCommander:
+    """What `fcemu sitl --no-mavlink` flies: rate doublets on each axis in turn, about `hover`
+    (the throttle that holds the weight; None: `airframe`'s)."""
+    if hover is None:
+        from fcemu.sim_bridge.airframe import load_airframe
 
-    hover = load_airframe().hover_throttle()
+        hover = load_airframe(airframe).hover_throttle()
     climb = min(1.0, hover + 0.08) if rig == "free" else hover
     schedule: list[tuple[float, Sequence[float], float]] = [(0.0, (0, 0, 0), climb)]
     t = 1.0
@@ -122,34 +127,49 @@ def flying_line(controller: str) -> str:
     return f"fcemu: flying {controller}"
 
 
-def load_controllers(controller: str, rate_hz: float) -> tuple[dict, str]:
-    """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks."""
+def load_controllers(controller: str, rate_hz: float, airframe: AirframeSpec) -> tuple[dict, str]:
+    """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks,
+    each for `airframe` (a policy outside its envelope, or `pid` where none is tuned, is refused)."""
     from fcemu.firmware.controllers import is_policy
 
     if is_policy(controller):
-        return {"neural": load_controller(controller, rate_hz), FALLBACK: load_controller(FALLBACK)}, "neural"
-    return {FALLBACK: load_controller(controller, rate_hz)}, FALLBACK
+        return {"neural": load_controller(controller, rate_hz, airframe),
+                FALLBACK: load_controller(FALLBACK, airframe=airframe)}, "neural"
+    return {FALLBACK: load_controller(controller, rate_hz, airframe)}, FALLBACK
+
+
+def firmware_airframe(airframe: str | object) -> tuple[object, AirframeSpec]:
+    """The twin's airframe (a name, a file or an Airframe) and what the firmware is configured with for it."""
+    from fcemu.sim_bridge.airframe import Airframe, load_airframe
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)  # type: ignore[arg-type]
+    return af, airframe_spec(af)
 
 
 def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, realtime: bool = True,
                commander: Commander | None = None, sinks: Sequence[TelemetrySink] = (),
                twin_address: tuple[str, int] | None = None, speed: float = 1.0,
-               spin_us: int | None = None) -> Sitl:
+               spin_us: int | None = None, airframe: str | object = "iris") -> Sitl:
+    """`airframe` (a name, a file or an Airframe): the twin's, and what the firmware's controllers,
+    health rules and scripted hover are for (over UDP, the remote twin must fly the same one)."""
     from fcemu.sim_bridge.link import InProcessLink, UdpTwinClient
     from fcemu.sim_bridge.twin import Twin
 
-    controllers, selected = load_controllers(controller, rate_hz)
+    af, spec = firmware_airframe(airframe)
+    controllers, selected = load_controllers(controller, rate_hz, spec)
     if twin_address is None:
-        twin = Twin(rig=rig, dt=1.0 / rate_hz)
+        twin = Twin(af, rig=rig, dt=1.0 / rate_hz)  # type: ignore[arg-type]
         link = InProcessLink(twin)
     else:
         twin, link = None, UdpTwinClient(*twin_address)
     frame = link.reset(seed=0)
     real = RealTimeClock() if spin_us is None else RealTimeClock(spin_us)
     clock = (real if speed == 1.0 else ScaledClock(speed)) if realtime else LockstepClock()
-    loop = FlightLoop(link, frame, controllers, commander or scripted_flight(rig, selected), clock,
-                      rate_hz, sinks, fallback=FALLBACK, health=HealthMonitor(dt=1.0 / rate_hz))
-    return Sitl(loop, twin, link, selected)
+    commander = commander or scripted_flight(rig, selected, spec.hover_throttle)
+    loop = FlightLoop(link, frame, controllers, commander, clock, rate_hz, sinks, fallback=FALLBACK,
+                      health=HealthMonitor(HealthRules.for_airframe(spec), dt=1.0 / rate_hz))
+    return Sitl(loop, twin, link, selected, spec)
 
 
 @dataclass
@@ -211,19 +231,20 @@ class VehicleSitl:
 
 
 def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float | None, config,
-                       explicit_controller: bool = True, spin_us: int | None = None) -> VehicleSitl:
+                       explicit_controller: bool = True, spin_us: int | None = None,
+                       airframe: str | object = "iris") -> VehicleSitl:
     """Build the loop with a `Vehicle` commander and start its MAVLink process (`config`)."""
     from fcemu.firmware.mavlink.bridge import LinkedVehicle, start_mavlink
     from fcemu.firmware.params import ParamTable
     from fcemu.firmware.vehicle import Vehicle, param_adapter
-    from fcemu.sim_bridge.airframe import load_airframe
 
     sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0,
-                      spin_us=spin_us)
+                      spin_us=spin_us, airframe=airframe)
+    assert sitl.airframe is not None
     params = ParamTable()
     for pid in param_adapter.tunable_pids(sitl.loop.controllers):
         param_adapter.set_gain_defaults(params, pid.gains)  # the loaded preset's gains: a GCS's defaults
-    params.set_default("MPC_THR_HOVER", load_airframe().hover_throttle())
+    params.set_default("MPC_THR_HOVER", sitl.airframe.hover_throttle)
     problems = params.load(config.params_file) if config.params_file else []
     if explicit_controller or params["CTRL_SEL"] >= len(sitl.loop.controllers):
         params.set("CTRL_SEL", ("pid", "neural").index(sitl.selected))
@@ -295,10 +316,11 @@ def sitl_command(args) -> int:
 
         refuse_mavlink_options(args)
         sitl = build_sitl(controller, args.rig, args.rate, realtime=speed is not None, speed=speed or 1.0,
-                          spin_us=spin_us)
+                          spin_us=spin_us, airframe=args.airframe)
     else:
         vs = start_vehicle_sitl(controller, args.rig, args.rate, speed, mavlink_config_from_args(args),
-                                explicit_controller=args.controller is not None, spin_us=spin_us)
+                                explicit_controller=args.controller is not None, spin_us=spin_us,
+                                airframe=args.airframe)
         sitl = vs.sitl
         if vs.param_problems:
             from fcemu.firmware.params import load_warning

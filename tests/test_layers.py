@@ -22,7 +22,7 @@ ALLOWED: dict[str, set[str]] = {
     "sim_bridge": {"firmware"},  # the simulated world: the firmware's sensor frame, observation, action
     "sitl": {"firmware", "sim_bridge"},  # the vehicle composed with the simulated world
     "evaluation": {"firmware", "sim_bridge", "sitl"},  # flies controllers through the composed vehicle
-    "export": {"firmware", "fcemu"},
+    "export": {"firmware", "sim_bridge", "fcemu"},  # the airframe a run trained on: its envelope
     # A training run evaluates against the PID as it goes and exports the ONNX policy at its end.
     "training": {"firmware", "sim_bridge", "sitl", "evaluation", "export", "fcemu"},
     "benchmarks": {"firmware", "sim_bridge", "sitl", "evaluation", "export", "training"},

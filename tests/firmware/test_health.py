@@ -7,15 +7,18 @@ import math
 import numpy as np
 
 from fcemu.firmware.controllers import DEFAULT_POLICY, load_controller
-from fcemu.firmware.health import HealthMonitor
+from fcemu.firmware.health import HealthMonitor, HealthRules
 from fcemu.firmware.loop import FlightLoop, ScriptedCommander
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.firmware.timing import LockstepClock
+from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sim_bridge.faults import Fault, FaultInjector
 from fcemu.sim_bridge.link import InProcessLink
 from fcemu.sim_bridge.twin import Twin, TwinState
 
 ACCEL = np.array([0.0, 0.0, -9.81])
+IRIS = airframe_spec("iris")
+IRIS_RULES = HealthRules.for_airframe(IRIS)
 
 
 def _frame(k: int, gyro, speed) -> SensorFrame:
@@ -39,7 +42,7 @@ def _run(monitor: HealthMonitor, ticks: int, corrupt=None) -> list[SensorFrame]:
 
 
 def test_a_healthy_vehicle_is_left_alone() -> None:
-    m = HealthMonitor()
+    m = HealthMonitor(IRIS_RULES)
     frames = [_frame(k, *_hover(k)[:2]) for k in range(500)]
     seen = [m.check(f, _hover(k)[2]) for k, f in enumerate(frames)]
     assert all(a is b for a, b in zip(seen, frames, strict=True))
@@ -47,11 +50,11 @@ def test_a_healthy_vehicle_is_left_alone() -> None:
 
 
 def test_gyro_glitches_are_held_over_and_a_dead_gyro_fails_to_land() -> None:
-    m = HealthMonitor()
+    m = HealthMonitor(IRIS_RULES)
     spikes = _run(m, 300, lambda k, g, s, p: ([40.0, 0, 0] if k % 50 == 10 else g, s, p))
     assert m.glitches == 6 and not m.gyro_failed and m.policy_trusted
     assert spikes[60].gyro.tolist() == _hover(59)[0]  # the spike read as the last good sample
-    m = HealthMonitor()
+    m = HealthMonitor(IRIS_RULES)
     frames = _run(m, 200, lambda k, g, s, p: ([math.nan] * 3 if k >= 100 else g, s, p))
     assert m.gyro_failed and m.failsafe == "gyro implausible" and not m.policy_trusted
     assert m.detected["gyro_failed"] - 1 - 100 == 19  # the 20th absent sample
@@ -61,11 +64,11 @@ def test_gyro_glitches_are_held_over_and_a_dead_gyro_fails_to_land() -> None:
 
 
 def test_a_stuck_gyro_is_detected_only_while_a_torque_is_asked_for() -> None:
-    m = HealthMonitor()
+    m = HealthMonitor(IRIS_RULES)
     _run(m, 300, lambda k, g, s, p: ([0.2, 0.1, 0.0] if k >= 100 else g, s, p))
     # 50 ticks with a torque asked for (the wobble passes through level now and then)
     assert m.failsafe == "gyro stuck" and 49 <= m.detected["gyro_failed"] - 1 - 100 < 80
-    m = HealthMonitor()  # level hover, motors even: a still gyro is what a still vehicle reads
+    m = HealthMonitor(IRIS_RULES)  # level hover, motors even: a still gyro is what a still vehicle reads
     _run(m, 300, lambda k, g, s, p: ([0.0, 0.0, 0.0], [770.0] * 4, np.full(4, 1700.0)))
     assert not m.detected
 
@@ -74,7 +77,7 @@ def test_rotor_speed_rules_hand_the_policy_over_once() -> None:
     def absent(k, g, s, p):
         return g, [math.nan, *s[1:]] if k == 100 else s, p
 
-    m = HealthMonitor()
+    m = HealthMonitor(IRIS_RULES)
     _run(m, 200, absent)
     assert m.handover == "rotor speed 1 absent" and m.detected["handover"] - 1 == 100 and not m.failsafe
     assert m.outbox == [(4, "Policy hands over to PID: rotor speed 1 absent")]
@@ -82,20 +85,20 @@ def test_rotor_speed_rules_hand_the_policy_over_once() -> None:
     def stale(k, g, s, p):
         return g, [*s[:2], 700.0 if k >= 100 else s[2], s[3]], p
 
-    m = HealthMonitor()
+    m = HealthMonitor(IRIS_RULES)
     _run(m, 300, stale)
     assert m.handover == "rotor speed 3 stale" and 100 < m.detected["handover"] < 160
 
     def dead(k, g, s, p):
         return g, [*s[:3], s[3] * math.exp(-(k - 100) / 25.0) if k >= 100 else s[3]], p
 
-    m = HealthMonitor()
+    m = HealthMonitor(IRIS_RULES)
     _run(m, 300, dead)
     assert m.handover == "rotor speed 4 implausible"
     m.reset()
     assert m.policy_trusted and not m.detected
 
-    m = HealthMonitor()
+    m = HealthMonitor(IRIS_RULES)
     m.policy_flying = False  # the PID flies: it does not read rotor speed, nothing to hand over
     _run(m, 300, stale)
     assert m.policy_trusted and not m.handover and not m.outbox
@@ -104,15 +107,16 @@ def test_rotor_speed_rules_hand_the_policy_over_once() -> None:
 def test_the_loop_flies_the_pid_once_the_policy_cannot_be_trusted() -> None:
     twin = Twin(rig="rig")
     first = twin.reset(0, TwinState(rotor_speed=(780.0,) * 4))
-    controllers = {"main": load_controller(str(DEFAULT_POLICY)), "pid": load_controller("pid")}
+    controllers = {"main": load_controller(str(DEFAULT_POLICY), airframe=IRIS),
+                   "pid": load_controller("pid", airframe=IRIS)}
     schedule = [(0.0, (0.0, 0.0, 0.0), 0.7), (0.1, (2.0, 0.0, 0.0), 0.7)]
     commander = ScriptedCommander(schedule, controller="main")
     loop = FlightLoop(InProcessLink(twin), first, controllers, commander, LockstepClock(), fallback="pid",
-                      health=HealthMonitor())
+                      health=HealthMonitor(IRIS_RULES))
     flown = []
     for k in range(400):
         if k == 200:
-            twin.faults = FaultInjector(twin.dt, 1100.0, 3)
+            twin.faults = FaultInjector(twin.dt, IRIS.max_rotor_speed, 3)
             twin.faults.inject(Fault("esc-telemetry", "intermittent", 2, 0.5))
         flown.append(loop.tick(k * 1000).controller)
     assert set(flown[:200]) == {"main"} and flown[-1] == "pid" and not loop.faults
@@ -123,7 +127,7 @@ def test_a_vehicle_armed_at_steady_hover_is_not_stale() -> None:
     """Armed with the rotors already at hover (the in-flight task): the first frame was read under the
     disarmed PWM, yet the steady reading matches the hover PWM that follows; once that PWM moves and
     the reading does not, it is stale."""
-    m = HealthMonitor()
+    m = HealthMonitor(IRIS_RULES)
     hover_pwm, speed = np.full(4, 1700.0), [770.0] * 4
     m.check(_frame(0, [0, 0, 0], speed), np.full(4, 1000.0))  # the PWM written while disarmed
     for k in range(1, 200):
