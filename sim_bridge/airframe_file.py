@@ -29,6 +29,10 @@ MOTOR_REQUIRED = ("max_rotor_speed_rad_s", "thrust_coefficient_N_per_rad_s2", "m
                   "time_constant_up_s", "time_constant_down_s")
 MOTOR_OPTIONAL = ("pwm_min_us", "pwm_max_us", "poles")
 ROTOR_FIELDS = ("name", "position_m", "spin")
+# What "sources" may cite: each number of the file (the motors' positions and spins together).
+SOURCED = ("base_mass_kg", "base_inertia_kg_m2", "base_box_m", "rotor_mass_kg", "rotor_body_inertia_kg_m2",
+           "rotor_radius_m", "motors", "landing_gear_half_height_m",
+           *(f"motor.{key}" for key in MOTOR_REQUIRED + MOTOR_OPTIONAL))
 
 
 class AirframeError(UserError, ValueError):
@@ -130,6 +134,10 @@ def check_airframe_file(path: Path, raw: dict) -> None:
         raise AirframeError(path, "motor.max_rotor_speed_rad_s",
                             f"four rotors at {omega:g} rad/s lift {4 * kf * omega**2:.4g} N, not the weight "
                             f"{weight:.4g} N: the airframe cannot hover")
+    sources = raw.get("sources", {})
+    if not isinstance(sources, dict) or not all(isinstance(v, str) for v in sources.values()):
+        raise AirframeError(path, "sources", "expected an object of field name -> citation text")
+    check_keys(path, "sources.", sources, (), SOURCED)
     effects = raw.get("effects", {})
     if not isinstance(effects, dict):
         raise AirframeError(path, "effects", "expected an object of effects, each {value, source}")
