@@ -40,7 +40,8 @@ from fcemu.firmware.loop import Command, FlightLoop
 from fcemu.firmware.mixer import BETAFLIGHT_QUAD_X
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.firmware.timing import LockstepClock
-from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.airframe import Airframe, load_airframe
+from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sim_bridge.link import InProcessLink
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.sim_bridge.twin import Twin
@@ -68,10 +69,11 @@ class _Hold:
         return self.command_
 
 
-def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, progress: bool = False) -> Traces:
+def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, progress: bool = False,
+              airframe: Airframe | str = "iris") -> Traces:
     """fcemu's firmware loop, lockstep on the rig, each command from rest (as `fcemu eval`)."""
-    controller = load_controller(spec)
-    twin = Twin(rig="rig")
+    twin = Twin(airframe, rig="rig")
+    controller = load_controller(spec, airframe=airframe_spec(twin.airframe))
     n = len(commands)
     rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))
     for i in tqdm(range(n), desc=spec, unit="ep", disable=not progress, leave=False):
@@ -86,9 +88,10 @@ def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, prog
 
 
 def fly_betaflight(commands: np.ndarray, throttle_ch: int, ticks: int, run_dir: Path, speed: float,
-                   rc: RcMap, progress: bool = False, firmware: NeuralFirmware | None = None) -> Traces:
+                   rc: RcMap, progress: bool = False, firmware: NeuralFirmware | None = None,
+                   airframe: Airframe | str = "iris") -> Traces:
     bar = tqdm(total=len(commands), desc="betaflight", unit="ep", disable=not progress, leave=False)
-    with BetaflightFlight(run_dir, Twin(rig="rig"), rc, speed=speed, firmware=firmware,
+    with BetaflightFlight(run_dir, Twin(airframe, rig="rig"), rc, speed=speed, firmware=firmware,
                           neural=firmware is not None) as flight:
         traces = flight.fly_steps(commands, throttle_ch, ticks / 1000.0, on_episode=lambda _: bar.update())
     bar.close()
@@ -107,11 +110,12 @@ def first_answer_tick(pwm: np.ndarray, idle_us: float) -> int:
     return int(moving[0]) if moving.size else 0
 
 
-def replay_residual(bf: Traces, spec: str, throttle: float, idle_us: float) -> dict[str, Any]:
+def replay_residual(bf: Traces, spec: str, throttle: float, idle_us: float,
+                    airframe: Airframe | str = "iris") -> dict[str, Any]:
     """Open loop: `spec` gets Betaflight's gyro and command each tick (the command from the tick
     Betaflight first answered it); the rms difference of the per-axis motor mix (µs) from
     Betaflight's, pooled over all episodes and as the median of the episodes' rms."""
-    controller = load_controller(spec)
+    controller = load_controller(spec, airframe=airframe_spec(airframe))
     per_episode, pooled = [], []
     for i in range(bf.n_episodes):
         start = first_answer_tick(bf.pwm[i], idle_us)
@@ -265,11 +269,12 @@ def _run(args) -> int:
     if args.rig == "free":
         return _run_free(args, rc, firmware)
     commands = rc.quantise(episodic_commands(args.seed, args.episodes))
-    hover = load_airframe().hover_throttle()
+    airframe = load_airframe(getattr(args, "airframe", "iris"))
+    hover = airframe.hover_throttle()
     throttle_ch = rc.throttle_channel(hover)
     ticks = round(args.episode_s * 1000)
     run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="fcemu_betaflight_"))
-    bf = fly_betaflight(commands, throttle_ch, ticks, run_dir, args.speed, rc, progress, firmware)
+    bf = fly_betaflight(commands, throttle_ch, ticks, run_dir, args.speed, rc, progress, firmware, airframe)
     clock = check_clock(bf, args.speed, enforce=firmware is None)
     bf_metrics = compute_metrics(bf)
     result: dict[str, Any] = {"betaflight": bf_metrics.to_json(), "packets": bf.extra["packets"]}
@@ -277,7 +282,7 @@ def _run(args) -> int:
     if args.save_traces:
         print(f"traces: {save_traces(args.save_traces, bf)}", file=sys.stderr)
     if args.crosscheck:
-        fc = fly_fcemu(spec, commands, rc.fcemu_throttle(throttle_ch), ticks, progress)
+        fc = fly_fcemu(spec, commands, rc.fcemu_throttle(throttle_ch), ticks, progress, airframe)
         fc_metrics = compute_metrics(fc)
         if args.save_traces:
             path = Path(args.save_traces)
@@ -298,7 +303,7 @@ def _run(args) -> int:
                                 f"the same exported C policy (`{firmware.policy_dir}`)")
         else:
             summary["replay"] = replay_residual(bf, FCEMU_PRESET, rc.fcemu_throttle(throttle_ch),
-                                                1000.0 + 1000.0 * rc.motor_idle)
+                                                1000.0 + 1000.0 * rc.motor_idle, airframe)
         if args.out:
             out = Path(args.out)
             out.mkdir(parents=True, exist_ok=True)
@@ -337,8 +342,11 @@ def _run_free(args, rc: RcMap, firmware: NeuralFirmware | None) -> int:
         raise BetaflightError(f"--rig free with --firmware: NEURAL is on until {NEURAL_WINDOW_S[1]:g} s; "
                               "give --duration longer than that (the PID lands after it)")
     window = NEURAL_WINDOW_S if firmware else None
-    with BetaflightFlight(run_dir, Twin(rig="free"), rc, speed=args.speed, firmware=firmware) as flight:
-        traces = flight.fly_script(scripted_flight("free"), args.duration, neural_window_s=window)
+    airframe = load_airframe(getattr(args, "airframe", "iris"))
+    twin = Twin(airframe, rig="free")
+    with BetaflightFlight(run_dir, twin, rc, speed=args.speed, firmware=firmware) as flight:
+        traces = flight.fly_script(scripted_flight("free", hover=airframe.hover_throttle()), args.duration,
+                                   neural_window_s=window)
     if args.save_traces:
         print(f"traces: {save_traces(args.save_traces, traces)}", file=sys.stderr)
     result = {"betaflight": compute_metrics(traces).to_json(), "packets": traces.extra["packets"],

@@ -102,13 +102,16 @@ class Envelope:
     def outside(self, spec: AirframeSpec) -> list[str]:
         """Each scale of `spec` outside the envelope, as words ("top rotor speed 2,600 rad/s")."""
         found = []
-        for key, r in self.ranges.items():
-            words, unit = SCALES[key]
-            value = spec.scale(key)
+        for key, (words, unit) in SCALES.items():
+            if key not in self.ranges:
+                continue
+            r, value = self.ranges[key], spec.scale(key)
             if isinstance(value, tuple):
-                for axis, (v, ri) in enumerate(zip(value, r, strict=True)):
-                    if not _inside(v, ri):  # type: ignore[arg-type]
-                        found.append(f"{AXES[axis]} {words} {_number(v)}{unit}")
+                axes = [i for i, (v, ri) in enumerate(zip(value, r, strict=True))
+                        if not _inside(v, ri)]  # type: ignore[arg-type]
+                if axes:
+                    found.append(f"{'/'.join(AXES[i] for i in axes)} {words} "
+                                 f"{'/'.join(_number(value[i]) for i in axes)}{unit}")
             elif not _inside(value, r):  # type: ignore[arg-type]
                 found.append(f"{words} {_number(value)}{unit}")
         return found

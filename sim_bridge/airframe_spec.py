@@ -5,40 +5,13 @@ from __future__ import annotations
 
 from itertools import product
 
-import numpy as np
-
 from fcemu.firmware.airframe_spec import AirframeSpec, Envelope
 from fcemu.sim_bridge.airframe import Airframe, load_airframe
+from fcemu.sim_bridge.airframe_file import GRAVITY
 from fcemu.sim_bridge.randomization import PARAMETERS, Randomization, load_randomization
 
-GRAVITY = 9.81
 # Where a policy's randomisation is not known, the envelope is its airframe's scales ± this.
 UNKNOWN_RANGE_MARGIN = 0.25
-
-
-def inertia(airframe: Airframe) -> np.ndarray:
-    """Roll, pitch, yaw inertia (kg·m²): the base's plus the rotors as point masses at their positions."""
-    x, y, z = airframe.rotor_positions.T
-    arms = np.array([y**2 + z**2, x**2 + z**2, x**2 + y**2]).sum(axis=1)
-    return np.asarray(airframe.base_inertia) + airframe.rotor_mass * arms
-
-
-def max_angular_acceleration(airframe: Airframe) -> tuple[float, float, float]:
-    """Per axis (rad/s²), what full differential thrust gives in the weaker direction: the rotors
-    on one side (of one spin, for yaw) at top speed, the others stopped."""
-    m = airframe.motor
-    thrust = m.kf * m.max_rotor_speed**2
-    x, y, _ = airframe.rotor_positions.T
-    roll = min(np.abs(y[y < 0]).sum(), y[y > 0].sum())
-    pitch = min(np.abs(x[x < 0]).sum(), x[x > 0].sum())
-    yaw = min((airframe.spin > 0).sum(), (airframe.spin < 0).sum()) * m.km
-    torque = thrust * np.array([roll, pitch, yaw])
-    return tuple(float(v) for v in torque / inertia(airframe))  # type: ignore[return-value]
-
-
-def thrust_to_weight(airframe: Airframe) -> float:
-    m = airframe.motor
-    return float(4 * m.kf * m.max_rotor_speed**2 / (airframe.mass * GRAVITY))
 
 
 def airframe_spec(airframe: Airframe | str) -> AirframeSpec:
@@ -46,29 +19,47 @@ def airframe_spec(airframe: Airframe | str) -> AirframeSpec:
     af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
     m = af.motor
     return AirframeSpec(name=af.name, max_rotor_speed=m.max_rotor_speed, pwm_min=m.pwm_min, pwm_max=m.pwm_max,
-                        motor_poles=getattr(m, "poles", None), hover_throttle=af.hover_throttle(GRAVITY),
-                        thrust_to_weight=thrust_to_weight(af),
-                        max_angular_acceleration=max_angular_acceleration(af),
+                        motor_poles=m.poles, hover_throttle=af.hover_throttle(GRAVITY),
+                        thrust_to_weight=af.thrust_to_weight(GRAVITY),
+                        max_angular_acceleration=tuple(map(float, af.max_angular_acceleration(GRAVITY))),
                         motor_tau_up=m.tau_up, motor_tau_down=m.tau_down)
 
 
 def randomization_corners(ranges: Randomization, base: Airframe) -> list[Airframe]:
-    """`base` at every corner of the ranges of mass, inertia and motor constants: each scale of
-    `AirframeSpec` is monotonic in each of them, so the corners bound every draw's."""
+    """`base` at every corner of the ranges of mass, inertia and motor constants, and where the
+    ranges cross thrust-to-weight 2, at the ends of that line: every scale of `AirframeSpec` is
+    monotonic in each of them but the top angular acceleration, whose thrust margin
+    min(T_max − T_hover, T_hover) peaks there; so these bound every draw's scales."""
     scaled = [p for p in ranges.parameters if PARAMETERS[p.key].kind == "scale"]
-    corners = []
-    for ends in product(*[(p.lo / p.nominal, p.hi / p.nominal) for p in scaled]):
-        keywords: dict = {}
-        for p, factor in zip(scaled, ends, strict=True):
-            _, keyword, axis, _ = PARAMETERS[p.key]
-            if axis is None:
-                keywords[keyword] = factor
-            else:
-                axes = list(keywords.get(keyword, (1.0, 1.0, 1.0)))
-                axes[axis] = factor
-                keywords[keyword] = tuple(axes)
-        corners.append(base.scaled(**keywords))
-    return corners
+    ends = [(p.lo / p.nominal, p.hi / p.nominal) for p in scaled]
+    keys = [p.key for p in scaled]
+    points = [list(c) for c in product(*ends)]
+    if "mass" in keys and "kf" in keys:
+        m, k = keys.index("mass"), keys.index("kf")
+        ratio = base.thrust_to_weight(GRAVITY) / 2.0  # T/W = 2 where f_kf = f_mass / ratio
+        others = list(product(*[e for i, e in enumerate(ends) if i not in (m, k)]))
+        line = [(f, f / ratio) for f in ends[m]] + [(f * ratio, f) for f in ends[k]]
+        for f_mass, f_kf in line:
+            if ends[m][0] <= f_mass <= ends[m][1] and ends[k][0] <= f_kf <= ends[k][1]:
+                for rest in others:
+                    point = list(rest)
+                    for i, f in sorted(((m, f_mass), (k, f_kf))):
+                        point.insert(i, f)
+                    points.append(point)
+    return [base.scaled(**_keywords(scaled, point)) for point in points]
+
+
+def _keywords(scaled: list, factors: list[float]) -> dict:
+    keywords: dict = {}
+    for p, factor in zip(scaled, factors, strict=True):
+        _, keyword, axis, _ = PARAMETERS[p.key]
+        if axis is None:
+            keywords[keyword] = factor
+        else:
+            axes = list(keywords.get(keyword, (1.0, 1.0, 1.0)))
+            axes[axis] = factor
+            keywords[keyword] = tuple(axes)
+    return keywords
 
 
 def envelope(airframe: Airframe | str, randomization: str | Randomization | None = None) -> Envelope:

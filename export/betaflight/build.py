@@ -75,7 +75,7 @@ def check_contract(model: Path) -> dict:
     """The policy's contract if the patch can honour it, else one BetaflightExportError line."""
     if not model.is_file():
         raise BetaflightExportError(f"no policy file {model}")
-    contract, _ = load_contract(model)
+    contract, metadata = load_contract(model)
     if abs(contract.loop_rate_hz - LOOP_RATE_HZ) > 1e-6:
         raise BetaflightExportError(
             f"{model}: trained for a {contract.loop_rate_hz:g} Hz loop; the Betaflight build runs the "
@@ -87,7 +87,23 @@ def check_contract(model: Path) -> dict:
             f"{model}: observation field(s) {', '.join(missing)} read a signal Betaflight does not "
             f"give the patch (it has: {', '.join(sorted(FIRMWARE_SOURCES))})")
     return {"fields": list(contract.spec.fields), "memory": contract.spec.memory,
-            "action_mapping": contract.action_mapping, "loop_rate_hz": contract.loop_rate_hz}
+            "action_mapping": contract.action_mapping, "loop_rate_hz": contract.loop_rate_hz,
+            **motors_of(metadata.get("airframe"), contract.spec.rotor_speed_scale)}
+
+
+def motors_of(airframe: str | None, rotor_speed_scale: float) -> dict:
+    """What Betaflight is set up with for the policy's airframe: its motors' pole count (Betaflight's
+    `motor_poles`, by which getDshotRpm turns DShot eRPM into rpm) where the airframe file gives it,
+    and the top rotor speed the policy's observation scales to 1."""
+    poles = None
+    if airframe is not None:
+        from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+        try:
+            poles = airframe_spec(airframe).motor_poles
+        except (OSError, ValueError, KeyError):  # an airframe not shipped with fcemu
+            poles = None
+    return {"airframe": airframe, "motor_poles": poles, "max_rotor_speed_rad_s": 1.0 / rotor_speed_scale}
 
 
 def copy_tree(src: Path, dst: Path) -> None:
@@ -225,6 +241,17 @@ def export_betaflight(model: str | Path, out_dir: str | Path, targets: Sequence[
     return manifest
 
 
+def _poles_line(contract: dict) -> str:
+    """The motor_poles setting: the airframe's where known (rpm is eRPM / (poles / 2))."""
+    airframe, poles = contract.get("airframe"), contract.get("motor_poles")
+    top = contract.get("max_rotor_speed_rad_s")
+    speed = f"; the policy reads rotor speeds up to {top:,.0f} rad/s" if top else ""
+    if poles is None:
+        return (f"- `set motor_poles = ...` as on the motors ({airframe or 'the airframe'}'s file gives no "
+                f"pole count): rpm is eRPM / (poles / 2){speed}.")
+    return f"- `set motor_poles = {poles}` ({airframe}'s motors): rpm is eRPM / (poles / 2){speed}."
+
+
 def readme(manifest: dict) -> str:
     """What the export holds and how a flight controller is set up to fly it."""
     images = [f"- `{b['hex']}`" for t, b in manifest["builds"].items() if t != "SITL"]
@@ -239,7 +266,7 @@ def readme(manifest: dict) -> str:
         "speeds from bidirectional DShot telemetry; without it NEURAL stays off and the PID flies;",
         "- `set pid_process_denom = N` with gyro rate / N = "
         f"{LOOP_RATE_HZ:g} Hz (8 for an 8 kHz gyro): at another PID rate NEURAL stays off;",
-        "- `set motor_poles = ...` as on the motors: rpm is eRPM / (poles / 2).", "",
+        _poles_line(manifest["contract"]), "",
         "The policy reads the filtered gyro `gyro.gyroADCf`: the gyro filters set there are in its loop "
         "(`fcemu betaflight --firmware` flies the SITL with them off, as the policy was trained).",
         "With NEURAL on and armed the policy writes the motors each PID loop; on a tick it returns an "
