@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 
+from fcemu.sim_bridge.env_config import add_env_arguments
 from fcemu.sitl.cli import add_airframe_option, loop_rate, seconds
 from fcemu.training import config
 from fcemu.training.cli import BENCH_DEFAULTS
@@ -28,6 +29,7 @@ def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     sim = bench_sub.add_parser("sim", help="twin, UDP link and environment throughput")
     sim.add_argument("--seconds", type=float, default=2.0, help="time per measurement")
     sim.add_argument("--envs", type=int, default=256, help="batch size for the vectorised env")
+    add_env_arguments(sim, ("airframe",))
     sim.add_argument("--json", action="store_true")
     sim.set_defaults(handler="fcemu.benchmarks.sim:bench_sim")
 

@@ -45,24 +45,24 @@ def rate_per_s(call: Callable[[T], object], arg: T, seconds: float, label: str) 
     return calls / (now - start)
 
 
-def _hover_pwm() -> np.ndarray:
-    return np.full(4, load_airframe("iris").hover_pwm())
+def _hover_pwm(airframe: str) -> np.ndarray:
+    return np.full(4, load_airframe(airframe).hover_pwm())
 
 
 def twin_steps_per_s(args: argparse.Namespace) -> float:
     """Twin.step in this process (ball-joint rig, hover PWM)"""
-    twin = Twin(rig="rig")
+    twin = Twin(args.airframe, rig="rig")
     twin.reset(seed=0)
-    return rate_per_s(twin.step, _hover_pwm(), args.seconds, "twin.step")
+    return rate_per_s(twin.step, _hover_pwm(args.airframe), args.seconds, "twin.step")
 
 
 def udp_steps_per_s(args: argparse.Namespace) -> float:
     """lockstep round trips over loopback UDP to `fcemu twin serve` in another process"""
-    proc, address = spawn_server(rig="rig")
+    proc, address = spawn_server(rig="rig", airframe=args.airframe)
     try:
         with UdpTwinClient(*address) as client:
             client.reset(seed=0)
-            return rate_per_s(client.pwm_write, _hover_pwm(), args.seconds, "udp lockstep")
+            return rate_per_s(client.pwm_write, _hover_pwm(args.airframe), args.seconds, "udp lockstep")
     finally:
         proc.terminate()
         try:
@@ -76,14 +76,14 @@ def env_steps_per_s(args: argparse.Namespace) -> float:
     """RateControlEnv.step, one Gymnasium environment (episodic task)"""
     from fcemu.benchmarks.env import env_steps_per_s as measure
 
-    return measure(seconds=args.seconds)
+    return measure(seconds=args.seconds, airframe=args.airframe)
 
 
 def vec_env_steps_per_s(args: argparse.Namespace) -> float:
     """BatchedRateEnv, aggregate environment steps over --envs twins in one call"""
     from fcemu.benchmarks.env import vec_env_steps_per_s as measure
 
-    return measure(n_envs=args.envs, seconds=args.seconds)
+    return measure(n_envs=args.envs, seconds=args.seconds, airframe=args.airframe)
 
 
 def sitl_lockstep_ticks_per_s(args: argparse.Namespace) -> float:
@@ -91,7 +91,7 @@ def sitl_lockstep_ticks_per_s(args: argparse.Namespace) -> float:
     from fcemu.firmware.loop import ScriptedCommander
     from fcemu.sitl.sitl import build_sitl
 
-    sitl = build_sitl("pid", rig="rig", realtime=False,
+    sitl = build_sitl("pid", rig="rig", realtime=False, airframe=args.airframe,
                       commander=ScriptedCommander([(0.0, (1.0, -1.0, 0.5), 0.7)], controller="pid"))
     start = time.perf_counter()
     end = start + args.seconds

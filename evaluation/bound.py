@@ -51,6 +51,7 @@ from fcemu.evaluation.rate_boxes import GYRO_PAIRS, Boxes, RateBoxes, gyro_coeff
 from fcemu.firmware.errors import UserError
 from fcemu.firmware.timing import available_cpus
 from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
+from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.sim_bridge.twin import Twin
 
@@ -80,7 +81,7 @@ def unmodelled_effects(airframe: Airframe) -> list[str]:
     return [name for name, value in on.items() if value]
 
 
-def rig_constants(airframe: str | Airframe = "iris", dt: float = 0.001) -> RigConstants:
+def rig_constants(airframe: str | Airframe = DEFAULT_AIRFRAME, dt: float = 0.001) -> RigConstants:
     af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
     effects = unmodelled_effects(af)
     if effects:
@@ -336,7 +337,7 @@ def _solve(job: tuple[np.ndarray, int]) -> CommandBound:
 
 
 def error_bounds(commands: np.ndarray, horizon: int = HORIZON, gyro_passes: int = 0, jobs: int = 1,
-                 progress: bool = False, airframe: str = "iris") -> list[CommandBound]:
+                 progress: bool = False, airframe: str = DEFAULT_AIRFRAME) -> list[CommandBound]:
     """The bound for each command; `jobs` worker processes."""
     work = [(np.asarray(cmd, dtype=float), gyro_passes) for cmd in commands]
     bar = {"total": len(work), "desc": "bound (LPs per command)", "disable": not progress}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from fcemu.sim_bridge.env_config import add_env_arguments
 from fcemu.sim_bridge.tasks import EVAL_TASKS
 
 
@@ -19,10 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episode-s", type=float, default=None,
                    help="episode length (default 1 s episodic and inflight, 10 s continuous)")
     p.add_argument("--throttle", type=float, default=None, help="collective 0..1 (default: hover)")
-    p.add_argument("--airframe", default="iris",
-                   help="airframe file to fly (sim_bridge/airframes/NAME.json or a path; default: iris, "
-                        "the nominal twin; iris_realistic adds damping, rotor inertia, delays, gyro noise "
-                        "and vibration, battery sag)")
+    add_env_arguments(p, ("airframe",))
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--report", metavar="DIR", help="write a Markdown report with figures into DIR")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save the traces (one file per controller)")
@@ -30,8 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also fly the same commands on N airframes drawn from the randomisation ranges")
     p.add_argument("--perturb-seed", type=int, default=0, metavar="S",
                    help="seed of the perturbed airframes (a stream training never draws from)")
-    p.add_argument("--ranges", default="iris", metavar="NAME|FILE",
-                   help="randomisation ranges for --perturb: a shipped name or a file (default: iris)")
+    p.add_argument("--ranges", default=None, metavar="NAME|FILE",
+                   help="randomisation ranges for --perturb: a shipped name or a file (default: the "
+                        "airframe's own, e.g. iris for the Iris)")
     p.add_argument("--fault", action="append", default=None, metavar="SPEC",
                    help="also fly the same commands with this fault injected at a seeded time of each "
                         "episode (repeatable): TARGET:KIND[:VALUE], e.g. gyro:stuck, gyro:spikes, "
@@ -46,9 +45,8 @@ def register_bound(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--episodes", type=int, default=200)
     p.add_argument("--seed", type=int, default=0, help="the evaluator's command seed (as fcemu eval)")
     p.add_argument("--horizon", type=int, default=400, help="steps optimised; later error counts as 0")
-    p.add_argument("--airframe", default="iris",
-                   help="airframe (as fcemu eval); one with any effect on (e.g. iris_realistic) is refused: "
-                        "the programme does not model them")
+    add_env_arguments(p, ("airframe",), notes={"airframe": "one with any effect on (e.g. iris_realistic) is "
+                                                           "refused: the programme does not model them"})
     p.add_argument("--gyro-passes", type=int, default=0,
                    help="also re-solve with the previous solution's gyroscopic term "
                         "(an estimate, not a bound)")

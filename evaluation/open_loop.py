@@ -18,6 +18,7 @@ from scipy.optimize import linprog
 
 from fcemu.evaluation.bound import RigConstants
 from fcemu.evaluation.rate_boxes import GYRO_PAIRS, gyro_coefficients
+from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.twin import Twin
 
 
@@ -35,7 +36,7 @@ def pwm_for_speeds(c: RigConstants, speeds: np.ndarray, pwm_min: float = 1000.0,
     return pwm
 
 
-def fly(pwm: np.ndarray, airframe: str = "iris", dt: float = 0.001) -> np.ndarray:
+def fly(pwm: np.ndarray, airframe: str = DEFAULT_AIRFRAME, dt: float = 0.001) -> np.ndarray:
     """Fly `pwm` (K, 4) on the ball-joint twin from rest; the rate samples (K, 3) the evaluator records."""
     twin = Twin(airframe, "rig", None, dt)
     rates = [twin.reset().gyro]
@@ -49,7 +50,7 @@ def horizon_error(command: np.ndarray, rates: np.ndarray) -> float:
 
 
 def near_optimal_pwm(c: RigConstants, command: np.ndarray, horizon: int, passes: int = 12,
-                     airframe: str = "iris", through: tuple[int, int, float, float] | None = None,
+                     airframe: str = DEFAULT_AIRFRAME, through: tuple[int, int, float, float] | None = None,
                      ) -> tuple[np.ndarray, float]:
     """PWM (horizon, 4) from sequential linear programming, and its flown Error over the horizon.
 

@@ -20,6 +20,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from fcemu.evaluation.metrics import AXES, MIN_E0, SETTLE_S, EvalMetrics, Stat
+from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.sitl.traces import Traces
 
 if TYPE_CHECKING:
@@ -294,7 +295,7 @@ def write_report(
     episodes: int | None = None,
     step_episode: int = 0,
     title: str = "fcemu evaluation",
-    airframe: str = "iris",
+    airframe: str = DEFAULT_AIRFRAME,
 ) -> Path:
     """Write `report.md` and its PNGs into out_dir (created); returns the Markdown path.
 

@@ -30,6 +30,7 @@ from fcemu.firmware.loop import Command, FlightLoop, TickSample
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.firmware.timing import LockstepClock
 from fcemu.sim_bridge.airframe import Airframe, load_airframe
+from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.link import InProcessLink
 from fcemu.sim_bridge.tasks import EVAL_TASKS, INFLIGHT_WARMUP_S, continuous_schedule, episodic_commands
 from fcemu.sim_bridge.twin import Twin, TwinState
@@ -50,7 +51,7 @@ class EvalConfig:
     episode_s: float | None = None  # None: 1 s episodic, 10 s continuous
     throttle: float | None = None  # None: the airframe's hover throttle
     rate_hz: float = 1000.0
-    airframe: str = "iris"  # sim_bridge/airframes/<name>.json or a path, e.g. iris_realistic
+    airframe: str = DEFAULT_AIRFRAME  # sim_bridge/airframes/<name>.json or a path, e.g. iris_realistic
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:

@@ -21,146 +21,42 @@ reward and info after.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
 
-from fcemu.firmware.action import ACTION_MAPPINGS, DEFAULT_ACTION_MAPPING, action_to_pwm, motor_output
-from fcemu.firmware.observation import (
-    DEFAULT_LEAK,
-    DEFAULT_RMS_LEAK,
-    FIELDS,
-    ObservationHistory,
-    ObservationSpec,
-    observe_step,
+from fcemu.firmware.action import action_to_pwm, motor_output
+from fcemu.firmware.observation import ObservationHistory, observe_step
+from fcemu.sim_bridge.airframe import Airframe
+from fcemu.sim_bridge.env_config import (
+    DEFAULT_AIRFRAME,
+    DEFAULT_EPISODE_S,
+    RANDOMIZE_KEYS,
+    TASKS,
+    EnvConfig,
 )
-from fcemu.sim_bridge.airframe import Airframe, load_airframe
-from fcemu.sim_bridge.plant import SensorNoise
-from fcemu.sim_bridge.randomization import Randomization, load_randomization
-from fcemu.sim_bridge.reward import UNWEIGHTED, RateReward
-from fcemu.sim_bridge.tasks import (
-    HOLD_S,
-    OMEGA_MAX,
-    REST_S,
-    TRAINING_TASKS,
-    draw_throttle,
-    episodic_setpoint,
-    pulse_schedule,
-)
+from fcemu.sim_bridge.randomization import Randomization
+from fcemu.sim_bridge.tasks import draw_throttle, episodic_setpoint, pulse_schedule
 from fcemu.sim_bridge.twin import Twin
 
-TASKS = TRAINING_TASKS
-RANDOMIZE_KEYS = ("mass", "inertia", "kf", "km")  # also the draw order
-DEFAULT_EPISODE_S = {"episodic": 1.0, "continuous": 10.0}
+__all__ = ["DEFAULT_AIRFRAME", "DEFAULT_EPISODE_S", "RANDOMIZE_KEYS", "TASKS", "EnvConfig", "Episode",
+           "RateControlEnv", "RateTask", "draw_episode", "with_options"]
 
 
-@dataclass(frozen=True)
-class EnvConfig:
-    """Everything that defines a task; shared by the single and the batched environment."""
+def with_options(config: EnvConfig | None, options: dict[str, Any]) -> EnvConfig:
+    """An environment's configuration: `config`, or `EnvConfig(**options)` (its fields as keywords).
 
-    task: str = "episodic"
-    memory: int = 1
-    action_mapping: str = DEFAULT_ACTION_MAPPING
-    throttle: float | tuple[float, float] | None = None  # None: the airframe's hover throttle
-    episode_s: float | None = None  # None: 1 s episodic, 10 s continuous
-    noise: SensorNoise | None = None
-    # key -> ± fraction, or ranges (a `sim_bridge.randomization` file, e.g. "iris"); redrawn per episode
-    randomize: Mapping[str, float] | Randomization | str | Path | None = None
-    omega_max: float = OMEGA_MAX
-    action_rate_penalty: float = 0.0
-    airframe: Airframe | str = "iris"
-    dt: float = 0.001
-    hold_s: tuple[float, float] = HOLD_S
-    rest_s: tuple[float, float] | None = REST_S
-    obs_fields: tuple[str, ...] = FIELDS  # firmware.observation fields, e.g. + rate_error_integral
-    reward: str = "paper"  # sim_bridge.reward.REWARDS
-    axis_weights: tuple[float, float, float] = UNWEIGHTED  # roll, pitch, yaw error; unclipped only
-    integral_leak: float = DEFAULT_LEAK  # λ of rate_error_integral, when it is a field
-    rms_leak: float = DEFAULT_RMS_LEAK  # μ of rate_error_rms, when it is a field
-    randomize_share: float = 1.0  # with ranges: the share of episodes drawn from them, the rest nominal
-    # the action-rate penalty only once the setpoint has been held this long (s): a settled
-    # response must be quiet, a step may be sharp (0: every step, Neuroflight's penalty)
-    action_rate_after_s: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.task not in TASKS:
-            raise ValueError(f"unknown task {self.task!r}; choose one of {TASKS}")
-        if self.action_mapping not in ACTION_MAPPINGS:
-            raise ValueError(f"unknown action mapping {self.action_mapping!r}; known: {ACTION_MAPPINGS}")
-        if isinstance(self.randomize, str | Path):
-            object.__setattr__(self, "randomize", load_randomization(self.randomize))
-        if not isinstance(self.randomize, Randomization):
-            unknown = set(self.randomize or {}) - set(RANDOMIZE_KEYS)
-            if unknown:
-                raise ValueError(f"cannot randomise {sorted(unknown)}; known: {RANDOMIZE_KEYS}")
-            if any(not 0.0 <= f < 1.0 for f in (self.randomize or {}).values()):
-                raise ValueError(
-                    f"randomisation fractions must be in [0, 1), got {dict(self.randomize or {})}")
-        if not 0.0 <= self.randomize_share <= 1.0:
-            raise ValueError(f"the randomised share of episodes must be in [0, 1], "
-                             f"got {self.randomize_share}")
-        if self.randomize_share < 1.0 and not isinstance(self.randomize, Randomization):
-            raise ValueError("a randomised share below 1 needs randomisation ranges (e.g. randomize='iris')")
-        if not isinstance(self.airframe, Airframe):
-            object.__setattr__(self, "airframe", load_airframe(self.airframe))
-        if isinstance(self.randomize, Randomization):
-            self.randomize.check_airframe(self.airframe)
-        if self.noise is None and self.base_airframe.gyro_noise_std:  # the airframe's own gyro noise
-            object.__setattr__(self, "noise", SensorNoise(gyro_std=self.base_airframe.gyro_noise_std))
-        if self.throttle is None:
-            object.__setattr__(self, "throttle", self.base_airframe.hover_throttle())
-        elif isinstance(self.throttle, list):
-            object.__setattr__(self, "throttle", tuple(self.throttle))
-        if self.n_steps < 1:
-            raise ValueError(f"episode_s={self.episode_s} is shorter than one step of {self.dt} s")
-        object.__setattr__(self, "axis_weights", self.rate_reward.axis_weights)  # validates the reward
-        if not (math.isfinite(self.action_rate_after_s) and self.action_rate_after_s >= 0.0):
-            raise ValueError(f"action_rate_after_s must be finite and >= 0, got {self.action_rate_after_s}")
-
-    @property
-    def base_airframe(self) -> Airframe:
-        assert isinstance(self.airframe, Airframe)
-        return self.airframe
-
-    @property
-    def n_steps(self) -> int:
-        return round((self.episode_s or DEFAULT_EPISODE_S[self.task]) / self.dt)
-
-    @property
-    def observation_spec(self) -> ObservationSpec:
-        return ObservationSpec(memory=self.memory, fields=tuple(self.obs_fields),
-                               integral_leak=self.integral_leak, rms_leak=self.rms_leak)
-
-    @property
-    def noisy(self) -> bool:
-        """Whether an episode draws sensor noise: the configured noise, or a randomised gyro noise."""
-        return (self.noise is not None and self.noise.enabled) or self.draws_gyro_noise
-
-    @property
-    def draws_gyro_noise(self) -> bool:
-        """The randomisation draws each episode's gyro noise (it replaces `noise.gyro_std`)."""
-        return isinstance(self.randomize, Randomization) and self.randomize.draws_gyro_noise
-
-    @property
-    def gyro_is_not_rate(self) -> bool:
-        """Whether some episode's gyro may read other than the rate: noise, vibration or delay."""
-        drawn = isinstance(self.randomize, Randomization) and self.randomize.draws_gyro_effects
-        return self.noisy or self.base_airframe.gyro_effects or drawn
-
-    def episode_noise(self, airframe: Airframe) -> SensorNoise | None:
-        """The sensor noise of an episode flying `airframe` (a draw of the randomisation)."""
-        if not self.draws_gyro_noise:
-            return self.noise
-        return replace(self.noise or SensorNoise(), gyro_std=airframe.gyro_noise_std)
-
-    @property
-    def rate_reward(self) -> RateReward:
-        return RateReward(self.reward, self.axis_weights, self.action_rate_penalty, self.omega_max)
+    Not both: a built EnvConfig has resolved its defaults against its airframe (hover
+    throttle, gyro noise), which other options would leave stale."""
+    if config is None:
+        return EnvConfig(**options)
+    if not isinstance(config, EnvConfig):
+        raise TypeError(f"config must be an EnvConfig, got {type(config).__name__} (options go by keyword)")
+    if options:
+        raise TypeError(f"give an EnvConfig or its fields as keywords, not both (got {sorted(options)})")
+    return config
 
 
 @dataclass(frozen=True)
@@ -263,21 +159,10 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
-    def __init__(self, task: str = "episodic", memory: int = 1, action_mapping: str = DEFAULT_ACTION_MAPPING,
-                 throttle: float | tuple[float, float] | None = None, episode_s: float | None = None,
-                 noise: SensorNoise | None = None,
-                 randomize: Mapping[str, float] | Randomization | str | Path | None = None,
-                 omega_max: float = OMEGA_MAX, action_rate_penalty: float = 0.0,
-                 airframe: Airframe | str = "iris", dt: float = 0.001,
-                 render_mode: str | None = None, obs_fields: tuple[str, ...] = FIELDS,
-                 reward: str = "paper", axis_weights: tuple[float, float, float] = UNWEIGHTED,
-                 integral_leak: float = DEFAULT_LEAK, randomize_share: float = 1.0,
-                 action_rate_after_s: float = 0.0, rms_leak: float = DEFAULT_RMS_LEAK) -> None:
-        self.config = EnvConfig(task, memory, action_mapping, throttle, episode_s, noise, randomize,
-                                omega_max, action_rate_penalty, airframe, dt, obs_fields=tuple(obs_fields),
-                                reward=reward, axis_weights=tuple(axis_weights),  # type: ignore[arg-type]
-                                integral_leak=integral_leak, randomize_share=randomize_share,
-                                action_rate_after_s=action_rate_after_s, rms_leak=rms_leak)
+    def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None,
+                 **options: Any) -> None:
+        """`config`, or EnvConfig's fields as keywords (`RateControlEnv(memory=3)`)."""
+        self.config = with_options(config, options)
         self.obs_spec = self.config.observation_spec
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)

@@ -32,7 +32,7 @@ from gymnasium.vector.utils import batch_space
 from mujoco import rollout
 
 from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf
-from fcemu.sim_bridge.env import EnvConfig, RateTask, draw_episode
+from fcemu.sim_bridge.env import EnvConfig, RateTask, draw_episode, with_options
 from fcemu.sim_bridge.plant import AirframeEffects, MotorModel, NoiseStreams, SensorModel
 from fcemu.sim_bridge.twin import Twin
 
@@ -43,7 +43,7 @@ CTRL_AND_TORQUE = mujoco.mjtState.mjSTATE_CTRL.value | mujoco.mjtState.mjSTATE_Q
 
 
 class BatchedRateEnv(VectorEnv):
-    """`n_envs` copies of `RateControlEnv(**env_kwargs)` stepped together.
+    """`n_envs` copies of `RateControlEnv(config)` (or of `RateControlEnv(**options)`) stepped together.
 
     `nthread` > 0 steps the physics on a MuJoCo thread pool (the results do not depend
     on it). Info holds batch arrays: setpoint, rate, gyro, pwm, the reward terms
@@ -52,10 +52,11 @@ class BatchedRateEnv(VectorEnv):
 
     metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
-    def __init__(self, n_envs: int, *, nthread: int = 0, **env_kwargs: Any) -> None:
+    def __init__(self, n_envs: int, config: EnvConfig | None = None, *, nthread: int = 0,
+                 **options: Any) -> None:
         if n_envs < 1:
             raise ValueError(f"n_envs must be >= 1, got {n_envs}")
-        cfg = self.config = EnvConfig(**env_kwargs)
+        cfg = self.config = with_options(config, options)
         self.num_envs = n = n_envs
         self.obs_spec = cfg.observation_spec
         self.single_observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)

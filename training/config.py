@@ -4,7 +4,10 @@ Every option of `fcemu train` is a field here; its metadata (help, choices, narg
 parser for the raw value) is all the command line needs, so `fcemu train`, `fcemu bench
 train` and `fcemu sweep` generate their options from this class (`add_arguments`) and
 build it back (`from_args`), as CleanRL builds its command line from one dataclass with
-tyro. This module imports neither torch nor MuJoCo: `fcemu --help` builds every parser.
+tyro. The environment's options (task, airframe, reward, ...) are not declared here: they
+are `sim_bridge.env_config.EnvConfig`'s, added to `TrainConfig` as fields by
+`with_env_options`, with training's own defaults in `TRAIN_RECIPE`. This module imports
+neither torch nor MuJoCo: `fcemu --help` builds every parser.
 """
 
 from __future__ import annotations
@@ -14,14 +17,13 @@ import ast
 import copy
 import dataclasses
 import math
-import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any
 
-from fcemu.firmware.action import ACTION_MAPPINGS, DEFAULT_ACTION_MAPPING
 from fcemu.firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK
 from fcemu.firmware.timing import available_cpus
+from fcemu.sim_bridge.env_config import ENV_FIELDS, EnvConfig, add_option, command_options
 from fcemu.sim_bridge.reward import REWARDS
 
 # ── Defaults per algorithm ─────────────────────────────────────────────────────────────
@@ -57,6 +59,46 @@ WARM_START_TARGET_KL = 0.01
 SELECT = ("bar", "error")  # how `--export best` ranks evaluations (quick_eval.selection_key)
 
 
+# ── The environment's options, declared in EnvConfig ───────────────────────────────────
+# Training's recipe where it departs from the environment's defaults: a collective drawn
+# over the range a pilot flies (the policy must not learn one throttle), and the reward
+# without the paper's clip (its gradient vanishes past an error of 3·Ω_max).
+TRAIN_RECIPE: dict[str, Any] = {"throttle": (0.5, 0.9), "reward": "unclipped"}
+LEAKS = ("integral_leak", "rms_leak")  # in the env only with their field: `TrainConfig.obs_leaks`
+
+
+def with_env_options(cls: type, recipe: dict[str, Any], exclude: dict[str, str] | None = None,
+                     notes: dict[str, str] | None = None) -> type:
+    """The dataclass `cls` with one field per command-line option of `EnvConfig` (less `exclude`,
+    EnvConfig fields each with the reason), its default the env's unless `recipe` overrides it;
+    `notes` adds to an option's help what it means here. `env_options` (on the class) maps each
+    added field to its `CommandOption`."""
+    options = command_options(recipe, exclude)
+    fields = []
+    for name, o in options.items():
+        meta = {**o.metadata, "help": f"{o.metadata['help']}; {notes[name]}"} if name in (notes or {}) \
+            else o.metadata
+        fields.append((name, o.hint, field(default=o.default, metadata=meta)))
+    made = dataclasses.make_dataclass(cls.__name__, fields, bases=(cls,),
+                                      namespace={"__doc__": cls.__doc__, "__module__": cls.__module__})
+    made.__qualname__ = cls.__qualname__
+    made.env_options = options
+    return made
+
+
+def env_values(cfg: Any) -> dict[str, Any]:
+    """The environment options a configuration made by `with_env_options` holds, by EnvConfig field."""
+    return {o.field: getattr(cfg, name) for name, o in type(cfg).env_options.items()}
+
+
+def check_env_options(cfg: Any) -> None:
+    """Each option parsed as its command line would (`--throttle 0.7` is 0.7, not [0.7])."""
+    for name, o in type(cfg).env_options.items():
+        parse = o.metadata.get("parse")
+        if parse is not None:
+            setattr(cfg, name, parse(getattr(cfg, name)))
+
+
 def parse_hp(items: list[str] | dict[str, Any] | None) -> dict[str, Any]:
     """`key=value` pairs; values are Python literals (numbers, lists, dicts), else strings."""
     if isinstance(items, dict):
@@ -86,35 +128,15 @@ class TrainConfig:
     steps: int = option(3_000_000, "environment steps (1 ms each)")
     seed: int = option(0, "seed of the environments and the networks")
     out: str | None = option(None, "run directory (default runs/ALGO)")
-    memory: int = option(1, "observation history length m")
     integral: bool = option(False, "add a leaky integral of the rate error to the observation "
                                    "(rate_error_integral)")
-    integral_leak: float = option(DEFAULT_LEAK, "the integral's λ per step (time constant 1/(1 − λ) steps); "
-                                         "λ → 1 approaches a true integrator")
     error_rms: bool = option(False, "add the leaky RMS of the rate error to the observation "
                                     "(rate_error_rms): what lets a policy see that it oscillates")
-    rms_leak: float = option(DEFAULT_RMS_LEAK, "the RMS's μ per step (time constant 1/(1 − μ) steps)")
     motor_output: bool = option(False, "add the previous tick's motor outputs to the observation "
                                        "(motor_output): what --action-rate-penalty's |Δu| depends on")
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")
     envs: int | None = option(None, "parallel twins (default: per algorithm)")
-    action_mapping: str = option(DEFAULT_ACTION_MAPPING, "how the 4 actions become motor commands",
-                                 choices=ACTION_MAPPINGS)
-    throttle: float | tuple[float, float] | None = option(
-        (0.5, 0.9), "collective for the throttle mapping: one value, or LO HI drawn per episode",
-        nargs="+", metavar="T")
-    task: str = option("episodic", "training task", choices=("episodic", "continuous"))
-    action_rate_penalty: float = option(0.0, "weight of Neuroflight's output-oscillation penalty "
-                                             "(mean |Δu| per step); use with --squash")
-    action_rate_after: float = option(0.0, "apply --action-rate-penalty only once the setpoint has been "
-                                           "held this many seconds: quiet when settled, free in a step "
-                                           "(0: every step)")
-    reward: str = option("unclipped", "paper: −clip(Σ|e|/(3·Ω_max), 0, 1); unclipped: the same without "
-                                      "the clip", choices=REWARDS)
-    axis_weights: tuple[float, float, float] = option(
-        (1.0, 1.0, 1.0), "weights of the roll, pitch, yaw error in the unclipped reward",
-        metavar=("R", "P", "Y"))
     norm_reward: bool | None = option(None, "VecNormalize reward scaling (default: per algorithm)")
     norm_obs: bool = option(True, "VecNormalize observation normalisation (folded into the exported "
                                   "ONNX graph)")
@@ -136,15 +158,6 @@ class TrainConfig:
                                 "the PID's) or error (the lowest Error ratio, however rough)", choices=SELECT)
     threads: int = option(0, "torch threads (0: one per CPU this process may use)")
     progress: bool = option(True, "progress bar")
-    airframe: str = option("iris", "airframe to train on: sim_bridge/airframes/NAME.json "
-                                   "(e.g. iris_realistic, every effect on) or a path")
-    randomize: str | None = option(
-        None, "domain randomisation: draw each episode's airframe (mass, inertia, motor constants, latency, "
-              "noise, damping, battery) from ranges, a shipped name (iris: "
-              "sim_bridge/airframes/iris.randomization.json) or a file; default: the nominal airframe",
-        metavar="NAME|FILE")
-    randomize_share: float = option(1.0, "with --randomize: the share of episodes drawn from the ranges; the "
-                                          "others fly the nominal airframe")
     warm_start: str | None = option(
         None, "before RL, fit the actor to a PID preset's outputs on the training flights (behaviour cloning "
               "with DAgger rounds) and the critic to their returns (training.warm_start): pid, pid:paper, or "
@@ -171,6 +184,7 @@ class TrainConfig:
                                        "the teacher where delay makes it fragile, leave PPO free elsewhere")
 
     def __post_init__(self) -> None:
+        check_env_options(self)
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algorithm {self.algo!r}; choose one of {tuple(ALGOS)}")
         for flag, leak in (("--integral-leak", self.integral_leak), ("--rms-leak", self.rms_leak)):
@@ -193,10 +207,6 @@ class TrainConfig:
             raise ValueError(f"unknown reward {self.reward!r}; choose one of {REWARDS}")
         if self.squash and self.algo not in ("ppo", "trpo"):
             raise ValueError(f"--squash is for PPO and TRPO; {self.algo.upper()} squashes already")
-        if isinstance(self.throttle, list | tuple):
-            if len(self.throttle) not in (1, 2):
-                raise ValueError(f"--throttle takes one value or LO HI, not {len(self.throttle)} values")
-            self.throttle = float(self.throttle[0]) if len(self.throttle) == 1 else tuple(self.throttle)
         self.axis_weights = tuple(self.axis_weights)
         if self.out is None:
             self.out = f"runs/{self.algo}"
@@ -227,18 +237,13 @@ class TrainConfig:
                              f"{self.anchor_from_ticks} with --anchor {self.anchor}")
         if self.caps and self.algo != "ppo":
             raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
-        if self.randomize is not None:
-            from fcemu.sim_bridge.airframe import load_airframe
-            from fcemu.sim_bridge.randomization import load_randomization
-
-            try:
-                airframe = load_airframe(self.airframe)
-            except (OSError, ValueError, KeyError) as exc:
-                raise ValueError(f"--airframe {self.airframe}: {exc}") from None
-            load_randomization(self.randomize).check_airframe(airframe)  # RandomizationError: a ValueError
         if not 0.0 <= self.randomize_share <= 1.0 or (self.randomize_share != 1.0 and self.randomize is None):
             raise ValueError(f"--randomize-share must be in [0, 1] and needs --randomize, "
                              f"got {self.randomize_share}")
+        try:
+            self.env_config()  # every other check of the environment's options (airframe, ranges, ...)
+        except (OSError, KeyError) as exc:
+            raise ValueError(f"--airframe {self.airframe}: {exc}") from None
 
     @property
     def caps(self) -> bool:
@@ -275,32 +280,28 @@ class TrainConfig:
         return ALGOS[self.algo]["norm_reward"] if self.norm_reward is None else self.norm_reward
 
     def env_kwargs(self) -> dict[str, Any]:
-        return {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields,
-                **self.obs_leaks,
-                "action_mapping": self.action_mapping, "throttle": self.throttle,
-                "reward": self.reward, "axis_weights": tuple(self.axis_weights),
-                "action_rate_penalty": self.action_rate_penalty,
-                **({"airframe": self.airframe} if self.airframe != "iris" else {}),
-                **({"randomize": self.randomize} if self.randomize is not None else {}),
-                **({"randomize_share": self.randomize_share} if self.randomize_share != 1.0 else {}),
-                **({"action_rate_after_s": self.action_rate_after} if self.action_rate_after else {})}
+        """The training env's `EnvConfig` keywords: the observation and reward always, the other
+        options where they differ from the env's default (so a run's config.json names what it
+        changed)."""
+        kwargs = {"task": self.task, "memory": self.memory, "obs_fields": self.obs_fields, **self.obs_leaks,
+                  "action_mapping": self.action_mapping, "throttle": self.throttle, "reward": self.reward,
+                  "axis_weights": tuple(self.axis_weights), "action_rate_penalty": self.action_rate_penalty}
+        for name, value in env_values(self).items():
+            if name not in kwargs and name not in LEAKS and value != ENV_FIELDS[name].default:
+                kwargs[name] = value
+        return kwargs
+
+    def env_config(self):
+        """The training env's configuration (`sim_bridge.env_config.EnvConfig`)."""
+        return EnvConfig(**self.env_kwargs())
+
+
+TrainConfig = with_env_options(TrainConfig, TRAIN_RECIPE)
 
 
 # ── The command line, generated from the fields ────────────────────────────────────────
 FIELDS = {f.name: f for f in dataclasses.fields(TrainConfig)}
 _TYPES = typing.get_type_hints(TrainConfig)
-
-
-def _scalar(hint: Any) -> tuple[Any, bool]:
-    """The argparse type of a hint, and whether it is optional (`X | None`)."""
-    args = [a for a in typing.get_args(hint) if a is not type(None)]
-    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-        return _scalar(args[0])[0], type(None) in typing.get_args(hint)
-    if typing.get_origin(hint) is tuple:
-        return args[0], False
-    if typing.get_origin(hint) is dict:  # KEY=VALUE items, parsed by the field's `parse`
-        return str, False
-    return hint, False
 
 
 def add_arguments(parser: argparse.ArgumentParser, exclude: tuple[str, ...] = (),
@@ -313,22 +314,9 @@ def add_arguments(parser: argparse.ArgumentParser, exclude: tuple[str, ...] = ()
     for name, f in FIELDS.items():
         if name in exclude:
             continue
-        meta = {k: v for k, v in f.metadata.items() if k != "parse"}
         default = defaults.get(name, f.default_factory() if f.default_factory is not dataclasses.MISSING
                                else f.default)
-        hint = _TYPES[name]
-        kind, _ = _scalar(hint)
-        flag = "--" + name.replace("_", "-")
-        if kind is bool:
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction,
-                                default=argparse.SUPPRESS if only_given else default, **meta)
-            continue
-        if typing.get_origin(hint) is tuple:
-            meta.setdefault("nargs", len(typing.get_args(hint)))
-        if default not in (None, (), [], {}) and "%(default)" not in meta["help"]:
-            shown = " ".join(map(str, default)) if isinstance(default, tuple) else default
-            meta["help"] += f" (default: {shown})"
-        parser.add_argument(flag, type=kind, default=argparse.SUPPRESS if only_given else default, **meta)
+        add_option(parser, name, _TYPES[name], default, f.metadata, only_given)
 
 
 def from_args(args: argparse.Namespace, **overrides: Any) -> TrainConfig:

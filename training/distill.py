@@ -35,6 +35,11 @@ import torch
 
 from fcemu.firmware.neural import META_PREFIX
 from fcemu.firmware.observation import FIELD_DEFS, FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS, ObservationSpec
+from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
+from fcemu.training.distill_config import DistillConfig, from_args
+
+__all__ = ["DistillConfig", "DistillError", "Teacher", "columns", "distill", "nudge", "student_train_config",
+           "union_spec"]
 
 COLLECTIVE_WEIGHT = 0.1
 OPTIONAL_FIELDS = {INTEGRAL: "integral", RMS: "error_rms", MOTOR_OUTPUT: "motor_output"}
@@ -42,32 +47,6 @@ OPTIONAL_FIELDS = {INTEGRAL: "integral", RMS: "error_rms", MOTOR_OUTPUT: "motor_
 
 class DistillError(ValueError):
     """A teacher or a student that cannot be distilled, with the reason."""
-
-
-@dataclass
-class DistillConfig:
-    teacher: str
-    out: str = "runs/distill"
-    memory: int | None = None  # the student's history length (None: the teacher's)
-    fields: tuple[str, ...] | None = None  # the student's fields (default: the teacher's)
-    net_arch: tuple[int, ...] = (8, 32, 32)
-    rounds: int = 8
-    steps: int = 1000  # per twin and round
-    envs: int = 64
-    beta: float = 0.5  # the teacher flies an episode of round r with probability beta**r
-    fit_steps: int = 1500  # Adam steps after each round (the last round: three times as many)
-    batch_size: int = 4096
-    learning_rate: float = 1e-3
-    smoothness: float = 0.0  # weight of the mean squared change of the student's action per step
-    gain_weight: float = 0.1  # weight of the gain match (`nudge`)
-    gain_step: float = 0.2  # the nudge, in the student's normalised input units
-    task: str = "episodic"
-    randomize: str | None = "iris_esc2"
-    randomize_share: float = 0.5
-    seed: int = 0
-    threads: int = 0
-    progress: bool = True
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 # ── The teacher and the observation both policies read ─────────────────────────────────
@@ -85,6 +64,8 @@ class Teacher:
         self.spec = ObservationSpec.from_json(meta[META_PREFIX + "observation"])
         self.action_mapping = meta[META_PREFIX + "action_mapping"]
         self.throttle = json.loads(meta.get(META_PREFIX + "throttle", "null"))
+        # the airframe it was made for (exports before it was recorded: the Iris, the only one then)
+        self.airframe = meta.get(META_PREFIX + "airframe", DEFAULT_AIRFRAME)
         self.input = self.session.get_inputs()[0].name
 
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -126,11 +107,16 @@ def student_train_config(cfg: DistillConfig, teacher: Teacher):
     throttle = tuple(teacher.throttle) if isinstance(teacher.throttle, list) else teacher.throttle
     hp = {"policy_kwargs": {"net_arch": {"pi": list(cfg.net_arch), "vf": [64, 64]}, "log_std_init": -3.0}}
     memory = teacher.spec.memory if cfg.memory is None else cfg.memory
+    ranges = cfg.ranges()
+    env = {**{name: getattr(cfg, name) for name in type(cfg).env_options}, "randomize": ranges,
+           "randomize_share": cfg.randomize_share if ranges else 1.0}
     train_cfg = TrainConfig(algo="ppo", seed=cfg.seed, out=cfg.out, memory=memory, **flags, **leaks,
-                            envs=1, action_mapping=teacher.action_mapping, throttle=throttle, task=cfg.task,
-                            obs_clip=0.0, hp=hp, threads=cfg.threads, progress=cfg.progress,
-                            randomize=cfg.randomize,
-                            randomize_share=cfg.randomize_share if cfg.randomize else 1.0)
+                            envs=1, action_mapping=teacher.action_mapping, throttle=throttle,
+                            obs_clip=0.0, hp=hp, threads=cfg.threads, progress=cfg.progress, **env)
+    if not cfg.foreign_teacher and train_cfg.env_config().base_airframe.name != teacher.airframe:
+        raise DistillError(f"the teacher was made for airframe {teacher.airframe!r}, not "
+                           f"{train_cfg.env_config().base_airframe.name!r}: give --foreign-teacher to "
+                           "distil it for this one")
     from fcemu.training.train import _observation_spec
 
     spec = _observation_spec(train_cfg)
@@ -379,16 +365,10 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
 def distill_command(args) -> int:
     from fcemu.training.cli import user_error
 
-    cfg = DistillConfig(teacher=args.teacher, out=args.out, memory=args.memory,
-                        fields=tuple(args.fields) if args.fields else None, net_arch=tuple(args.net_arch),
-                        rounds=args.rounds, steps=args.steps, envs=args.envs, beta=args.beta,
-                        fit_steps=args.fit_steps, batch_size=args.batch_size,
-                        learning_rate=args.learning_rate,
-                        smoothness=args.smoothness, gain_weight=args.gain_weight, gain_step=args.gain_step,
-                        task=args.task,
-                        randomize=None if args.randomize == "none" else args.randomize,
-                        randomize_share=args.randomize_share, seed=args.seed, threads=args.threads,
-                        progress=args.progress)
+    try:
+        cfg = from_args(args)
+    except ValueError as exc:
+        return user_error(str(exc))
     try:
         summary = distill(cfg)
     except ValueError as exc:  # DistillError, a bad TrainConfig value, an ExportError

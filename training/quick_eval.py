@@ -22,6 +22,7 @@ import numpy as np
 from fcemu.evaluation.metrics import EvalMetrics, compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.observation import FIELDS
+from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.vec_env import BatchedRateEnv
 from fcemu.sitl.traces import Traces
 from fcemu.training.config import SELECT
@@ -33,7 +34,7 @@ def concat_traces(parts: list[Traces], controller: str, seed: int) -> Traces:
                   controller=controller, seed=seed, task="episodic")
 
 
-def pid_reference(spec: str, n: int, seed: int, airframe: str = "iris") -> Traces:
+def pid_reference(spec: str, n: int, seed: int, airframe: str = DEFAULT_AIRFRAME) -> Traces:
     """The PID flown through the firmware loop on the commands the batched evaluation uses."""
     parts = [run_controller(spec, EvalConfig(episodes=1, seed=seed + i, airframe=airframe), progress=False)
              for i in range(n)]
@@ -41,7 +42,7 @@ def pid_reference(spec: str, n: int, seed: int, airframe: str = "iris") -> Trace
 
 
 def pid_references(specs: tuple[str, ...], n: int, seed: int,
-                   airframe: str = "iris") -> dict[str, EvalMetrics]:
+                   airframe: str = DEFAULT_AIRFRAME) -> dict[str, EvalMetrics]:
     """Metrics of each PID preset that loads (a preset file still missing is skipped)."""
     out = {}
     for spec in specs:
@@ -63,7 +64,7 @@ class BatchedEvaluator:
     memory: int = 1
     action_mapping: str = "throttle"
     obs_fields: tuple[str, ...] = FIELDS
-    airframe: str = "iris"
+    airframe: str = DEFAULT_AIRFRAME
     obs_leaks: dict[str, float] = field(default_factory=dict)  # EnvConfig's λ of integrated fields
     env: BatchedRateEnv = field(init=False)
 

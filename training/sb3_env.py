@@ -9,6 +9,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvStepReturn
 
+from fcemu.sim_bridge.env_config import EnvConfig
 from fcemu.sim_bridge.vec_env import BatchedRateEnv
 
 
@@ -72,9 +73,11 @@ class SB3VecEnv(VecEnv):
         return [False for _ in self._get_indices(indices)]
 
 
-def make_sb3_vec_env(n_envs: int, seed: int | None = None, nthread: int = 0, **env_kwargs: Any) -> SB3VecEnv:
-    """`SB3VecEnv(BatchedRateEnv(n_envs, ...))`, seeded so copy i follows the single env seeded seed + i."""
-    venv = SB3VecEnv(BatchedRateEnv(n_envs, nthread=nthread, **env_kwargs))
+def make_sb3_vec_env(n_envs: int, seed: int | None = None, nthread: int = 0, config: EnvConfig | None = None,
+                     **options: Any) -> SB3VecEnv:
+    """`SB3VecEnv(BatchedRateEnv(n_envs, config))` (or with EnvConfig's fields as keywords), seeded so
+    copy i follows the single env seeded seed + i."""
+    venv = SB3VecEnv(BatchedRateEnv(n_envs, config, nthread=nthread, **options))
     if seed is not None:
         venv.seed(seed)
     return venv

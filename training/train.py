@@ -40,12 +40,12 @@ NOISE_STD = 0.1  # DDPG/TD3 Gaussian exploration noise on actions in [-1, 1]
 def make_vec_env(cfg: TrainConfig) -> VecEnv:
     """N twins stepped in one batched call (`sim_bridge.vec_env`), with episode statistics.
 
-    The reward is the env's own (`sim_bridge.reward`), built from `cfg.env_kwargs()`:
-    training only chooses the weights, so `gym.make(..., **env_kwargs)` gives the same reward.
+    The reward is the env's own (`sim_bridge.reward`), built from `cfg.env_config()`:
+    training only chooses the weights, so `gym.make(..., **cfg.env_kwargs())` gives the same reward.
     """
     from fcemu.training.sb3_env import make_sb3_vec_env
 
-    return VecMonitor(make_sb3_vec_env(cfg.n_envs, seed=cfg.seed, **cfg.env_kwargs()))
+    return VecMonitor(make_sb3_vec_env(cfg.n_envs, seed=cfg.seed, config=cfg.env_config()))
 
 
 # ── 4. Algorithm ──────────────────────────────────────────────────────────────────────
@@ -168,6 +168,7 @@ def run_config(cfg: TrainConfig) -> dict[str, Any]:
             "action_mapping": cfg.action_mapping, "throttle": cfg.throttle, "loop_rate_hz": 1000.0,
             "seed": cfg.seed, "trained_steps": 0, "fcemu_version": __version__,
             "env": cfg.env_kwargs(), "reward": cfg.reward, "axis_weights": list(cfg.axis_weights),
+            "airframe": cfg.airframe, "randomize": cfg.randomize,  # what the export's envelope reads
             "n_envs": cfg.n_envs,
             "norm_reward": cfg.normalise_reward, "obs_clip": cfg.obs_clip, "select": cfg.select,
             "hyperparameters": json.loads(json.dumps(algo_hp, default=repr)),
@@ -192,9 +193,7 @@ def _anchor_samples(data: tuple, from_ticks: int) -> tuple:
 
 def _observation_spec(cfg: TrainConfig):
     """The spec the training env observes with (what the exported model's metadata carries)."""
-    from fcemu.sim_bridge.env import EnvConfig
-
-    return EnvConfig(**cfg.env_kwargs()).observation_spec
+    return cfg.env_config().observation_spec
 
 
 def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, Any]:
