@@ -75,6 +75,12 @@ LIES = {
     "leak_one": ({"observation": obs(integral_leak=1.0)}, "integral_leak"),
     "rms_leak_nan": ({"observation": obs(rms_leak=float("nan"))}, "rms_leak"),
     "no_mapping": ({"action_mapping": None}, "metadata lacks"),
+    "envelope_text": ({"envelope": "wide"}, "envelope not understood"),
+    "envelope_reversed": ({"envelope": '{"max_rotor_speed": [1200, 1100]}'}, "envelope not understood"),
+    "rotor_scale_for_another_top_speed": ({"envelope": '{"max_rotor_speed": [26000, 26000]}'},
+                                          "rotor_speed_scale"),
+    "no_rotor_scale": ({"observation": json.dumps({k: v for k, v in SPEC.items()
+                                                   if k != "rotor_speed_scale"})}, "lacks rotor_speed_scale"),
 }
 
 
@@ -112,3 +118,44 @@ def test_the_shipped_contract_round_trips() -> None:
     assert PolicyContract.from_metadata({**SHIPPED, "throttle": "null"}).throttle is None
     without = {k: v for k, v in SHIPPED.items() if k != "throttle"}
     assert PolicyContract.from_metadata(without).throttle is None
+
+
+def _airframe(name: str, **scaled: float):
+    from fcemu.sim_bridge.airframe import load_airframe
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    return airframe_spec(load_airframe(name).scaled(**scaled))
+
+
+def test_a_policy_flies_only_airframes_inside_its_envelope() -> None:
+    assert SHIPPED["airframe"] == "iris"
+    NeuralRateController(DEFAULT_POLICY, airframe=_airframe("iris"))
+    NeuralRateController(DEFAULT_POLICY, airframe=_airframe("iris", mass=1.1, kf=0.95, tau_up=1.15))
+    with pytest.raises(PolicyContractError) as info:
+        load_controller(str(DEFAULT_POLICY), 1000.0, _airframe("crazyflie"))
+    message = str(info.value)
+    assert message.startswith(f"policy {DEFAULT_POLICY} was made for iris (thrust-to-weight 1.41–2.33, "
+                              "top rotor speed 1,100 rad/s); crazyflie's top rotor speed 2,274 rad/s")
+    assert message.endswith("outside it") and "\n" not in message
+    with pytest.raises(PolicyContractError, match=r"; iris's thrust-to-weight 1\.2, hover throttle 0\.913, "):
+        NeuralRateController(DEFAULT_POLICY, airframe=_airframe("iris", mass=1.5))
+
+
+def test_a_policy_without_an_envelope_flies_an_airframe_of_its_top_rotor_speed(tmp_path: Path) -> None:
+    legacy = lying_copy(tmp_path / "legacy.onnx", {"envelope": None, "airframe": None})
+    NeuralRateController(legacy, airframe=_airframe("iris", mass=1.5))  # only the top speed is known
+    with pytest.raises(PolicyContractError, match="records no envelope and was made for a top rotor speed of "
+                                                  "1,100 rad/s; x500's is"):
+        NeuralRateController(legacy, airframe=_airframe("x500"))
+
+
+def test_pid_is_the_airframe_s_own_tune() -> None:
+    from fcemu.firmware.controllers import ControllerSpecError
+
+    assert load_controller("pid", airframe=_airframe("iris")).name == "pid_iris"
+    assert load_controller("pid", airframe=_airframe("iris_realistic")).name == "pid_iris"  # its base's
+    refusal = r"^no PID tuned for crazyflie: `fcemu tune --airframe crazyflie --out DIR`, then --controller "
+    with pytest.raises(ControllerSpecError, match=refusal + r"pid:DIR/pid\.json$"):
+        load_controller("pid", airframe=_airframe("crazyflie"))
+    for named in ("pid:iris", "pid:paper"):
+        load_controller(named, airframe=_airframe("crazyflie"))

@@ -53,3 +53,27 @@ def test_sigint_stops_the_flight_with_its_summary_also_when_inherited_ignored() 
             proc.kill()
     assert proc.returncode == 0, first + err
     assert "misses" in out
+
+
+def test_the_twin_health_rules_hover_and_controllers_are_the_airframe_s() -> None:
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    crazyflie = airframe_spec("crazyflie")
+    built = sitl.build_sitl("pid:iris", rig="rig", realtime=False, airframe="crazyflie")
+    assert built.airframe == crazyflie and built.twin.airframe.name == "crazyflie"
+    assert built.loop.health.rules.rotor_speed_max == crazyflie.max_rotor_speed
+    built.loop.run(0.5)
+    sample = built.loop.last_sample
+    assert sample.command.setpoint.throttle == crazyflie.hover_throttle
+    assert sample.frame.rotor_speed.max() > 1100.0  # beyond the Iris's top speed: the crazyflie's rotors
+    assert built.loop.health.policy_trusted and not built.loop.faults
+
+
+def test_a_policy_or_pid_not_made_for_the_airframe_is_refused_in_one_line() -> None:
+    for controller in ([], ["--controller", "pid"]):
+        done = subprocess.run([sys.executable, "-m", "fcemu", "sitl", "--airframe", "crazyflie",
+                               "--no-mavlink", "--speed", "max", "--duration", "1", *controller],
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+        assert done.stderr.startswith("fcemu: error: ")
+        assert "crazyflie" in done.stderr
