@@ -117,7 +117,7 @@ class Envelope:
         return found
 
     def describe(self, keys: tuple[str, ...] = ("thrust_to_weight", "max_rotor_speed")) -> str:
-        """The envelope in words, `keys` first: "thrust-to-weight 1.9–2.6, top rotor speed 1100 rad/s"."""
+        """In words, `keys` first: "thrust-to-weight 1.5–2.5, top rotor speed 750–1,250 rad/s"."""
         parts = []
         for key in keys:
             if key not in self.ranges:

@@ -82,7 +82,7 @@ FIELD_DEFS: dict[str, FieldDef] = {
 LEAKS = frozenset(d.leak for d in FIELD_DEFS.values() if d.leak)  # the spec's λ attributes
 
 
-# What a spec built without its airframe scaled rotor speed by (the shipped policies' 1/1100):
+# What a spec built without its airframe scaled rotor speed by (the shipped policies' scale):
 # kept while callers move to `max_rotor_speed=`; each such build warns.
 _UNSCALED_FALLBACK = 1.0 / 1100.0  # airframe-constant: allowed until every caller passes max_rotor_speed
 
