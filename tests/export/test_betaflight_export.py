@@ -17,6 +17,8 @@ from fcemu.export.betaflight.build import (
     betaflight_source,
     check_contract,
     export_betaflight,
+    motors_of,
+    readme,
 )
 from tests.export.mcu_tools import SHIPPED, _missing, require_codegen
 
@@ -47,6 +49,17 @@ def test_the_shipped_policy_s_contract_is_one_the_patch_honours():
     assert contract["loop_rate_hz"] == 1000.0
     assert set(contract["fields"]) <= {"rate_error", "rotor_speed", "rate_error_integral", "rate_error_rms",
                                        "motor_output"}
+    # Betaflight's motor_poles and the top speed the observation scales to 1: the Iris's, from its file
+    motors = (contract["airframe"], contract["motor_poles"], contract["max_rotor_speed_rad_s"])
+    assert motors == ("iris", 14, 1100.0)
+    assert "- `set motor_poles = 14` (iris's motors)" in readme({
+        "model": str(SHIPPED), "contract": contract, "builds": {}})
+
+
+def test_without_a_pole_count_the_setup_asks_for_the_motors():
+    assert motors_of("crazyflie", 1 / 2274.0)["motor_poles"] is None  # brushed: no eRPM to convert
+    assert motors_of("an-airframe-not-shipped", 1 / 1000.0) == {
+        "airframe": "an-airframe-not-shipped", "motor_poles": None, "max_rotor_speed_rad_s": 1000.0}
 
 
 def test_a_policy_for_another_loop_rate_is_refused_before_anything_is_written(tmp_path, capsys):

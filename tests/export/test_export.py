@@ -13,9 +13,19 @@ import torch
 
 from fcemu import __version__
 from fcemu.export.cli import export_command
-from fcemu.export.onnx_export import ExportError, build_actor, export_policy, find_checkpoint, load_model
+from fcemu.export.onnx_export import (
+    ExportError,
+    build_actor,
+    export_policy,
+    find_checkpoint,
+    load_model,
+    record_envelope,
+)
+from fcemu.firmware.airframe_spec import Envelope
+from fcemu.firmware.controllers import DEFAULT_POLICY
 from fcemu.firmware.neural import NeuralRateController, read_metadata
 from fcemu.firmware.observation import ObservationSpec
+from fcemu.sim_bridge.airframe_spec import airframe_spec, envelope
 from fcemu.training.train import TrainConfig, train
 
 pytestmark = pytest.mark.slow
@@ -82,6 +92,25 @@ def test_parity_and_metadata_round_trip(runs, algo, tmp_path):
     assert float(meta["loop_rate_hz"]) == 1000.0
     ctrl = NeuralRateController(out)
     assert ctrl.spec == spec and ctrl.action_mapping == "throttle"
+    assert meta["airframe"] == "iris"  # no randomisation: the airframe within a margin
+    assert Envelope.from_json(meta["envelope"]) == envelope("iris")
+
+
+def test_an_older_export_gets_its_envelope_and_keeps_its_network(tmp_path):
+    import onnx
+
+    shipped = onnx.load(str(DEFAULT_POLICY))
+    older = onnx.load(str(DEFAULT_POLICY))
+    recorded = ("fcemu.airframe", "fcemu.envelope")
+    kept = [(p.key, p.value) for p in older.metadata_props if p.key not in recorded]
+    del older.metadata_props[:]
+    for key, value in kept:
+        older.metadata_props.add(key=key, value=value)
+    onnx.save(older, str(tmp_path / "older.onnx"))
+    record_envelope(tmp_path / "older.onnx", airframe_spec("iris"), envelope("iris", "iris"))
+    again = onnx.load(str(tmp_path / "older.onnx"))
+    assert again.graph.SerializeToString() == shipped.graph.SerializeToString()
+    assert {p.key: p.value for p in again.metadata_props} == {p.key: p.value for p in shipped.metadata_props}
 
 
 @pytest.mark.parametrize("algo", ["ppo", "ppo_unclipped", "ppo_squashed", "sac"])
