@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -32,6 +32,7 @@ import numpy as np
 from fcemu.sim_bridge.airframe import AIRFRAME_DIR, Airframe, load_airframe
 
 SUFFIX = ".randomization.json"
+RELATIVE = "relative"  # the shipped ranges relative to any airframe (sim_bridge.relative_ranges)
 NOMINAL_RTOL = 1e-9
 
 class Parameter(NamedTuple):
@@ -101,6 +102,7 @@ class Randomization:
     airframe: str
     parameters: tuple[ParameterRange, ...]
     path: Path | None = None
+    base: Airframe | None = field(default=None, compare=False)  # the airframe, where the caller gave it
 
     def __iter__(self) -> Iterator[str]:
         return iter(dict.fromkeys(PARAMETERS[p.key].keyword for p in self._ordered()))
@@ -159,7 +161,10 @@ class Randomization:
         return any(PARAMETERS[p.key].keyword in GYRO_KEYWORDS for p in self.parameters)
 
     def base_airframe(self) -> Airframe:
-        """The airframe the ranges are for: the file beside them, else the shipped one by name."""
+        """The airframe the ranges are for: the one they were built for or checked against, else the
+        file beside them, else the shipped one by name."""
+        if self.base is not None:
+            return self.base
         sibling = None if self.path is None else self.path.parent / f"{self.airframe}.json"
         try:
             return load_airframe(sibling if sibling is not None and sibling.exists() else self.airframe)
@@ -186,8 +191,12 @@ def randomization_path(name_or_path: str | Path) -> Path:
     return path if path.suffix else AIRFRAME_DIR / f"{name_or_path}{SUFFIX}"
 
 
-def load_randomization(name_or_path: str | Path = "iris") -> Randomization:
-    """Read, validate and check against its airframe; every problem is a `RandomizationError`."""
+def load_randomization(name_or_path: str | Path = "iris", airframe: Airframe | None = None) -> Randomization:
+    """Read, validate and check against its airframe; every problem is a `RandomizationError`.
+
+    Ranges relative to the airframe (`relative`) need `airframe` and are built for it; absolute
+    ones are checked against it where it is given.
+    """
     path = randomization_path(name_or_path)
     if not path.exists():
         known = ", ".join(sorted(p.name[: -len(SUFFIX)] for p in AIRFRAME_DIR.glob(f"*{SUFFIX}")))
@@ -196,10 +205,35 @@ def load_randomization(name_or_path: str | Path = "iris") -> Randomization:
         raw = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise RandomizationError(f"{path}: cannot read as JSON: {exc}") from None
+    from fcemu.sim_bridge.relative_ranges import absolute_ranges, is_relative
+
+    if is_relative(raw):
+        if airframe is None:
+            raise RandomizationError(f"{path}: the ranges are relative to the airframe they are applied to: "
+                                     f"load them for one (ranges_for(airframe, {str(name_or_path)!r}))")
+        raw = absolute_ranges(raw, airframe, where=str(path))
     ranges = parse_randomization(raw, where=str(path))
-    ranges = Randomization(ranges.airframe, ranges.parameters, path)
+    ranges = Randomization(ranges.airframe, ranges.parameters, path, airframe)
     ranges.check_airframe(ranges.base_airframe())
     return ranges
+
+
+def ranges_for(airframe: Airframe | str | Path, name_or_path: str | Path | None = None) -> Randomization:
+    """The randomisation ranges of `airframe` (an Airframe, a shipped name or a file).
+
+    `name_or_path` None: the airframe's own shipped `<name>.randomization.json` where there is one
+    (the Iris's), else the ranges relative to any airframe (`relative`) built for this one. Named
+    ranges: relative ones are built for the airframe, absolute ones must be the airframe's.
+    """
+    if not isinstance(airframe, Airframe):
+        try:
+            airframe = load_airframe(airframe)
+        except FileNotFoundError as exc:
+            raise RandomizationError(str(exc)) from None
+    if name_or_path is None:
+        own = AIRFRAME_DIR / f"{airframe.name}{SUFFIX}"
+        name_or_path = own if own.exists() else RELATIVE
+    return load_randomization(name_or_path, airframe)
 
 
 def parse_randomization(raw: Any, where: str = "ranges") -> Randomization:

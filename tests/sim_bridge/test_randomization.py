@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import shutil
 
+import mujoco
 import numpy as np
 import pytest
 
-from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR, build_mjcf, load_airframe
 from fcemu.sim_bridge.env import RateControlEnv
-from fcemu.sim_bridge.randomization import PARAMETERS, RandomizationError, load_randomization
+from fcemu.sim_bridge.randomization import PARAMETERS, RandomizationError, load_randomization, ranges_for
 from fcemu.sim_bridge.vec_env import BatchedRateEnv
 
 SHIPPED = AIRFRAME_DIR / "iris.randomization.json"
@@ -72,7 +73,7 @@ def _set(key: str, field: str, value):
     (_set("inertia_zz", "range", [0.0136, 0.0204]), r"inertia_zz up to 0.0204 exceeds the other two axes' "
                                                      r"lowest sum 0.0184"),
     (lambda raw: raw["parameters"]["inertia_xx"].pop("unit"), r"inertia_xx: missing \['unit'\]"),
-    (lambda raw: raw.update(airframe="x500"), r"cannot load airframe 'x500'"),
+    (lambda raw: raw.update(airframe="f450"), r"cannot load airframe 'f450'"),
     (lambda raw: raw.update(parameters=[]), r"\"parameters\" must be a non-empty object"),
 ])
 def test_a_bad_file_is_refused_with_a_clear_error(tmp_path, edit, message):
@@ -241,3 +242,78 @@ def test_the_fine_tuning_ranges_are_the_shipped_ones_with_the_esc_delay_at_its_t
             assert (q.lo, q.hi) == (p.hi, p.hi) == (2, 2)
         else:
             assert (q.lo, q.hi) == (p.lo, p.hi), p.key
+
+
+# ── ranges relative to any airframe ───────────────────────────────────────────────────
+PHYSICAL = ("mass", "inertia_xx", "inertia_yy", "inertia_zz", "kf", "km", "tau_up", "tau_down")
+
+
+def test_the_relative_ranges_on_the_iris_are_the_iris_ranges():
+    iris_ranges, iris = load_randomization("iris"), load_airframe("iris")
+    relative = load_randomization("relative", iris)
+    assert relative.path == AIRFRAME_DIR / "relative.randomization.json" and relative.base_airframe() is iris
+    assert [p.key for p in relative.parameters] == [p.key for p in iris_ranges.parameters]
+    for p in iris_ranges.parameters:
+        q = relative.parameter(p.key)
+        assert q.nominal == p.nominal, p.key
+        if p.key in PHYSICAL or PARAMETERS[p.key].kind == "ticks" or p.key == "gyro_noise_std":
+            assert (q.lo, q.hi) == pytest.approx((p.lo, p.hi), rel=1e-9, abs=1e-15), p.key
+        else:  # the effects' physical estimates (vibration: per hover speed²), calibrated on the Iris's own
+            assert q.lo == pytest.approx(p.lo, rel=0.04) and q.hi == pytest.approx(p.hi, rel=0.04), p.key
+
+
+def test_ranges_for_an_airframe_are_its_own_file_else_the_relative_ones():
+    assert ranges_for("iris") == load_randomization("iris")
+    for name in ("crazyflie", "x500", "racer5", "iris_realistic"):
+        ranges, airframe = ranges_for(name), load_airframe(name)
+        assert ranges.path.name == "relative.randomization.json" and ranges.airframe == name
+        ranges.check_airframe(airframe)
+        assert {p.key for p in ranges.parameters} == set(PARAMETERS)
+        for key in PHYSICAL:
+            p = ranges.parameter(key)
+            assert p.lo < PARAMETERS[key].nominal(airframe) < p.hi, key
+    with pytest.raises(RandomizationError, match="ranges are for airframe 'iris', not 'crazyflie'"):
+        ranges_for("crazyflie", "iris")
+    with pytest.raises(RandomizationError, match=r"relative to the airframe .*ranges_for\(airframe, 'rel"):
+        load_randomization("relative")
+
+
+@pytest.mark.parametrize("name", ["crazyflie", "x500", "racer5"])
+def test_every_relative_draw_is_a_rigid_body_the_twin_builds(name):
+    """The inertia corner a draw can reach that is nearest breaking I_zz <= I_xx + I_yy, built in MuJoCo."""
+    ranges = ranges_for(name)
+    xx, yy, zz = (ranges.parameter(k) for k in ("inertia_xx", "inertia_yy", "inertia_zz"))
+    assert zz.hi <= xx.lo + yy.lo and xx.hi <= yy.lo + zz.lo and yy.hi <= xx.lo + zz.lo
+    corner = ranges.base_airframe().scaled(inertia=(xx.lo / xx.nominal, yy.lo / yy.nominal,
+                                                    zz.hi / zz.nominal))
+    mujoco.MjModel.from_xml_string(build_mjcf(corner, "free"))
+
+
+def _relative(tmp_path, edit) -> str:
+    raw = json.loads((AIRFRAME_DIR / "relative.randomization.json").read_text())
+    edit(raw)
+    path = tmp_path / "rel.randomization.json"
+    path.write_text(json.dumps(raw))
+    return str(path)
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (_set("mass", "of", "pack_charge"), r"mass: \"of\" must be one of \['nominal'\] for a scale parameter"),
+    (_set("esc_delay_ticks", "of", "nominal"), r"esc_delay_ticks: \"of\" must be one of \['absolute'\]"),
+    (_set("rotor_inertia", "of", "rotor_mass"), r"rotor_inertia: \"of\" must be one of \['absolute', "),
+    (_set("kf", "range", [1.05, 1.2]), r"kf: factors of the nominal must hold 1, got \[1.05, 1.2\]"),
+    (_set("km", "range", [1.2, 0.8]), r"km: range must be \[lo, hi\] with 0 <= lo <= hi"),
+    (lambda raw: raw["parameters"]["tau_up"].pop("of"), r"tau_up: missing \['of'\]"),
+])
+def test_a_bad_relative_file_is_refused(tmp_path, edit, message):
+    path = _relative(tmp_path, edit)
+    with pytest.raises(RandomizationError, match=message):
+        ranges_for("crazyflie", path)
+
+
+def test_the_training_envs_draw_a_new_airframe_from_the_relative_ranges():
+    ranges = ranges_for("crazyflie")
+    env = RateControlEnv(airframe="crazyflie", randomize=ranges, episode_s=0.05)
+    factors = env.reset(seed=2)[1]["factors"]
+    assert env.twin.airframe.mass == pytest.approx(0.027 * factors["mass"])
+    assert _batch_matches_single(ranges, steps=60, n=2, episode_s=0.04, airframe="crazyflie")
