@@ -1,7 +1,8 @@
 """The PID rate controller: `RatePID` + `QuadXMixer` behind the `RateController` protocol.
 
 Presets are data files in `firmware/presets/` (`pid_paper.json`: the paper's gains and
-Iris mixer; `pid_iris.json`: a tune for the twin, made by `benchmarks/tune_pid.py`;
+Iris mixer; `pid_iris.json`: a tune for the twin, made by the first, Iris-only version of
+`benchmarks/tune_pid.py`; `fcemu tune` carries it over to any airframe and writes `pid_<name>.json`;
 `pid_betaflight.json`: Betaflight 4.6.0's defaults, checked against the real firmware by
 `fcemu betaflight --crosscheck`).
 """

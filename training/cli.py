@@ -59,6 +59,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object: trials and the best")
     p.set_defaults(handler="fcemu.training.sweep:sweep_command")
     distill_config.register_distill(sub)
+    register_tune(sub)
+
+
+def register_tune(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("tune", help="tune the Betaflight-style rate PID for an airframe: the Iris tune "
+                                    "carried over by physics, then searched; checked against `fcemu bound`")
+    p.add_argument("--airframe", required=True, metavar="NAME|FILE",
+                   help="sim_bridge/airframes/<name>.json or a path to an airframe file")
+    p.add_argument("--out", required=True, metavar="DIR", help="where pid.json and tune.json are written")
+    p.add_argument("--budget-s", type=float, default=540.0, metavar="S",
+                   help="wall time for the whole tune, the held-out check included (default 540)")
+    p.add_argument("--seed", type=int, default=2018,
+                   help="seed of the tuning commands; the held-out commands are seed + 1 (default 2018)")
+    p.add_argument("--jobs", type=int, default=0, metavar="J",
+                   help="worker processes flying candidates (0: one per CPU this process may use)")
+    p.add_argument("--episodes", type=int, default=50, help="tuning commands (default 50)")
+    p.add_argument("--check-episodes", type=int, default=50, help="held-out commands (default 50)")
+    p.add_argument("--rounds", type=int, default=12,
+                   help="most rounds of the search per stage, if the budget lasts (default 12)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.set_defaults(handler="fcemu.training.pid_tune:tune_command")
 
 
 def user_error(message: str) -> int:

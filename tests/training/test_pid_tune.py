@@ -1,0 +1,107 @@
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fcemu.cli import main
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.firmware.mixer import QuadXMixer
+from fcemu.firmware.pid_controller import load_preset
+from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.training.pid_search import Score
+from fcemu.training.pid_tune import SMOOTHNESS_CAP, carried_over, cost, knobs_for, loop_physics
+
+
+def test_loop_physics_follows_inertia_thrust_and_motor_lag():
+    iris = load_airframe("iris")
+    base = loop_physics(iris)
+    assert np.all(base.authority > 0.0)
+    heavy = loop_physics(iris.scaled(inertia=2.0))
+    # The rotors' masses on the arms keep their inertia: doubling the body's divides B by less than 2.
+    assert np.all(base.authority / heavy.authority > 1.5) and np.all(base.authority / heavy.authority < 2.0)
+    slow = loop_physics(iris.scaled(tau_up=2.0, tau_down=2.0))
+    assert slow.lag_s == pytest.approx(2.0 * base.lag_s)
+    np.testing.assert_allclose(slow.authority, base.authority)
+    # Thrust ×2 at the same weight: hover at 1/√2 of the rotor speed, the slope kf·ω ×√2.
+    np.testing.assert_allclose(loop_physics(iris.scaled(kf=2.0)).authority, base.authority * np.sqrt(2.0))
+
+
+def test_the_reference_airframe_starts_from_the_reference_tune_and_others_scale_by_physics():
+    iris_preset = load_preset("iris")
+    iris = loop_physics(load_airframe("iris"), QuadXMixer(**iris_preset["mixer"]))
+    assert carried_over(iris_preset, iris, iris)["pid"] == iris_preset["pid"]
+    slower = loop_physics(load_airframe("iris").scaled(inertia=2.0, tau_up=2.0, tau_down=2.0))
+    start = carried_over(iris_preset, iris, slower)["pid"]
+    gain = iris.authority / slower.authority
+    np.testing.assert_allclose(start["kp"], np.array(iris_preset["pid"]["kp"]) * gain / 2.0, rtol=1e-5)
+    np.testing.assert_allclose(start["ki"], np.array(iris_preset["pid"]["ki"]) * gain / 4.0, rtol=1e-5)
+    np.testing.assert_allclose(start["kd"], np.array(iris_preset["pid"]["kd"]) * gain, rtol=1e-5)
+    assert start["dterm_lowpass_hz"] == pytest.approx(iris_preset["pid"]["dterm_lowpass_hz"] / 2.0)
+    knobs = {k.name: k for k in knobs_for(iris, slower)}
+    assert knobs["kp_roll"].lowest < start["kp"][0] < knobs["kp_roll"].highest
+
+
+def _score(error: float = 100.0, smoothness: float = 2.0, success: float = 100.0) -> Score:
+    three = np.ones(3)
+    return Score(error * three, 40.0 * three, 110.0 * three, success * three, np.zeros(3), smoothness,
+                 2.0 * three)
+
+
+def test_cost_rewards_error_and_caps_motor_roughness_on_the_noisy_gyro():
+    ref = _score()
+    assert cost(_score(error=90.0), ref, True) < cost(ref, ref, True)
+    assert cost(_score(success=98.0), ref, True) > cost(ref, ref, True) + 1.0
+    rough = _score(smoothness=2.0 * (SMOOTHNESS_CAP + 0.1))
+    assert cost(rough, ref, True) - cost(rough, ref, False) == pytest.approx(10.0 * 0.1)
+    never = Score(ref.error, ref.rise_ms, ref.peak_pct, ref.success_pct, np.array([0, 1, 0]), 2.0,
+                  ref.worst_settle_pct)
+    assert cost(never, ref, False) == float("inf")
+
+
+def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp_path, capsys):
+    out = tmp_path / "tune"
+    code = main(["tune", "--airframe", "iris", "--out", str(out), "--episodes", "3", "--check-episodes", "1",
+                 "--rounds", "1", "--budget-s", "300", "--jobs", "1", "--seed", "5", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    summary = json.loads(captured.out)
+    assert "clean: start cost" in captured.err and "/300 s]" in captured.err
+    for key in ("airframe", "cost_version", "physics", "stages", "tuning_set", "held_out", "meets_lines",
+                "fails",
+                "time_s"):
+        assert key in summary
+    clean = summary["stages"][0]
+    assert clean["stage"] == "clean" and clean["cost"] < clean["start_cost"]
+    held = summary["held_out"]
+    assert held["seed"] == 6 and held["bound"]["sum"] > 0.0
+    for key in ("error", "rise_ms", "peak_pct", "success_pct"):
+        assert set(held["tuned"][key]) == {"roll", "pitch", "yaw"}
+    assert held["tuned"]["smoothness_us"] > 0.0 and held["tuned_noisy_gyro"]["smoothness_us"] > 0.0
+    times = held["tuned"]["error_sum"] / held["bound"]["sum"]
+    assert held["tuned"]["times_bound"] == pytest.approx(times, 1e-3)
+    assert set(held["lines"]) == {"error_times_bound", "success_pct", "smoothness_noisy_gyro_vs_start"}
+    preset = json.loads((out / "pid.json").read_text())
+    assert preset["name"] == "pid_iris" and preset["tuning"]["cost_version"] == summary["cost_version"]
+    assert json.loads((out / "tune.json").read_text())["held_out"] == held
+    traces = run_controller(f"pid:{out / 'pid.json'}", EvalConfig(episodes=1, seed=6), progress=False)
+    flown = np.abs(traces.setpoint - traces.rate).sum(axis=1)[0]
+    assert flown.sum() == pytest.approx(held["tuned"]["error_sum"], abs=0.006)  # the JSON rounds to 0.01
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--airframe", "no_such_frame"], "cannot load airframe"),
+    (["--airframe", "iris", "--budget-s", "0"], "--budget-s must be > 0"),
+])
+def test_bad_input_is_one_line(tmp_path, capsys, args, message):
+    assert main(["tune", "--out", str(tmp_path / "o"), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("fcemu: error:") and message in err and "\n" not in err
+
+
+def test_an_out_that_cannot_be_written_is_one_line(tmp_path: Path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["tune", "--airframe", "iris", "--out", str(blocker / "sub")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("fcemu: error:") and "not a writable directory" in err and "\n" not in err

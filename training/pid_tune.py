@@ -1,0 +1,358 @@
+"""`fcemu tune`: a Betaflight-style rate PID tuned for any airframe in minutes.
+
+    fcemu tune --airframe x500 --out runs/tune_x500 --json
+
+The start is the Iris tune (`firmware/presets/pid_iris.json`) carried over by physics, so the
+search has little left to do. Per axis, B is the angular acceleration per unit PID output
+(demand → mixer → PWM → rotor speed → thrust at hover → torque → rate, linearised at hover
+from the MuJoCo rig), and τ the motor lag plus any ESC and gyro delay. A P gain sets the
+crossover kp·B, which a lag τ limits to ∝ 1/τ; so from the reference airframe r:
+
+    kp = kp_r·(B_r/B)·(τ_r/τ)      ki = ki_r·(B_r/B)·(τ_r/τ)²
+    kd = kd_r·(B_r/B)              kff = kff_r·(B_r/B)      filter cut-offs ×τ_r/τ
+
+(D and feedforward add an acceleration per rate change: dimensionless, so only B scales
+them.) The search bounds move with the gains. Then `pid_search.pattern_search` refines the
+start in two stages on the tuning commands (seed S): on the noise-free twin, then with a gyro
+of 0.01 rad/s white noise, where the cost caps the motors' roughness (mean |Δpwm|) at
+`SMOOTHNESS_CAP` × the start's on the same noisy gyro, so no gain buys step response with
+motor noise. The result is checked on held-out commands (seed S + 1) against `fcemu bound`'s
+lower bound on the Error (`evaluation.bound`), and written as a preset that
+`--controller pid:DIR/pid.json` flies.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fcemu.firmware.errors import UserError
+from fcemu.firmware.mixer import QuadXMixer
+from fcemu.firmware.pid_controller import load_preset
+from fcemu.firmware.timing import available_cpus
+from fcemu.sim_bridge.airframe import Airframe, effect_fields, load_airframe
+from fcemu.sim_bridge.tasks import episodic_commands
+from fcemu.training.pid_search import AXES, CandidatePool, Knob, Score, SearchState, pattern_search
+
+COST_VERSION = "fcemu-pid-tune/1"
+REFERENCE = ("iris", "iris")  # (airframe, preset) the start is carried over from
+GYRO_NOISE = 0.01  # rad/s white noise per sample, a MEMS gyro's order at 1 kHz
+SMOOTHNESS_CAP = 1.2  # motor |Δpwm| on the noisy gyro, at most this × the start's
+SETTLE_MARGIN_PCT = 6.0
+TIMES_BOUND_LINE = 1.3
+SUCCESS_LINE = 99.8
+# Searched knobs: (setting, axes, step, (lowest, highest) for the reference airframe). Gains
+# bounds scale with the gains (module doc); cut-offs with τ, within what a 1 kHz loop can run.
+GAIN_KNOBS = (("kp", (0, 1, 2), 1.3, (0.5, 40.0)), ("ki", (0, 1, 2), 1.5, (1.0, 100.0)),
+              ("kd", (0, 1), 1.4, (0.001, 0.1)), ("kff", (0, 1, 2), 1.4, (0.05, 5.0)))
+FILTER_KNOBS = (("gyro_lowpass_hz", 1.4, (50.0, 450.0)), ("dterm_lowpass_hz", 1.4, (20.0, 250.0)),
+                ("ff_lowpass_hz", 1.4, (10.0, 250.0)))
+PIDSUM_KNOB = (1.25, (0.2, 1.0))
+
+
+def per_axis(values: np.ndarray) -> dict[str, float]:
+    return {a: round(float(v), 2) for a, v in zip(AXES, values, strict=True)}
+
+
+@dataclass(frozen=True)
+class LoopPhysics:
+    """What sets an airframe's loop gain and crossover (module doc)."""
+
+    authority: np.ndarray  # (3,) B: rad/s² per unit of PID output at hover, roll/pitch/yaw
+    lag_s: float  # τ: the motor's mean time constant plus the ESC and gyro delays
+
+    def to_json(self) -> dict[str, Any]:
+        return {"authority_rad_s2": per_axis(self.authority), "lag_s": round(self.lag_s, 5)}
+
+
+def nominal(airframe: Airframe) -> Airframe:
+    """The airframe with every effect at its nominal-twin default (what `rig_constants` reads)."""
+    defaults = {f.name: f.default for f in fields(Airframe) if f.name in effect_fields()}
+    return replace(airframe, **defaults)
+
+
+def loop_physics(airframe: Airframe, mixer: QuadXMixer | None = None, dt: float = 0.001) -> LoopPhysics:
+    from fcemu.evaluation.bound import rig_constants
+
+    mixer = mixer or QuadXMixer()
+    rig = rig_constants(nominal(airframe), dt)
+    m = airframe.motor
+    hover = airframe.hover_rotor_speed()
+    speed_per_demand = mixer.out_range * m.max_rotor_speed / (m.pwm_max - m.pwm_min)
+    thrust_per_demand = 2.0 * m.kf * hover * speed_per_demand  # d(kf·ω²)/d(demand) at hover
+    table = np.array(mixer.table)  # (4 motors, 3 axes)
+    authority = np.array([rig.B[j] @ table[:, j] for j in range(3)]) * thrust_per_demand
+    lag = 0.5 * (m.tau_up + m.tau_down) + dt * (airframe.esc_delay_ticks + airframe.gyro_delay_ticks)
+    return LoopPhysics(authority, lag)
+
+
+def carried_over(reference: dict[str, Any], ref: LoopPhysics, new: LoopPhysics) -> dict[str, Any]:
+    """The reference preset's gains carried over to an airframe of other physics (module doc)."""
+    gain = ref.authority / new.authority
+    speed = ref.lag_s / new.lag_s
+    scale = {"kp": gain * speed, "ki": gain * speed**2, "kd": gain, "kff": gain}
+    preset = json.loads(json.dumps(reference))
+    pid = preset["pid"]
+    for key, factor in scale.items():
+        pid[key] = [float(f"{v * f:.9g}") for v, f in zip(pid[key], factor, strict=True)]
+    for key, _, (_, highest) in FILTER_KNOBS:
+        if pid.get(key, 0.0) > 0.0:
+            pid[key] = float(f"{min(pid[key] * speed, highest):.9g}")
+    return preset
+
+
+def knobs_for(ref: LoopPhysics, new: LoopPhysics) -> list[Knob]:
+    gain = ref.authority / new.authority
+    speed = ref.lag_s / new.lag_s
+    scale = {"kp": gain * speed, "ki": gain * speed**2, "kd": gain, "kff": gain}
+    knobs = [Knob(f"{key}_{AXES[i]}", key, i, step, lo * scale[key][i], hi * scale[key][i])
+             for key, axes, step, (lo, hi) in GAIN_KNOBS for i in axes]
+    for key, step, (lo, hi) in FILTER_KNOBS:
+        knobs.append(Knob(key, key, None, step, min(lo * speed, hi), hi))
+    step, (lo, hi) = PIDSUM_KNOB
+    knobs += [Knob(f"pidsum_{a}", "pidsum_limit", i, step, lo, hi) for i, a in enumerate(AXES)]
+    return knobs
+
+
+def cost(s: Score, ref: Score, noisy: bool) -> float:
+    """The search's cost (COST_VERSION), relative to the start `ref` on the same twin and commands.
+
+    3·ΣError/ΣError_ref + 0.5·Σ Rise/Rise_ref + 0.05 per % of Peak above max(110 %, the start's)
+    + (100 − Success %)/5 per axis + 0.1 per % of the worst episode's settling error above
+    SETTLE_MARGIN_PCT of |e0| (Success's line is 10 %: a margin for commands not tuned on)
+    + 0.25·smoothness/smoothness_ref; on the noisy gyro + 10 per unit of smoothness ratio
+    above SMOOTHNESS_CAP. Infinite if an axis never rises."""
+    if not np.all(np.isfinite(s.error)) or np.any(s.not_risen > 0) or not math.isfinite(s.smoothness):
+        return float("inf")
+    error = 3.0 * s.error.sum() / ref.error.sum()
+    rise = 0.5 * float(np.sum(s.rise_ms / ref.rise_ms))
+    overshoot = 0.05 * float(np.sum(np.maximum(s.peak_pct - np.maximum(ref.peak_pct, 110.0), 0.0)))
+    failed = float(np.sum(100.0 - s.success_pct)) / 5.0
+    failed += 0.1 * float(np.sum(np.maximum(s.worst_settle_pct - SETTLE_MARGIN_PCT, 0.0)))
+    rough = s.smoothness / ref.smoothness
+    shaking = 0.25 * rough + (10.0 * max(rough - SMOOTHNESS_CAP, 0.0) if noisy else 0.0)
+    return float(error + rise + overshoot + failed + shaking)
+
+
+@dataclass(frozen=True)
+class TuneOptions:
+    airframe: str
+    seed: int = 2018
+    episodes: int = 50
+    check_episodes: int = 50
+    budget_s: float = 540.0
+    jobs: int = 2
+    rounds: int = 12
+    gyro_noise: float = GYRO_NOISE
+
+
+class Tuner:
+    """One tune: the physics start, the bound on the held-out commands, two search stages, the check."""
+
+    def __init__(self, opts: TuneOptions, log: Any = None) -> None:
+        self.opts = opts
+        self.log = log or (lambda line: None)
+        self.t0 = time.monotonic()
+        self.airframe = load_airframe(opts.airframe)
+        reference = load_preset(REFERENCE[1])
+        mixer = QuadXMixer(**reference["mixer"])
+        self.ref_physics = loop_physics(load_airframe(REFERENCE[0]), mixer)
+        self.physics = loop_physics(self.airframe, mixer)
+        self.start = carried_over(reference, self.ref_physics, self.physics)
+        self.start["name"] = f"pid_{self.airframe.name}"
+        self.knobs = knobs_for(self.ref_physics, self.physics)
+        self.tuning = episodic_commands(opts.seed, opts.episodes)
+        self.held_out = episodic_commands(opts.seed + 1, opts.check_episodes)
+
+    def elapsed(self) -> float:
+        return time.monotonic() - self.t0
+
+    def say(self, stage: str, text: str) -> None:
+        self.log(f"[{self.elapsed():5.0f}/{self.opts.budget_s:.0f} s] {stage}: {text}")
+
+    def run(self) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+        """(the tuned preset, the tuning record, the held-out check)."""
+        with CandidatePool(self.airframe, self.opts.gyro_noise, self.opts.jobs) as pool:
+            bound = self.bound(pool)
+            tuned, record = self.search(pool)
+            return tuned, record, self.check(pool, tuned, bound)
+
+    def bound(self, pool: CandidatePool) -> dict[str, Any]:
+        """The lower bound on the Error over the held-out commands (first: its time is then known)."""
+        from fcemu.evaluation.bound import HORIZON, rig_constants
+
+        t = time.monotonic()
+        try:
+            rig_constants(self.airframe)
+        except UserError as exc:
+            return {"bound": None, "bound_refused": str(exc), "wall_s": 0.0}
+        n = len(self.held_out)
+        every = max(1, n // 5)
+        found = pool.bounds(self.held_out, lambda done: done % every == 0 and done < n and self.say(
+            "bound", f"{done}/{n} held-out commands"))
+        split = np.mean([b.split for b in found], axis=0)
+        total = float(np.mean([b.bound for b in found]))
+        self.say("bound", f"{total:.1f} on {len(found)} held-out commands (seed {self.opts.seed + 1})")
+        return {"bound": {"sum": round(total, 2), "horizon": HORIZON,
+                          "split_at_optimum": per_axis(split)},
+                "wall_s": round(time.monotonic() - t, 1)}
+
+    def search(self, pool: CandidatePool) -> tuple[dict[str, Any], dict[str, Any]]:
+        o = self.opts
+        stages: list[dict[str, Any]] = []
+        scores: dict[str, Any] = {}
+        best = self.start
+        end = None
+        for name, noisy, share in (("clean", False, 0.55), ("noisy_gyro", True, 1.0)):
+            t_stage = time.monotonic()
+            ref = pool.scores([self.start], noisy, self.tuning)[0]
+            if end is None:  # keep time for the check's five flights of the held-out commands
+                flight_s = time.monotonic() - t_stage
+                check_s = 3.0 + flight_s * o.check_episodes / o.episodes * 5 / min(o.jobs, 5)
+                end = self.t0 + o.budget_s - check_s
+            found = ref if best is self.start else pool.scores([best], noisy, self.tuning)[0]
+            state = SearchState(best, found, cost(found, ref, noisy))
+            deadline = t_stage + share * max(end - t_stage, 0.0)
+            self.say(name, f"start cost {state.cost:.4f} ({ref.line()})")
+            state = pattern_search(state, self.knobs, pool, noisy, self.tuning,
+                                   lambda s, r=ref, n=noisy: cost(s, r, n), deadline, o.rounds,
+                                   progress=lambda line, n=name: self.say(n, line), label=name)
+            best = state.preset
+            self.say(name, f"done: cost {state.cost:.4f} after {state.evaluations} flights of "
+                           f"{o.episodes} commands ({state.score.line()})")
+            stages.append({"stage": name, "gyro_noise": o.gyro_noise if noisy else 0.0,
+                           "start_cost": round(cost(ref, ref, noisy), 4), "cost": round(state.cost, 4),
+                           "evaluations": state.evaluations, "rounds": state.rounds,
+                           "wall_s": round(time.monotonic() - t_stage, 1)})
+            scores[name] = {"start": ref.to_json(), "tuned": state.score.to_json()}
+        return best, {"seed": o.seed, "episodes": o.episodes, "stages": stages, "tuning_set": scores}
+
+    def check(self, pool: CandidatePool, tuned: dict[str, Any], bound: dict[str, Any]) -> dict[str, Any]:
+        """Held-out commands (seed + 1): the tuned PID, clean and noisy, the start and the Iris PID,
+        against the lower bound on the Error; which lines are met."""
+        t_check = time.monotonic()
+        cmds = self.held_out
+        tuned_s, start_s, iris_s = pool.scores([tuned, self.start, load_preset("iris")], False, cmds)
+        noisy_tuned, noisy_start = pool.scores([tuned, self.start], True, cmds)
+        self.say("check", f"held out, tuned: {tuned_s.line()}")
+        out: dict[str, Any] = {"seed": self.opts.seed + 1, "episodes": len(cmds), "tuned": tuned_s.to_json(),
+                               "tuned_noisy_gyro": noisy_tuned.to_json(), "start": start_s.to_json(),
+                               "start_noisy_gyro": noisy_start.to_json(), "pid_iris": iris_s.to_json(),
+                               **{k: v for k, v in bound.items() if k != "wall_s"}}
+        if out["bound"] is not None:
+            for name, s in (("tuned", tuned_s), ("start", start_s), ("pid_iris", iris_s)):
+                out[name]["times_bound"] = round(float(s.error.sum()) / out["bound"]["sum"], 4)
+        times = out["tuned"].get("times_bound")
+        rough = noisy_tuned.smoothness / noisy_start.smoothness
+        out["lines"] = {
+            "error_times_bound": {"value": times, "line": TIMES_BOUND_LINE,
+                                  "met": None if times is None else times <= TIMES_BOUND_LINE},
+            "success_pct": {"value": out["tuned"]["success_pct"], "line": SUCCESS_LINE,
+                            "met": bool(np.all(tuned_s.success_pct >= SUCCESS_LINE))},
+            "smoothness_noisy_gyro_vs_start": {"value": round(rough, 3), "line": SMOOTHNESS_CAP,
+                                               "met": bool(rough <= SMOOTHNESS_CAP + 1e-9)},
+        }
+        out["meets_lines"] = all(v["met"] for v in out["lines"].values())
+        out["wall_s"] = {"bound": bound["wall_s"], "flights": round(time.monotonic() - t_check, 1)}
+        return out
+
+
+def failure_reasons(check: dict[str, Any]) -> list[str]:
+    """One sentence per line the held-out check does not meet, with the numbers that say why."""
+    reasons = []
+    lines, tuned = check["lines"], check["tuned"]
+    if lines["error_times_bound"]["met"] is False:
+        bound = check["bound"]
+        split = bound["split_at_optimum"]
+        axes = ", ".join(f"{a} {tuned['error'][a]:.1f} vs {split[a]:.1f}" for a in AXES)
+        worst = max(AXES, key=lambda a: tuned["error"][a] - split[a])
+        reasons.append(f"Error {tuned['error_sum']:.1f} = {tuned['times_bound']:.3f} × the bound "
+                       f"{bound['sum']:.1f} (line {TIMES_BOUND_LINE}); per axis, tuned vs the optimum's "
+                       f"split: {axes}; most of the excess is on {worst}")
+    elif lines["error_times_bound"]["met"] is None:
+        reasons.append(f"no bound: {check['bound_refused']}")
+    if not lines["success_pct"]["met"]:
+        low = [f"{a} {v:.1f} %" for a, v in tuned["success_pct"].items() if v is None or v < SUCCESS_LINE]
+        reasons.append(f"Success below {SUCCESS_LINE} % on {', '.join(low)}")
+    if not lines["smoothness_noisy_gyro_vs_start"]["met"]:
+        rough = lines["smoothness_noisy_gyro_vs_start"]["value"]
+        reasons.append(f"motors {rough:.2f} × the start's roughness on the noisy gyro "
+                       f"(line {SMOOTHNESS_CAP})")
+    return reasons
+
+
+def dumps(preset: dict[str, Any]) -> str:
+    """Indented JSON with every list of numbers on one line (the presets' layout)."""
+    import re
+
+    text = json.dumps(preset, indent=2)
+    flat = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + re.sub(r"\s+", " ", m.group(1)) + "]", text)
+    return flat + "\n"
+
+
+def tune(opts: TuneOptions, log: Any = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(the tuned preset with its "tuning" record, the summary `--json` prints)."""
+    tuner = Tuner(opts, log)
+    tuned, record, check = tuner.run()
+    wall = round(tuner.elapsed(), 1)
+    command = (f"fcemu tune --airframe {opts.airframe} --seed {opts.seed} --episodes {opts.episodes} "
+               f"--check-episodes {opts.check_episodes} --rounds {opts.rounds} --budget-s {opts.budget_s:g} "
+               f"--jobs {opts.jobs}")
+    summary = {"airframe": opts.airframe, "cost_version": COST_VERSION, "command": command,
+               "physics": tuner.physics.to_json(),
+               "reference": {"airframe": REFERENCE[0], "preset": REFERENCE[1],
+                             "physics": tuner.ref_physics.to_json()},
+               "gyro_noise": opts.gyro_noise, "smoothness_cap": SMOOTHNESS_CAP, **record,
+               "held_out": check, "meets_lines": check["meets_lines"], "fails": failure_reasons(check),
+               "time_s": {"bound": check["wall_s"]["bound"],
+                          **{s["stage"]: s["wall_s"] for s in record["stages"]},
+                          "check": check["wall_s"]["flights"], "total": wall},
+               "budget_s": opts.budget_s}
+    preset = {"name": tuner.start["name"],
+              "description": (f"PID tuned for the {tuner.airframe.name} twin by `{command}`: the Iris tune "
+                              "carried over by the loop's physics, then searched on the noise-free twin and "
+                              "with a noisy gyro. Gains in GymFC units: see firmware/pid.py."),
+              "pid": tuned["pid"], "mixer": tuned["mixer"],
+              "tuning": {k: summary[k] for k in ("airframe", "cost_version", "command", "seed", "episodes",
+                                                 "gyro_noise", "smoothness_cap", "stages", "tuning_set",
+                                                 "held_out", "time_s")}}
+    return preset, summary
+
+
+def tune_command(args: Any) -> int:
+    """`fcemu tune`: tune, write DIR/pid.json, report on stderr (and one JSON object on stdout)."""
+    if args.budget_s <= 0 or min(args.episodes, args.check_episodes, args.rounds) < 1 or args.jobs < 0:
+        raise UserError("tune: --budget-s must be > 0, --episodes, --check-episodes and --rounds ≥ 1, "
+                        "--jobs ≥ 0")
+    try:
+        load_airframe(args.airframe)
+    except (FileNotFoundError, ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise UserError(f"tune: cannot load airframe {args.airframe!r}: {exc}") from None
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as exc:
+        raise UserError(f"tune: --out {out} is not a writable directory: {exc.strerror or exc}") from None
+    jobs = args.jobs or available_cpus()
+    opts = TuneOptions(args.airframe, args.seed, args.episodes, args.check_episodes, args.budget_s, jobs,
+                       args.rounds)
+    preset, summary = tune(opts, log=lambda line: print(line, file=sys.stderr, flush=True))
+    path = out / "pid.json"
+    path.write_text(dumps(preset))
+    summary["preset"] = str(path)
+    (out / "tune.json").write_text(json.dumps(summary, indent=2) + "\n")
+    verdict = "meets every line" if summary["meets_lines"] else "fails: " + "; ".join(summary["fails"])
+    print(f"wrote {path} in {summary['time_s']['total']:.0f} s; held out: {verdict}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(summary))
+    return 0
