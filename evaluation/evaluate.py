@@ -16,6 +16,7 @@ from fcemu.evaluation.perturb import PerturbedAirframe, PerturbedResult, fly_per
 from fcemu.evaluation.report import ControllerResult, write_report
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.controllers import is_policy
+from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.env_config import own_ranges
 from fcemu.sim_bridge.randomization import RandomizationError, load_randomization
 from fcemu.sitl.traces import Traces, save_traces
@@ -59,6 +60,7 @@ def _airframes(args) -> tuple[list[PerturbedAirframe], str | None]:
     if not args.perturb:
         return [], None
     ranges = load_randomization(args.ranges or own_ranges(args.airframe))
+    ranges.check_airframe(load_airframe(args.airframe))  # the perturbed airframes are --airframe's
     return perturbed_airframes(ranges, args.perturb, args.perturb_seed), str(ranges.path)
 
 

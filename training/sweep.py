@@ -364,6 +364,15 @@ def stdout_to_stderr():
         os.close(saved)
 
 
+def saved_spec(raw: dict[str, Any], spec: SweepSpec) -> dict[str, Any]:
+    """A saved sweep's spec as this version writes it: one saved before --perturb existed has no
+    "perturb" (the same as not flying them), one saved before an option existed lacks it (the
+    same as its default, where this sweep leaves it there)."""
+    train = raw.get("train", {})
+    added = {k: v for k, v in spec.train.items() if k not in train and k in FIELDS and v == FIELDS[k].default}
+    return {"perturb": {}, **raw, "train": {**added, **train}}
+
+
 def sweep_command(args) -> int:
     from fcemu.training.cli import SWEEP_DEFAULTS, user_error
 
@@ -374,9 +383,8 @@ def sweep_command(args) -> int:
         return user_error(str(exc))
     saved = out / "sweep.json"
     stored = json.dumps(dataclasses.asdict(spec), sort_keys=True, default=list)
-    # A sweep saved before --perturb existed has no "perturb": the same as not flying them.
-    if saved.is_file() and json.dumps({"perturb": {}, **json.loads(saved.read_text())},
-                                      sort_keys=True) != stored:
+    if saved.is_file() and json.dumps(saved_spec(json.loads(saved.read_text()), spec),
+                                      sort_keys=True, default=list) != stored:
         return user_error(f"{out} holds a different sweep (its spec: {saved}); choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     saved.write_text(json.dumps(dataclasses.asdict(spec), indent=2, default=list) + "\n")

@@ -32,7 +32,7 @@ def perturb_from_args(args, cfg: TrainConfig) -> dict[str, Any]:
 
     ranges = cfg.randomize or own_ranges(cfg.airframe)
     load_randomization(ranges)  # RandomizationError is a ValueError
-    return {"airframes": n, "seed": seed, "episodes": episodes, "ranges": ranges, "airframe": cfg.airframe}
+    return {"airframes": n, "seed": seed, "episodes": episodes, "ranges": ranges}
 
 
 def fly_summary(controller: str, perturb: dict[str, Any], progress: bool = False) -> dict[str, Any]:
@@ -43,13 +43,11 @@ def fly_summary(controller: str, perturb: dict[str, Any], progress: bool = False
     from fcemu.evaluation.metrics import AXES
     from fcemu.evaluation.perturb import fly_perturbed, perturbed_airframes
     from fcemu.evaluation.runner import EvalConfig
-    from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
     from fcemu.sim_bridge.randomization import load_randomization
 
     ranges = load_randomization(perturb["ranges"])
     airframes = perturbed_airframes(ranges, perturb["airframes"], perturb["seed"])
-    cfg = EvalConfig(episodes=perturb["episodes"], seed=BAR_COMMAND_SEED,
-                     airframe=perturb.get("airframe", DEFAULT_AIRFRAME))
+    cfg = EvalConfig(episodes=perturb["episodes"], seed=BAR_COMMAND_SEED)  # flown on each drawn airframe
     with tqdm(total=len(airframes), desc=f"{controller} on perturbed airframes", unit="airframe",
               file=sys.stderr, disable=not (progress and sys.stderr.isatty())) as bar:
         m = fly_perturbed(controller, cfg, airframes, perturb["seed"], on_airframe=lambda _: bar.update(),

@@ -12,7 +12,7 @@ import pytest
 
 from fcemu.evaluation.metrics import AXES, METRIC_KEYS, compute_metrics
 from fcemu.evaluation.runner import EvalConfig, hover_state, run_controller, setpoint_schedules
-from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.sim_bridge.twin import Twin
 from fcemu.sitl.traces import load_traces
@@ -135,3 +135,28 @@ def test_the_trace_is_the_body_rate_not_the_noisy_delayed_gyro():
         replay.append(twin.clean_gyro())
     np.testing.assert_array_equal(traces.rate[0], np.array(replay))
     assert np.abs(traces.rate[0, -50:] - traces.setpoint[0, -50:]).mean() < 0.2  # and it flew the step
+
+
+def test_eval_flies_another_airframe_end_to_end():
+    out = fcemu("eval", "--airframe", "crazyflie", "--controller", "pid:iris", "--episodes", "2",
+                "--seed", "7", "--json")
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)  # one controller: its result
+    assert result["airframe"] == "crazyflie" and result["metrics"]["error"]
+
+
+def test_eval_flies_a_scaled_iris_file_and_perturbs_it_only_with_its_own_ranges(tmp_path):
+    raw = json.loads((AIRFRAME_DIR / "iris.json").read_text())
+    raw.update(name="iris_heavy", base_mass_kg=1.7)
+    path = tmp_path / "iris_heavy.json"
+    path.write_text(json.dumps(raw))
+    flown = fcemu("eval", "--airframe", str(path), "--controller", "pid:iris", "--episodes", "2", "--json")
+    assert flown.returncode == 0, flown.stderr
+    nominal = fcemu("eval", "--controller", "pid:iris", "--episodes", "2", "--json")
+    heavy, iris = (json.loads(p.stdout)["metrics"] for p in (flown, nominal))
+    assert heavy != iris
+    for ranges in ((), ("--ranges", "iris")):  # none of its own; the Iris's are another airframe's
+        refused = fcemu("eval", "--airframe", str(path), "--controller", "pid:iris", "--episodes", "1",
+                        "--perturb", "1", *ranges)
+        assert refused.returncode == 2 and refused.stderr.startswith("fcemu: error: ")
+        assert refused.stderr.count("\n") == 1 and "iris_heavy" in refused.stderr

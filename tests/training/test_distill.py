@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -21,6 +22,7 @@ from fcemu.firmware.observation import (
     ObservationSpec,
     observe_step,
 )
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR
 from fcemu.training.distill import (
     DistillConfig,
     DistillError,
@@ -136,3 +138,26 @@ def test_the_command_refuses_a_teacher_that_is_not_a_policy(tmp_path):
                            "--no-progress"], capture_output=True, text=True)
     assert proc.returncode == 2
     assert proc.stderr.startswith("fcemu: error: ") and proc.stderr.count("\n") == 1
+
+
+def test_a_teacher_made_for_another_airframe_is_refused_unless_chosen(tmp_path):
+    raw = json.loads((AIRFRAME_DIR / "iris.json").read_text())
+    raw.update(name="iris_heavy", base_mass_kg=1.7)
+    path = tmp_path / "iris_heavy.json"
+    path.write_text(json.dumps(raw))
+    teacher = Teacher(TEACHER)
+    assert teacher.airframe == "iris"
+    cfg = DistillConfig(teacher=str(TEACHER), airframe=str(path), randomize="none", threads=1)
+    with pytest.raises(DistillError, match="made for airframe 'iris', not 'iris_heavy'"):
+        student_train_config(cfg, teacher)
+    train_cfg, _ = student_train_config(dataclasses.replace(cfg, foreign_teacher=True), teacher)
+    assert train_cfg.env_config().base_airframe.name == "iris_heavy" and train_cfg.randomize is None
+    proc = subprocess.run([sys.executable, "-m", "fcemu", "distill", str(TEACHER), "--airframe", str(path),
+                           "--randomize", "none", "--out", str(tmp_path / "o"), "--no-progress"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "--foreign-teacher" in proc.stderr
+
+
+def test_the_student_flies_the_airframes_training_ranges_by_default():
+    train_cfg, _ = student_train_config(DistillConfig(teacher=str(TEACHER), threads=1), Teacher(TEACHER))
+    assert (train_cfg.randomize, train_cfg.randomize_share) == ("iris_esc2", 0.5)

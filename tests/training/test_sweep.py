@@ -74,6 +74,25 @@ def sweep(tmp_path_factory) -> tuple[Path, dict, str]:
     return out, json.loads(stdout), stderr  # stdout holds one JSON object and nothing else
 
 
+def test_a_sweep_saved_before_an_option_existed_is_the_same_sweep():
+    import dataclasses
+    import json
+
+    from fcemu.cli import build_parser
+    from fcemu.training.cli import SWEEP_DEFAULTS
+    from fcemu.training.sweep import saved_spec, spec_from_args
+
+    spec = spec_from_args(build_parser().parse_args(["sweep", "--hp", "gamma=0.98,0.99"]), SWEEP_DEFAULTS)
+    stored = json.dumps(dataclasses.asdict(spec), sort_keys=True, default=list)
+    old = json.loads(stored)
+    for added in ("episode_s", "omega_max", "hold_s", "rest_s"):  # options newer than the saved sweep
+        del old["train"][added]
+    del old["perturb"]
+    assert json.dumps(saved_spec(old, spec), sort_keys=True, default=list) == stored
+    old["train"]["omega_max"] = 3.0  # a sweep that set it is another sweep
+    assert json.dumps(saved_spec(old, spec), sort_keys=True, default=list) != stored
+
+
 def test_one_json_object_with_a_row_per_trial(sweep):
     out, payload, stderr = sweep
     assert payload["engine"] == "ray" and payload["steps"] == 2048
