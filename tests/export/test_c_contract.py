@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ctypes
 import shutil
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,10 @@ from fcemu.firmware.observation import (
 from fcemu.firmware.sensors import SensorFrame
 from tests.export.mcu_tools import require_codegen
 
-SPEC = ObservationSpec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL, RMS), integral_leak=0.99,
+TOP = 1100.0  # rad/s: the top rotor speed the tests' observations are scaled for
+Spec = partial(ObservationSpec, max_rotor_speed=TOP)
+
+SPEC = Spec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL, RMS), integral_leak=0.99,
                        rms_leak=0.95)
 F32P = ctypes.POINTER(ctypes.c_float)
 
@@ -117,7 +121,7 @@ def test_motor_output_field_feeds_back_the_last_pwm_as_the_onnx_policy_does(tmp_
     """`fcemu_policy_step` keeps the tick's PWM for the next observation; at a reset the rotors'
     steady-state command. Fed back through the network, any difference grows: 400 ticks agree."""
     require_codegen()
-    spec = ObservationSpec(memory=3, fields=(*FIELDS, MOTOR_OUTPUT))
+    spec = Spec(memory=3, fields=(*FIELDS, MOTOR_OUTPUT))
     _policy(tmp_path / "p.onnx", spec, mapping)
     export_c(tmp_path / "p.onnx", tmp_path / "c", parity_samples=200)
     ours, theirs = CPolicyController(tmp_path / "c"), NeuralRateController(tmp_path / "p.onnx")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import onnx
 import pytest
@@ -23,6 +25,9 @@ from fcemu.firmware.sensors import SensorFrame
 from fcemu.firmware.timing import LockstepClock
 from fcemu.sim_bridge.env import EnvConfig, RateTask
 from fcemu.sim_bridge.twin import Twin
+
+TOP = 1100.0  # rad/s: the top rotor speed the tests' observations are scaled for
+Spec = partial(ObservationSpec, max_rotor_speed=TOP)
 
 
 def linear_policy(path, weight: np.ndarray, bias: np.ndarray, meta: dict[str, str] | None,
@@ -50,7 +55,7 @@ def linear_policy(path, weight: np.ndarray, bias: np.ndarray, meta: dict[str, st
 
 def meta(memory: int = 1, mapping: str = "gymfc", rate: float = 1000.0,
          spec: ObservationSpec | None = None) -> dict[str, str]:
-    spec = spec or ObservationSpec(memory=memory)
+    spec = spec or Spec(memory=memory)
     return {"observation": spec.to_json(), "action_mapping": mapping,
             "loop_rate_hz": str(rate), "algorithm": "ppo", "training_steps": "0", "seed": "0"}
 
@@ -84,7 +89,7 @@ def test_throttle_mapping_uses_the_setpoint_collective(tmp_path, weight):
 
 
 def test_memory_keeps_the_last_steps_newest_first(tmp_path):
-    spec = ObservationSpec(memory=3)
+    spec = Spec(memory=3)
     weight = np.zeros((spec.size, 4))
     weight[7, 0] = 1.0  # action[0] = the previous step's roll error (scaled)
     ctl = NeuralRateController(linear_policy(tmp_path / "p.onnx", weight, np.zeros(4), meta(memory=3)))
@@ -96,7 +101,7 @@ def test_memory_keeps_the_last_steps_newest_first(tmp_path):
 
 
 def test_integral_field_integrates_the_error_across_ticks_and_restarts_on_reset(tmp_path):
-    spec = ObservationSpec(fields=("rate_error", "rotor_speed", "rate_error_integral"), integral_leak=0.9)
+    spec = Spec(fields=("rate_error", "rotor_speed", "rate_error_integral"), integral_leak=0.9)
     weight = np.zeros((spec.size, 4))
     weight[7, 0] = 1.0  # action[0] = the roll error's leaky integral
     ctl = NeuralRateController(linear_policy(tmp_path / "p.onnx", weight, np.zeros(4), meta(spec=spec)))
@@ -116,7 +121,7 @@ def test_integral_field_integrates_the_error_across_ticks_and_restarts_on_reset(
     ((7, 4), meta(mapping="rpm"), "action mapping"),
     ((7, 4), {**meta(), "observation": '{"memory": 1, "fields": ["attitude"], "version": 1}'},
      "observation spec"),
-    ((7, 4), {**meta(), "observation": ObservationSpec().to_json().replace('"version": 1', '"version": 9')},
+    ((7, 4), {**meta(), "observation": Spec().to_json().replace('"version": 1', '"version": 9')},
      "observation version"),
 ])
 def test_refuses_a_model_it_cannot_fly(tmp_path, shape, metadata, message):
@@ -174,8 +179,8 @@ def test_non_finite_sensor_input_is_not_fed_to_the_model(tmp_path, weight):
 
 
 @pytest.mark.parametrize("mapping", ["throttle", "gymfc"])
-@pytest.mark.parametrize("spec", [ObservationSpec(), ObservationSpec(memory=3),
-                                  ObservationSpec(fields=(*FIELDS, INTEGRAL), integral_leak=0.9)])
+@pytest.mark.parametrize("spec", [Spec(), Spec(memory=3),
+                                  Spec(fields=(*FIELDS, INTEGRAL), integral_leak=0.9)])
 def test_flight_feeds_the_model_bit_for_bit_what_training_builds(tmp_path, mapping, spec):
     """One vehicle goes through the batched environment's observation and action code."""
     weight = np.random.default_rng(1).uniform(-0.5, 0.5, (spec.size, 4))
@@ -199,7 +204,7 @@ def test_flight_feeds_the_model_bit_for_bit_what_training_builds(tmp_path, mappi
 def test_motor_output_in_flight_is_what_training_observes_after_the_same_outputs(tmp_path, mapping):
     """The controller's own previous PWM, as training's RateTask sees the PWM it applied; a
     reset starts again from the rotors' steady-state command."""
-    spec = ObservationSpec(memory=2, fields=(*FIELDS, MOTOR_OUTPUT))
+    spec = Spec(memory=2, fields=(*FIELDS, MOTOR_OUTPUT))
     weight = np.random.default_rng(2).uniform(-0.5, 0.5, (spec.size, 4))
     ctl = NeuralRateController(linear_policy(tmp_path / "p.onnx", weight, np.array([0.3, -0.1, 0.05, 0.2]),
                                              meta(mapping=mapping, spec=spec)))

@@ -1,3 +1,5 @@
+from functools import partial
+
 import numpy as np
 import onnx
 import pytest
@@ -14,29 +16,32 @@ from fcemu.firmware.observation import (
     observe_step,
 )
 
+TOP = 1100.0  # rad/s: the top rotor speed the tests' observations are scaled for
+Spec = partial(ObservationSpec, max_rotor_speed=TOP)
+
 
 def test_the_shipped_policys_spec_round_trips_exactly():
     props = {p.key: p.value for p in onnx.load(str(DEFAULT_POLICY), load_external_data=False).metadata_props}
     meta = props[META_PREFIX + "observation"]
     assert ObservationSpec.from_json(meta).to_json() == meta
-    assert "integral_leak" not in ObservationSpec().to_json()
-    assert "rms_leak" not in ObservationSpec().to_json()
+    assert "integral_leak" not in Spec().to_json()
+    assert "rms_leak" not in Spec().to_json()
 
 
 def test_integral_spec_round_trips_and_sizes():
-    spec = ObservationSpec(memory=2, fields=(*FIELDS, INTEGRAL), integral_leak=0.99)
+    spec = Spec(memory=2, fields=(*FIELDS, INTEGRAL), integral_leak=0.99)
     assert ObservationSpec.from_json(spec.to_json()) == spec
     assert spec.step_size == 10 and spec.size == 20
     assert spec.integrators == ((slice(7, 10), 0.99, False),)
     assert "rms_leak" not in spec.to_json()
     with pytest.raises(ValueError, match="integral_leak"):
-        ObservationSpec(fields=(*FIELDS, INTEGRAL), integral_leak=1.0)
+        Spec(fields=(*FIELDS, INTEGRAL), integral_leak=1.0)
     with pytest.raises(ValueError, match="repeated"):
-        ObservationSpec(fields=(*FIELDS, INTEGRAL, INTEGRAL))
+        Spec(fields=(*FIELDS, INTEGRAL, INTEGRAL))
 
 
 def test_batched_history_integrates_per_row_and_masked_reset_keeps_other_rows():
-    spec = ObservationSpec(fields=(INTEGRAL, "rate_error"), integral_leak=0.5)
+    spec = Spec(fields=(INTEGRAL, "rate_error"), integral_leak=0.5)
     hist = ObservationHistory(spec, (2,))
     rotor = np.zeros((2, 4))
 
@@ -57,7 +62,7 @@ def test_batched_history_integrates_per_row_and_masked_reset_keeps_other_rows():
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_step_is_the_scaled_sources_rounded_to_float32_in_the_inputs_precision(dtype):
-    spec = ObservationSpec(fields=(INTEGRAL, "rotor_speed", "rate_error"))
+    spec = Spec(fields=(INTEGRAL, "rotor_speed", "rate_error"))
     rng = np.random.default_rng(2)
     setpoint, gyro = rng.uniform(-9, 9, (2, 500, 3)).astype(dtype)
     rotor = rng.uniform(0, 1200, (500, 4)).astype(dtype)
@@ -71,7 +76,7 @@ def test_step_is_the_scaled_sources_rounded_to_float32_in_the_inputs_precision(d
 
 
 def test_history_keeps_the_newest_first_and_reset_fills_it():
-    spec = ObservationSpec(memory=3)
+    spec = Spec(memory=3)
     hist = ObservationHistory(spec, (1,))
     steps = [np.full((1, spec.step_size), k, dtype=np.float32) for k in range(4)]
     assert np.array_equal(hist.reset(steps[0]), np.zeros((1, spec.size)))
@@ -85,25 +90,25 @@ def test_history_keeps_the_newest_first_and_reset_fills_it():
 
 
 def test_the_field_table_flattens_to_one_source_column_and_scale_per_observation_column():
-    spec = ObservationSpec(fields=("rotor_speed", "rate_error", INTEGRAL))
+    spec = Spec(fields=("rotor_speed", "rate_error", INTEGRAL))
     assert spec.column_sources == (3, 4, 5, 6, 0, 1, 2, 0, 1, 2)
     assert spec.column_scales == (spec.rotor_speed_scale,) * 4 + (spec.rate_scale,) * 6
     assert spec.step_size == 10 and spec.integrators[0][0] == slice(7, 10)
 
 
 def test_rms_spec_round_trips_and_refuses_a_leak_out_of_range():
-    spec = ObservationSpec(memory=2, fields=(*FIELDS, INTEGRAL, RMS), integral_leak=0.99, rms_leak=0.9)
+    spec = Spec(memory=2, fields=(*FIELDS, INTEGRAL, RMS), integral_leak=0.99, rms_leak=0.9)
     assert ObservationSpec.from_json(spec.to_json()) == spec
     assert spec.step_size == 13 and spec.size == 26
     assert spec.integrators == ((slice(7, 10), 0.99, False), (slice(10, 13), 0.9, True))
-    assert "integral_leak" not in ObservationSpec(fields=(*FIELDS, RMS)).to_json()
+    assert "integral_leak" not in Spec(fields=(*FIELDS, RMS)).to_json()
     with pytest.raises(ValueError, match="rms_leak"):
-        ObservationSpec(fields=(*FIELDS, RMS), rms_leak=-0.1)
+        Spec(fields=(*FIELDS, RMS), rms_leak=-0.1)
 
 
 def test_rms_is_the_root_of_the_leaky_mean_square_and_sees_an_oscillation_the_integral_does_not():
     mu = 0.9
-    spec = ObservationSpec(fields=(RMS, INTEGRAL, "rate_error"), rms_leak=mu, integral_leak=mu)
+    spec = Spec(fields=(RMS, INTEGRAL, "rate_error"), rms_leak=mu, integral_leak=mu)
     hist = ObservationHistory(spec, (2,))
     rotor = np.zeros((2, 4))
 
@@ -127,8 +132,8 @@ def test_rms_is_the_root_of_the_leaky_mean_square_and_sees_an_oscillation_the_in
 
 
 def test_motor_output_is_the_previous_output_and_at_a_start_the_rotors_steady_state_command():
-    spec = ObservationSpec(fields=(*FIELDS, MOTOR_OUTPUT))
-    assert spec.step_size == 11 and spec.reads_motor_output and not ObservationSpec().reads_motor_output
+    spec = Spec(fields=(*FIELDS, MOTOR_OUTPUT))
+    assert spec.step_size == 11 and spec.reads_motor_output and not Spec().reads_motor_output
     assert ObservationSpec.from_json(spec.to_json()) == spec
     rng = np.random.default_rng(5)
     setpoint, gyro = rng.uniform(-9, 9, (2, 200, 3))
