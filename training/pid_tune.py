@@ -23,8 +23,10 @@ lower bound on the Error (`evaluation.bound`), and written as a preset that
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass, fields, replace
@@ -153,6 +155,17 @@ class TuneOptions:
     gyro_noise: float = GYRO_NOISE
 
 
+def bound_cache_path(rig: Any, commands: np.ndarray, horizon: int) -> Path:
+    """Where the bound of these commands on this rig is kept: it depends on nothing else (not on
+    the PID), and its programmes cost more than the search on a small machine."""
+    key = hashlib.sha256()
+    for value in (rig.B, rig.inertia, np.array([rig.kf, rig.w_max, rig.a_up, rig.a_down, rig.dt, horizon]),
+                  np.asarray(commands, dtype=float)):
+        key.update(np.ascontiguousarray(value, dtype=float).tobytes())
+    root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return root / "fcemu" / "bound" / f"{key.hexdigest()[:32]}.json"
+
+
 class Tuner:
     """One tune: the physics start, the bound on the held-out commands, two search stages, the check."""
 
@@ -190,18 +203,27 @@ class Tuner:
 
         t = time.monotonic()
         try:
-            rig_constants(self.airframe)
+            rig = rig_constants(self.airframe)
         except UserError as exc:
             return {"bound": None, "bound_refused": str(exc), "wall_s": 0.0}
-        n = len(self.held_out)
-        every = max(1, n // 5)
-        found = pool.bounds(self.held_out, lambda done: done % every == 0 and done < n and self.say(
-            "bound", f"{done}/{n} held-out commands"))
-        split = np.mean([b.split for b in found], axis=0)
-        total = float(np.mean([b.bound for b in found]))
-        self.say("bound", f"{total:.1f} on {len(found)} held-out commands (seed {self.opts.seed + 1})")
-        return {"bound": {"sum": round(total, 2), "horizon": HORIZON,
-                          "split_at_optimum": per_axis(split)},
+        cache = bound_cache_path(rig, self.held_out, HORIZON)
+        if cache.exists():
+            per_command = np.array(json.loads(cache.read_text()))
+            self.say("bound", f"read from {cache}")
+        else:
+            n = len(self.held_out)
+            every = max(1, n // 5)
+            found = pool.bounds(self.held_out, lambda done: done % every == 0 and done < n and self.say(
+                "bound", f"{done}/{n} held-out commands"))
+            per_command = np.array([[b.bound, *b.split] for b in found])
+            try:
+                cache.parent.mkdir(parents=True, exist_ok=True)
+                cache.write_text(json.dumps(per_command.tolist()))
+            except OSError:
+                pass  # a cache that cannot be written costs the next tune the programmes, nothing else
+        total, split = float(per_command[:, 0].mean()), per_command[:, 1:].mean(axis=0)
+        self.say("bound", f"{total:.1f} on {len(per_command)} held-out commands (seed {self.opts.seed + 1})")
+        return {"bound": {"sum": round(total, 2), "horizon": HORIZON, "split_at_optimum": per_axis(split)},
                 "wall_s": round(time.monotonic() - t, 1)}
 
     def search(self, pool: CandidatePool) -> tuple[dict[str, Any], dict[str, Any]]:

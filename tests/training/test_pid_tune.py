@@ -59,7 +59,8 @@ def test_cost_rewards_error_and_caps_motor_roughness_on_the_noisy_gyro():
     assert cost(never, ref, False) == float("inf")
 
 
-def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp_path, capsys):
+def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     out = tmp_path / "tune"
     code = main(["tune", "--airframe", "iris", "--out", str(out), "--episodes", "3", "--check-episodes", "1",
                  "--rounds", "1", "--budget-s", "300", "--jobs", "1", "--seed", "5", "--json"])
@@ -84,6 +85,7 @@ def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp
     preset = json.loads((out / "pid.json").read_text())
     assert preset["name"] == "pid_iris" and preset["tuning"]["cost_version"] == summary["cost_version"]
     assert json.loads((out / "tune.json").read_text())["held_out"] == held
+    assert len(list((tmp_path / "cache" / "fcemu" / "bound").glob("*.json"))) == 1
     traces = run_controller(f"pid:{out / 'pid.json'}", EvalConfig(episodes=1, seed=6), progress=False)
     flown = np.abs(traces.setpoint - traces.rate).sum(axis=1)[0]
     assert flown.sum() == pytest.approx(held["tuned"]["error_sum"], abs=0.006)  # the JSON rounds to 0.01
