@@ -27,6 +27,7 @@ import hashlib
 import json
 import math
 import os
+import signal
 import sys
 import time
 from dataclasses import dataclass, fields, replace
@@ -348,6 +349,10 @@ def tune(opts: TuneOptions, log: Any = None) -> tuple[dict[str, Any], dict[str, 
     return preset, summary
 
 
+def _exit_on_sigterm(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
 def tune_command(args: Any) -> int:
     """`fcemu tune`: tune, write DIR/pid.json, report on stderr (and one JSON object on stdout)."""
     if args.budget_s <= 0 or min(args.episodes, args.check_episodes, args.rounds) < 1 or args.jobs < 0:
@@ -368,7 +373,11 @@ def tune_command(args: Any) -> int:
     jobs = args.jobs or available_cpus()
     opts = TuneOptions(args.airframe, args.seed, args.episodes, args.check_episodes, args.budget_s, jobs,
                        args.rounds)
-    preset, summary = tune(opts, log=lambda line: print(line, file=sys.stderr, flush=True))
+    before = signal.signal(signal.SIGTERM, _exit_on_sigterm)  # so the workers are stopped with the tune
+    try:
+        preset, summary = tune(opts, log=lambda line: print(line, file=sys.stderr, flush=True))
+    finally:
+        signal.signal(signal.SIGTERM, before)
     path = out / "pid.json"
     path.write_text(dumps(preset))
     summary["preset"] = str(path)
