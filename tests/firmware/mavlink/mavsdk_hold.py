@@ -68,7 +68,7 @@ async def fly(url: str, hover: float, hold_s: float) -> dict:
         try:
             await offboard.set_attitude_rate(AttitudeRate(0.0, 0.0, 0.0, 0.0))
             await action.arm()
-            await climb(1.5)
+            await climb(0.7)  # some 3 m up once HOLD has braked it: a short LAND
             summary["mode_offboard"] = await mode("OFFBOARD")
             await action.hold()
             summary["mode_after_action_hold"] = await mode("HOLD")

@@ -1,10 +1,12 @@
-"""MAVSDK-Python (4.x, native core) flies examples/mavsdk_offboard_rates.py against the real SITL:
-connect, arm, offboard with attitude-rate setpoints, offboard.stop() (HOLD), LAND. The vehicle's
-rates must follow, as MAVSDK measures them and as the vehicle's own record (its .tlog) shows."""
+"""MAVSDK-Python (4.x, native core) flies examples/mavsdk_offboard_rates.py against the real SITL
+on the free rig: connect, arm, climb, offboard with attitude-rate setpoints, offboard.stop() (HOLD),
+LAND. The vehicle's rates must follow, as MAVSDK measures them and as the vehicle's own record (its
+.tlog) shows."""
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import statistics
 import subprocess
@@ -43,17 +45,20 @@ def rate_tracking_from_tlog(path: Path, settle_s: float = 0.3) -> dict[tuple, li
 
 
 def test_mavsdk_offboard_attitude_rates_are_followed(sitl, tmp_path) -> None:
+    """On the free rig (the example's default): it climbs before it steps, and follows."""
     offboard_port = free_udp_port()  # MAVSDK binds it; the GCS link is our observer
-    s = sitl(rig="rig", offboard=offboard_port)
+    s = sitl(rig="free", offboard=offboard_port)
     gcs = connect(s.gcs_port)
     summary_path = tmp_path / "mavsdk.json"
     script = subprocess.run(
         [sys.executable, str(EXAMPLE), "--connect", f"udpin://127.0.0.1:{offboard_port}",
          "--rate", str(RATE_DEG_S), "--hold", "1.0", "--summary", str(summary_path)],
         capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-    assert script.returncode == 0, script.stdout[-2000:] + script.stderr[-3000:]
+    assert script.returncode == 0, script.stdout[-2000:] + script.stderr[-3000:] + s.stop()[-2000:]
     summary = json.loads(summary_path.read_text())
     # what MAVSDK saw
+    assert summary["rig"] == "free" and summary["followed"], summary
+    assert summary["altitude_before_stop_m"] > 2.0, summary  # it flew the steps in the air
     assert summary["completed"] and summary["mode_during"] == "OFFBOARD", summary
     assert summary["mode_after_stop"] == "HOLD", summary
     assert summary["worst_error_deg_s"] < 6.0, summary
@@ -67,9 +72,11 @@ def test_mavsdk_offboard_attitude_rates_are_followed(sitl, tmp_path) -> None:
         if hb.get_srcSystem() == 1 and hb.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED:
             modes.add(mavutil.interpret_px4_mode(hb.base_mode, hb.custom_mode))
     assert {"OFFBOARD", "LOITER", "LAND"} <= modes, modes  # pymavlink names PX4's AUTO.LOITER "LOITER"
-    # what the vehicle recorded: each ±60 deg/s step, on each axis, was flown
+    # what the vehicle recorded: each ±60 deg/s step, on each axis, was flown (the setpoints that
+    # level the vehicle between axes are others)
     tracking = rate_tracking_from_tlog(s.tlog)
-    steps = [sp for sp in tracking if max(abs(v) for v in sp) > 0.5]
+    step = round(math.radians(RATE_DEG_S), 3)
+    steps = [sp for sp in tracking if sorted(map(abs, sp)) == [0.0, 0.0, step]]
     assert len(steps) == 6, sorted(tracking)
     for sp in steps:
         assert len(tracking[sp]) >= 10 and statistics.median(tracking[sp]) < 0.1, (sp, tracking[sp][:20])
