@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.mark.timeout(120)
 def test_bench_loop_with_mavlink_prints_one_object() -> None:
     out = subprocess.run([sys.executable, "-m", "fcemu.cli", "bench", "loop", "--controller", "pid",
-                          "--seconds", "3", "--mavlink", "--json"], cwd=ROOT, capture_output=True, text=True,
+                          "--seconds", "1", "--mavlink", "--json"], cwd=ROOT, capture_output=True, text=True,
                          timeout=110, env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert out.returncode == 0, out.stderr[-2000:]
     result = json.loads(out.stdout)

@@ -84,26 +84,27 @@ def fly(client: UdpTwinClient, seconds: float) -> int:
 
 @pytest.mark.parametrize("sockets", [1, 50])
 def test_a_reset_storm_does_not_starve_the_session_owner(served: tuple[str, int], sockets: int) -> None:
-    stormer = storm(served, 4.0, sockets)
+    stormer = storm(served, 2.5, sockets)
     with UdpTwinClient(*served, timeout=0.1, retries=20) as owner:
         owner.reset(seed=1)
-        baseline = fly(owner, 1.0)
+        baseline = fly(owner, 0.5)
         go(stormer)
         try:
-            under_storm = fly(owner, 3.0)  # a LinkTimeout here is the bug
+            under_storm = fly(owner, 2.0)  # a LinkTimeout here is the bug
         finally:
             stormer.wait(20)
         sent = int(stormer.stdout.read().strip())
         retries = owner.counters["retries"]
+    print(f"storm: {sent} resets sent; steps {baseline} in 0.5 s alone, {under_storm} in 2 s under the storm")
     assert sent > 20_000, "the stormer did not storm"
     # CPU is shared with the storm, so the rate may drop; what must not happen is the owner's
     # requests being lost behind the storm (each loss costs a 100 ms retry).
-    assert under_storm > 0.02 * baseline * 3 and retries <= 5 + 0.01 * under_storm, (baseline, under_storm,
+    assert under_storm > 0.02 * baseline * 4 and retries <= 5 + 0.01 * under_storm, (baseline, under_storm,
                                                                                       retries)
 
 
 def test_a_storm_started_first_cannot_hold_the_session(served: tuple[str, int]) -> None:
-    stormer = go(storm(served, 6.0))
+    stormer = go(storm(served, 6.0))  # longer than the late client may take; stopped once it flew
     try:
         time.sleep(0.5)  # the storm has the session now (today: for as long as it storms)
         with UdpTwinClient(*served, timeout=0.1, retries=20) as late:
@@ -118,7 +119,9 @@ def test_a_storm_started_first_cannot_hold_the_session(served: tuple[str, int]) 
             else:
                 pytest.fail(f"the session stayed with the stormer: {last}")
             assert fly(late, 1.0) > 50
+        assert stormer.poll() is None, "the storm ended before the late client flew"
     finally:
+        stormer.terminate()
         stormer.wait(20)
 
 
