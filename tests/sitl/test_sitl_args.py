@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from fcemu.cli import main
 from tests.firmware.mavlink.conftest import ROOT
 
 
@@ -46,14 +47,22 @@ REFUSED = {
 
 
 @pytest.mark.parametrize("argv, message", REFUSED.values(), ids=REFUSED.keys())
-def test_bad_argument_is_one_error_line_and_status_2(tmp_path, argv, message) -> None:
+def test_bad_argument_is_one_error_line_and_status_2(tmp_path, monkeypatch, capsys, argv, message) -> None:
+    """`fcemu`'s main in this process (what the console script exits with): the refusals start nothing."""
     (tmp_path / "empty.key").write_bytes(b"")
-    result = fcemu_sitl(tmp_path, *argv)
-    lines = result.stderr.splitlines()
-    assert result.returncode == 2, result.stderr[-2000:]
-    assert len(lines) == 1 and lines[0].startswith("fcemu: error:"), result.stderr[-2000:]
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "data"))
+    peers = [] if "--no-mavlink" in argv else ["--gcs", "127.0.0.1:9", "--offboard", "127.0.0.1:9"]
+    try:
+        status = main(["sitl", "--quiet", "--speed", "max", "--duration", "0.3", *peers, *argv])
+    except SystemExit as exc:  # argparse's refusals
+        status = exc.code
+    out, err = capsys.readouterr()
+    lines = err.splitlines()
+    assert status == 2, err[-2000:]
+    assert len(lines) == 1 and lines[0].startswith("fcemu: error:"), err[-2000:]
     assert message in lines[0]
-    assert "flying" not in result.stdout + result.stderr  # refused before the vehicle started
+    assert "flying" not in out + err  # refused before the vehicle started
 
 
 def test_good_key_signed_peer_and_new_tlog_folder_fly(tmp_path) -> None:
