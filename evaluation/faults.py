@@ -3,7 +3,9 @@
 A SPEC is `TARGET:KIND[:VALUE]` with an optional motor number anywhere after the target, e.g.
 `gyro:stuck`, `gyro:spikes`, `esc-telemetry:delayed:5ms`, `esc-telemetry:3:stuck`,
 `motor:2:thrust=0.7`, `battery:wrong=0.75` (sim_bridge/faults.py lists the kinds and their
-defaults). VALUE takes `ms`, `s`, `Hz` (a period) or `%`.
+defaults). VALUE takes `ms`, `s`, `Hz` (a period) or `%`. A burst's VALUE is `LENGTH@FRACTION`:
+`esc-telemetry:burst:20ms@1%` loses frames in bursts of 20 ms on average, 1 % of all frames in
+the long run (`burst:20ms` and `burst:1%`, one of the two, keep the other's default).
 
 After the fault, per controller: the Error (Σ|Ω* − Ω| per axis, summed over the axes and
 averaged over episodes) from the fault tick to the episode's end, beside the same window of the
@@ -47,25 +49,35 @@ def parse_value(text: str) -> float:
 def parse_fault(spec: str) -> Fault:
     """A --fault SPEC as a `Fault`; FaultSpecError (a ValueError) says what is wrong with it."""
     parts = spec.split(":")
-    target, instance, kind, value = parts[0], 0, None, None
+    target, instance, kind, raw = parts[0], 0, None, None
     try:
         for part in parts[1:]:
             if part.isdigit() and not instance:
                 instance = int(part)
             elif "=" in part and kind is None:
                 kind, _, raw = part.partition("=")
-                value = parse_value(raw)
             elif kind is None and part:
                 kind = part
-            elif value is None and part:
-                value = parse_value(part)
+            elif raw is None and part:
+                raw = part
             else:
                 raise FaultSpecError(f"unexpected {part!r}")
         if kind is None:
             raise FaultSpecError("no fault kind: use TARGET:KIND[:VALUE], e.g. gyro:stuck")
-        return Fault(target, kind, instance, value)
+        if kind == "burst" and raw is not None:
+            return Fault(target, kind, instance, *_burst_values(raw))
+        return Fault(target, kind, instance, None if raw is None else parse_value(raw))
     except FaultSpecError as exc:
         raise FaultSpecError(f"--fault {spec!r}: {exc}") from None
+
+
+def _burst_values(raw: str) -> tuple[float | None, float | None]:
+    """`LENGTH@FRACTION`, `LENGTH` (with a time unit) or `FRACTION` as (fraction, length in s)."""
+    length, at, fraction = raw.partition("@")
+    if not at:
+        timed = raw.strip().lower().endswith(("ms", "s", "hz"))
+        length, fraction = (raw, "") if timed else ("", raw)
+    return (parse_value(fraction) if fraction else None, parse_value(length) if length else None)
 
 
 def fault_ticks(seed: int, episodes: int, ticks: int, warmup: int) -> np.ndarray:

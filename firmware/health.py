@@ -12,18 +12,33 @@ firmware's answers"):
   at `gyro_fail_score` the gyro has FAILED.
 - Gyro stuck: all three axes bit-identical for `gyro_stuck_ticks` ticks in which the motor
   outputs were asking for a torque (their spread above `torque_spread_us`): FAILED.
+- Gyro stale: the sample older than `gyro_max_age_s` (NN_GYRO_MAX_AGE, 10 ms: PX4's
+  mc_nn_control refuses older gyro data): FAILED. A repeated sample with its old time is a lost
+  frame, not a stuck gyro: only samples with a new time count toward "stuck".
 - Gyro FAILED (latched until the next arming): the controller reads zero rates from then on
   (it flies on its setpoint alone), the policy hands over to the PID, and `failsafe` asks the
   vehicle for LAND; said once.
-- Rotor speed absent (any non-finite ESC reading): the policy's input is incomplete, it hands
-  over to the PID at once (1 tick). Rotor speed stale: a motor's reading bit-identical for
-  `rotor_stale_ticks` ticks while its PWM moved more than `stale_pwm_us` from where it was when
-  the reading last changed. Rotor speed implausible: a reading farther than `rotor_tolerance`
-  × the top speed from a first-order model of the commanded speed, scored as the gyro's, at
-  `rotor_fail_score`. Each hands the policy over to the PID (latched until the next arming) and
-  is said once; the PID does not read rotor speed, so the vehicle flies on. While the PID
-  flies (`policy_flying` False, set by the loop each tick) there is nothing to hand over and
-  nothing is said about rotor speed.
+- Rotor speed judged by age and loss rate, not by single frames: a lost frame (a non-finite
+  reading, or one whose sample time did not advance) is held, the last sample standing in for it
+  (as a spiking gyro sample is replaced). The policy hands over when a motor's telemetry is older
+  than `esc_max_age_s` (NN_ESC_MAX_AGE), or when the fraction of its frames lost, averaged over
+  `esc_loss_window_s` (NN_ESC_LOSS_WIN), passes `esc_loss_max` (NN_ESC_LOSS_MAX).
+- Rotor speed lagging: the delay d that best fits a motor's telemetry w to a first-order model m
+  of the commanded speed (the airframe's spin-up and spin-down time constants), linearised so it
+  costs a few µs a tick: w ≈ (1 − k)·m(t − d) ≈ m − k·m − d·ṁ (ṁ the model's slope over
+  `esc_lag_base_s`), d and a gain error k fitted by least squares over the last
+  `esc_lag_window_s`. It is judged only while the model moves (ṁ's RMS above `esc_lag_motion` ×
+  the top speed per tick) and the gain alone leaves a misfit (RMS above `esc_lag_misfit` × the
+  top speed) of which the delay explains at least `esc_lag_explains` (a rotor that cannot follow
+  its command, e.g. on a sagging battery, is not late); d beyond `esc_max_lag_s`
+  (NN_ESC_MAX_LAG) for `esc_lag_ticks` ticks in a row hands over.
+- Rotor speed stale: a motor's new samples bit-identical for `rotor_stale_ticks` ticks while its
+  PWM moved more than `stale_pwm_us` from where it was when the reading last changed. Rotor speed
+  implausible: a new sample farther than `rotor_tolerance` × the top speed from the model, scored
+  as the gyro's, at `rotor_fail_score`. Each rotor-speed verdict hands the policy over to the PID
+  (latched until the next arming) and is said once; the PID does not read rotor speed, so the
+  vehicle flies on. While the PID flies (`policy_flying` False, set by the loop each tick) there
+  is nothing to hand over and nothing is said about rotor speed.
 """
 
 from __future__ import annotations
@@ -45,7 +60,9 @@ class HealthRules:
     """The thresholds; the motors' (top speed, PWM range, speed model) come from `for_airframe`."""
 
     rotor_speed_max: float = field(kw_only=True)  # rad/s at pwm_max
-    motor_tau_s: float = field(kw_only=True)  # the speed model's time constant
+    motor_tau_s: float = field(kw_only=True)  # the speed model's time constant (both directions)
+    motor_tau_up_s: float | None = field(default=None, kw_only=True)  # spinning up; None: motor_tau_s
+    motor_tau_down_s: float | None = field(default=None, kw_only=True)  # spinning down; None: motor_tau_s
     pwm_min: float = field(kw_only=True)
     pwm_max: float = field(kw_only=True)
     gyro_range: float = math.radians(2000.0)  # rad/s
@@ -58,6 +75,27 @@ class HealthRules:
     rotor_fail_score: float = 10.0
     rotor_stale_ticks: int = 20
     stale_pwm_us: float = 5.0
+    # NN_GYRO_MAX_AGE: PX4's mc_nn_control refuses a gyro sample older than 10 ms; a rate loop on
+    # older feedback rings (a 5 ms delay already costs the PID 8× its Error, docs/results/faults.md).
+    gyro_max_age_s: float = 0.010
+    # NN_ESC_MAX_AGE: about one motor time constant (the Iris's spin-up 12.5 ms, spin-down 25 ms):
+    # a held reading older than that says little of the rotor now.
+    esc_max_age_s: float = 0.020
+    # NN_ESC_LOSS_MAX over NN_ESC_LOSS_WIN: bidirectional DShot loses a fraction of a percent to a
+    # few percent of frames in normal flight; a fifth of them lost over 100 ms is a failing link.
+    esc_loss_max: float = 0.2
+    esc_loss_window_s: float = 0.1
+    # NN_ESC_MAX_LAG: telemetry that fits the commanded speed best more than 3 ms late is late
+    # beyond the ESC's own pipeline (1-2 ticks on a real board, iris_realistic.json); fitted over
+    # the last 50 ms, held 10 ticks, and only while the model moves more than `esc_lag_motion` ×
+    # the top speed (RMS per tick): a still rotor tells no lag.
+    esc_max_lag_s: float = 0.003
+    esc_lag_window_s: float = 0.05
+    esc_lag_ticks: int = 10
+    esc_lag_motion: float = 0.002
+    esc_lag_base_s: float = 0.006
+    esc_lag_misfit: float = 0.005
+    esc_lag_explains: float = 0.4
 
     @classmethod
     def for_airframe(cls, airframe: AirframeSpec, **thresholds: float) -> HealthRules:
@@ -65,7 +103,8 @@ class HealthRules:
         motors' spin-up and spin-down time constants; `thresholds` replace the defaults above."""
         return cls(rotor_speed_max=airframe.max_rotor_speed, pwm_min=airframe.pwm_min,
                    pwm_max=airframe.pwm_max, **thresholds,
-                   motor_tau_s=0.5 * (airframe.motor_tau_up + airframe.motor_tau_down))
+                   motor_tau_s=0.5 * (airframe.motor_tau_up + airframe.motor_tau_down),
+                   motor_tau_up_s=airframe.motor_tau_up, motor_tau_down_s=airframe.motor_tau_down)
 
 
 class HealthMonitor:
@@ -73,8 +112,18 @@ class HealthMonitor:
 
     def __init__(self, rules: HealthRules, dt: float = 0.001) -> None:
         self.rules = r = rules
-        self._keep_per_us = math.exp(-1e-6 / r.motor_tau_s)  # the model's decay per µs of sensor time
+        # the model's decay per µs of sensor time, spinning up and down
+        self._keep_up = math.exp(-1e-6 / (r.motor_tau_up_s or r.motor_tau_s))
+        self._keep_down = math.exp(-1e-6 / (r.motor_tau_down_s or r.motor_tau_s))
         self._dt_us = round(dt * 1e6)
+        self._gyro_max_age_us = r.gyro_max_age_s * 1e6
+        self._esc_max_age_us = r.esc_max_age_s * 1e6
+        self._loss_gain = 1.0 - math.exp(-dt / r.esc_loss_window_s)
+        self._lag_keep = math.exp(-dt / r.esc_lag_window_s)
+        self._lag_limit = r.esc_max_lag_s / dt  # in ticks, the fit's unit
+        self._lag_motion = (r.esc_lag_motion * r.rotor_speed_max) ** 2 / (1.0 - self._lag_keep)
+        self._lag_misfit = (r.esc_lag_misfit * r.rotor_speed_max) ** 2 / (1.0 - self._lag_keep)
+        self._lag_base = max(1, round(r.esc_lag_base_s / dt))
         self._speed_per_us = r.rotor_speed_max / (r.pwm_max - r.pwm_min)
         self._tolerance = r.rotor_tolerance * r.rotor_speed_max
         self.outbox: list[tuple[int, str]] = []
@@ -100,6 +149,16 @@ class HealthMonitor:
         self._pwm_at_change = [math.nan] * 4  # each motor's PWM when its reading last changed
         self._stale = [0] * 4
         self._rotor_score = [0.0] * 4
+        self._gyro_t: int | None = None
+        self._sample_t: list[int] = [0] * 4  # each motor's newest sample time
+        self._held_speed: list[float] | None = None
+        self._loss = [0.0] * 4
+        # per motor, decaying sums of ṁ², ṁ·m, m², (m − w)·ṁ, (m − w)·m, (m − w)²: the lag fit's
+        # normal equations and its misfit
+        self._lag_sums = [[0.0] * 6 for _ in range(4)]
+        self._model_past: list[list[float]] = []  # per motor, the model's last `_lag_base` speeds
+        self._past_at = 0
+        self._lag_over = [0] * 4
 
     # ---- verdicts ----
     def _declare(self, what: str, severity: int, text: str) -> None:
@@ -124,14 +183,25 @@ class HealthMonitor:
         """The frame to fly on, given this tick's `frame` and the PWM written the tick before."""
         self.ticks += 1
         p = pwm.tolist()
-        gyro = self._check_gyro(frame.gyro.tolist(), p)
-        self._check_rotors(frame.rotor_speed.tolist(), p, frame.t_us)
-        return frame if gyro is None else frame._replace(gyro=gyro)
+        gyro = self._check_gyro(frame.gyro.tolist(), p, frame.t_us, frame.gyro_t_us)
+        held = self._check_rotors(frame, p)
+        if gyro is None and held is None:
+            return frame
+        return frame._replace(gyro=frame.gyro if gyro is None else gyro,
+                              rotor_speed=frame.rotor_speed if held is None else held)
 
-    def _check_gyro(self, g: list[float], p: list[float]) -> np.ndarray | None:
+    def _check_gyro(self, g: list[float], p: list[float], t_us: int,
+                    sampled: int | None) -> np.ndarray | None:
         r = self.rules
         if self.gyro_failed:
             return _ZERO3
+        fresh = True  # a sample with a new time (a frame without times: every sample is)
+        if sampled is not None:
+            if t_us - sampled > self._gyro_max_age_us:
+                self._fail_gyro("stale")
+                return _ZERO3
+            fresh = self._gyro_t is None or sampled > self._gyro_t
+            self._gyro_t = sampled
         last = self._last_good
         g0, g1, g2 = g
         top, jump = r.gyro_range, r.gyro_jump
@@ -148,7 +218,7 @@ class HealthMonitor:
             return self._held
         self._gyro_score = max(0.0, self._gyro_score - r.recovery)
         if g == last:
-            if max(p) - min(p) > r.torque_spread_us:
+            if fresh and max(p) - min(p) > r.torque_spread_us:
                 self._stuck += 1
                 if self._stuck >= r.gyro_stuck_ticks:
                     self._fail_gyro("stuck")
@@ -159,41 +229,107 @@ class HealthMonitor:
         self._held = None
         return None
 
-    def _check_rotors(self, w: list[float], p: list[float], t_us: int) -> None:
+    def _check_rotors(self, frame: SensorFrame, p: list[float]) -> np.ndarray | None:
+        """Judges each motor's telemetry; returns the rotor speeds to fly on where a frame was lost."""
         r = self.rules
+        w = frame.rotor_speed.tolist()
+        t_us = frame.t_us
+        sampled = [t_us] * 4 if frame.rotor_speed_t_us is None else frame.rotor_speed_t_us.tolist()
         expected = self._expected
         if expected is None:
             expected = self._expected = [v if math.isfinite(v) else 0.0 for v in w]
+            self._held_speed = list(expected)
+            self._sample_t = [t - 1 for t in sampled]  # the first frame's samples are new
+            self._model_past = [[e] * self._lag_base for e in expected]
         # The model advances by the frames' own clock: ticks the loop skipped moved the rotors too.
         first = self._t_us is None
         elapsed = self._dt_us if first else min(max(t_us - self._t_us, 0), 100_000)
         self._t_us = t_us
-        alpha = 1.0 - self._keep_per_us ** elapsed
+        up, down = 1.0 - self._keep_up ** elapsed, 1.0 - self._keep_down ** elapsed
         per_us, lo = self._speed_per_us, r.pwm_min
         hi_speed = r.rotor_speed_max
+        held_speed, sample_t, loss, gain = self._held_speed, self._sample_t, self._loss, self._loss_gain
+        judging = self.policy_flying and self.policy_trusted
+        replaced = None
+        at, base = self._past_at, self._lag_base
+        self._past_at = (at + 1) % base
         for i in range(4):
             v, pi = w[i], p[i]
             command = min(max((pi - lo) * per_us, 0.0), hi_speed)
-            expected[i] += alpha * (command - expected[i])
-            if not math.isfinite(v):
-                self._hand_over(f"rotor speed {i + 1} absent")
-                continue
-            if v == self._prev_speed[i]:
-                if self._pwm_at_change[i] != self._pwm_at_change[i]:  # NaN: no reference yet
-                    self._pwm_at_change[i] = pi
-                elif abs(pi - self._pwm_at_change[i]) > r.stale_pwm_us:
-                    self._stale[i] += 1
-                    if self._stale[i] >= r.rotor_stale_ticks:
-                        self._hand_over(f"rotor speed {i + 1} stale")
+            gap = command - expected[i]
+            expected[i] += (up if gap > 0.0 else down) * gap
+            past = self._model_past[i]
+            slope = (expected[i] - past[at]) / base
+            past[at] = expected[i]
+            new = v == v and sampled[i] > sample_t[i]  # v == v: not NaN
+            if new:
+                sample_t[i] = sampled[i]
+                held_speed[i] = v
+                loss[i] -= gain * loss[i]
             else:
-                self._stale[i] = 0
-                # The first frame after arming was read under the PWM written before it (disarmed),
-                # whatever the rotors were doing: its reading is judged from the first armed PWM.
-                self._pwm_at_change[i] = math.nan if first else pi
-                self._prev_speed[i] = v
-            if abs(v - expected[i]) > self._tolerance:
-                self._rotor_score[i] += 1.0
-                if self._rotor_score[i] >= r.rotor_fail_score:
-                    self._hand_over(f"rotor speed {i + 1} implausible")
-            elif self._rotor_score[i]:
-                self._rotor_score[i] = max(0.0, self._rotor_score[i] - r.recovery)
+                loss[i] += gain * (1.0 - loss[i])
+                if not math.isfinite(v):
+                    if replaced is None:
+                        replaced = list(w)
+                    replaced[i] = held_speed[i]
+            if not judging:
+                continue
+            if t_us - sample_t[i] > self._esc_max_age_us:
+                self._hand_over(f"rotor speed {i + 1} too old")
+            if loss[i] > r.esc_loss_max:
+                self._hand_over(f"rotor speed {i + 1} losing frames")
+            if new:
+                self._judge_sample(i, v, pi, first)
+                if not first:
+                    self._judge_lag(i, v, expected[i], slope)
+        return None if replaced is None else np.array(replaced)
+
+    def _judge_sample(self, i: int, v: float, pi: float, first: bool) -> None:
+        """The stale and implausible rules on motor `i`'s new sample `v` under PWM `pi`."""
+        r = self.rules
+        if v == self._prev_speed[i]:
+            if self._pwm_at_change[i] != self._pwm_at_change[i]:  # NaN: no reference yet
+                self._pwm_at_change[i] = pi
+            elif abs(pi - self._pwm_at_change[i]) > r.stale_pwm_us:
+                self._stale[i] += 1
+                if self._stale[i] >= r.rotor_stale_ticks:
+                    self._hand_over(f"rotor speed {i + 1} stale")
+        else:
+            self._stale[i] = 0
+            # The first frame after arming was read under the PWM written before it (disarmed),
+            # whatever the rotors were doing: its reading is judged from the first armed PWM.
+            self._pwm_at_change[i] = math.nan if first else pi
+            self._prev_speed[i] = v
+        assert self._expected is not None
+        if abs(v - self._expected[i]) > self._tolerance:
+            self._rotor_score[i] += 1.0
+            if self._rotor_score[i] >= r.rotor_fail_score:
+                self._hand_over(f"rotor speed {i + 1} implausible")
+        elif self._rotor_score[i]:
+            self._rotor_score[i] = max(0.0, self._rotor_score[i] - r.recovery)
+
+    def _judge_lag(self, i: int, v: float, m: float, dm: float) -> None:
+        """Motor `i`'s lag fit, given its new sample `v`, the model's speed `m` and its change `dm`."""
+        keep, sums = self._lag_keep, self._lag_sums[i]
+        miss = m - v
+        sums[0] = sums[0] * keep + dm * dm
+        sums[1] = sums[1] * keep + dm * m
+        sums[2] = sums[2] * keep + m * m
+        sums[3] = sums[3] * keep + miss * dm
+        sums[4] = sums[4] * keep + miss * m
+        sums[5] = sums[5] * keep + miss * miss
+        det = sums[0] * sums[2] - sums[1] * sums[1]
+        late = False
+        if sums[0] > self._lag_motion and det > 0.0:
+            lag = (sums[3] * sums[2] - sums[1] * sums[4]) / det
+            gain_error = (sums[0] * sums[4] - sums[1] * sums[3]) / det
+            left_by_gain = sums[5] - sums[4] * sums[4] / sums[2]
+            left = sums[5] - lag * sums[3] - gain_error * sums[4]
+            late = (lag > self._lag_limit and left_by_gain > self._lag_misfit
+                    and left_by_gain - left > self.rules.esc_lag_explains * left_by_gain)
+        if late:
+            self._lag_over[i] += 1
+            if self._lag_over[i] >= self.rules.esc_lag_ticks:
+                self._hand_over(f"rotor speed {i + 1} lagging")
+        else:
+            self._lag_over[i] = 0

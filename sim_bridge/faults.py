@@ -9,12 +9,19 @@ A `Fault` names its target, its kind and the kind's parameter:
   of `value` rad/s on each axis, default 0.5; ESC telemetry: `value` × the speed, default 0.8),
   `slow` (a new sample every `value` s, default 0.01, held between), `delayed` (by `value` s,
   default 0.005), `intermittent` (each sample missing with probability `value`, default 0.2),
-  `spikes` (each sample replaced by garbage with probability `value`, default 0.01);
+  `burst` (samples missing in bursts: a Gilbert–Elliott channel whose bursts last `burst_s` on
+  average, default 0.02, losing `value` of all samples in the long run, default 0.01), `spikes`
+  (each sample replaced by garbage with probability `value`, default 0.01);
 - motor (actuation): `off` (the ESC stops driving the motor: its speed command is zero, so the
   rotor spins down and its telemetry says so) and `thrust` (the rotor makes `value` × its thrust,
   default 0.7: a damaged propeller, which the ESC telemetry cannot see);
 - battery: `wrong` (the pack gives `value` × its voltage, default 0.75: one cell of four lost;
   the ESCs' speed command scales with it) and `off` (no voltage: every motor stops).
+
+Every sample carries the time it was taken, as a real bus delivers it: a missing one
+(`intermittent`, `burst`, between `slow`'s samples) leaves the last sample with its old time, a
+`delayed` one arrives late with its true time, `off` delivers NaN with the last sample's time;
+`stuck`, `garbage`, `wrong` and `spikes` arrive on time (the sensor itself is wrong).
 
 `instance` picks a motor (1..4, Betaflight order) for esc-telemetry and motor; 0 means all.
 MAVLink's MAV_CMD_INJECT_FAILURE maps onto these in `from_mavlink` (documented there).
@@ -30,7 +37,7 @@ import numpy as np
 
 GYRO_RANGE = math.radians(2000.0)  # rad/s: a MEMS gyro's full scale
 ROTOR_SPEED_RANGE = 1.2  # × the airframe's top rotor speed: what garbage telemetry may read
-SENSOR_KINDS = ("off", "stuck", "garbage", "wrong", "slow", "delayed", "intermittent", "spikes")
+SENSOR_KINDS = ("off", "stuck", "garbage", "wrong", "slow", "delayed", "intermittent", "burst", "spikes")
 KINDS: dict[str, tuple[str, ...]] = {
     "gyro": SENSOR_KINDS,
     "esc-telemetry": SENSOR_KINDS,
@@ -38,7 +45,8 @@ KINDS: dict[str, tuple[str, ...]] = {
     "battery": ("off", "wrong"),
 }
 _DEFAULTS = {("gyro", "wrong"): 0.5, ("esc-telemetry", "wrong"): 0.8, "slow": 0.01, "delayed": 0.005,
-             "intermittent": 0.2, "spikes": 0.01, "thrust": 0.7, ("battery", "wrong"): 0.75}
+             "intermittent": 0.2, "burst": 0.01, "spikes": 0.01, "thrust": 0.7, ("battery", "wrong"): 0.75}
+BURST_S = 0.02  # a burst's mean length when none is given
 _UNITS = {"slow": "s", "delayed": "s", ("gyro", "wrong"): "rad/s"}
 
 # MAVLink FAILURE_UNIT and FAILURE_TYPE values (common.xml).
@@ -56,6 +64,7 @@ class Fault:
     kind: str
     instance: int = 0  # 0: all; 1..4: motor (esc-telemetry, motor)
     value: float | None = None  # the kind's parameter; None: its default
+    burst_s: float | None = None  # burst: the bursts' mean length in s; None: BURST_S
 
     def __post_init__(self) -> None:
         kinds = KINDS.get(self.target)
@@ -68,6 +77,13 @@ class Fault:
         v = self.value
         if v is not None and not math.isfinite(v):
             raise FaultSpecError(f"{self.describe()}: the value must be finite")
+        if self.burst_s is not None and self.kind != "burst":
+            raise FaultSpecError(f"{self.describe()}: only a burst has a length")
+        b = self.burst_s
+        if b is not None and not (math.isfinite(b) and 0.0 < b <= 1.0):
+            raise FaultSpecError(f"{self.target} burst: a mean length of {b:g} s outside (0, 1] s")
+        if v is not None and self.kind == "burst" and not 0.0 <= v < 1.0:
+            raise FaultSpecError(f"{self.describe()}: {v:g} is not a fraction in [0, 1)")
         if v is not None and self.kind in ("intermittent", "spikes", "thrust") and not 0.0 <= v <= 1.0:
             raise FaultSpecError(f"{self.describe()}: {v:g} is not a fraction in [0, 1]")
         if v is not None and self.kind in ("slow", "delayed") and not 0.0 <= v <= 1.0:
@@ -81,9 +97,15 @@ class Fault:
             return self.value
         return float(_DEFAULTS.get((self.target, self.kind), _DEFAULTS.get(self.kind, 0.0)))
 
+    @property
+    def burst_length(self) -> float:
+        return BURST_S if self.burst_s is None else self.burst_s
+
     def describe(self) -> str:
         """For a STATUSTEXT and a table: 'motor 2 thrust 0.7', 'esc-telemetry delayed 0.005 s'."""
         who = self.target if not self.instance else f"{self.target} {self.instance}"
+        if self.kind == "burst":
+            return f"{who} burst {self.burst_length:g} s @ {self.parameter:g}"
         if (self.target, self.kind) not in _DEFAULTS and self.kind not in _DEFAULTS:
             return f"{who} {self.kind}"
         unit = _UNITS.get((self.target, self.kind), _UNITS.get(self.kind, ""))
@@ -120,46 +142,64 @@ def from_mavlink(unit: int, failure_type: int, instance: int) -> list[Fault] | s
 
 
 class _SensorFault:
-    """One fault on some columns of a reading, with its state (held value, delay line, clock)."""
+    """One fault on some columns of a reading and their sample times, with its state (held sample,
+    delay line, burst state, clock)."""
 
     def __init__(self, fault: Fault, columns: list[int], span: tuple[float, float], dt: float) -> None:
         self.fault, self.kind, self.columns, self.span = fault, fault.kind, columns, span
         self.p = fault.parameter
         self.every = max(1, round(self.p / dt)) if fault.kind == "slow" else 1
         self.delay = max(0, round(self.p / dt)) if fault.kind == "delayed" else 0
-        self.held: list[float] | None = None
-        self.line: deque[list[float]] = deque()
+        # Gilbert–Elliott: a burst ends with probability `leave` a sample, one starts with `enter`,
+        # so a burst lasts burst_s on average and the channel loses p of all samples in the long run.
+        self.leave = min(1.0, dt / fault.burst_length)
+        self.enter = self.leave * self.p / (1.0 - self.p) if fault.kind == "burst" else 0.0
+        self.in_burst = False
+        self.held: tuple[list[float], list[int]] | None = None  # a sample and its times
+        self.line: deque[tuple[list[float], list[int]]] = deque()
         self.n = 0
 
-    def apply(self, values: list[float], rng: np.random.Generator) -> None:
+    def apply(self, values: list[float], times: list[int], rng: np.random.Generator) -> None:
         cols, kind = self.columns, self.kind
         mine = [values[c] for c in cols]
+        now = [times[c] for c in cols]
+        out, out_t = mine, now
+        held = self.held
         if kind == "off":
-            out = [math.nan] * len(cols)
+            if held is None:
+                held = self.held = (mine, now)
+            out, out_t = [math.nan] * len(cols), held[1]
         elif kind == "stuck":
-            if self.held is None:
-                self.held = mine
-            out = self.held
+            if held is None:
+                held = self.held = (mine, now)
+            out = held[0]
         elif kind == "garbage" or (kind == "spikes" and rng.random() < self.p):
             out = rng.uniform(*self.span, len(cols)).tolist()
         elif kind == "wrong":
             out = [v + self.p for v in mine] if self.fault.target == "gyro" else [v * self.p for v in mine]
         elif kind == "slow":
-            if self.n % self.every == 0:
-                self.held = mine
-            out = self.held or mine
+            if self.n % self.every == 0 or held is None:
+                held = self.held = (mine, now)
+            out, out_t = held
         elif kind == "delayed":
             if not self.line:
-                self.line.extend([mine] * self.delay)
-            self.line.append(mine)
-            out = self.line.popleft()
-        elif kind == "intermittent" and rng.random() < self.p:
-            out = [math.nan] * len(cols)
-        else:
-            out = mine
+                self.line.extend([(mine, now)] * self.delay)
+            self.line.append((mine, now))
+            out, out_t = self.line.popleft()
+        elif kind in ("intermittent", "burst"):
+            if kind == "burst":
+                self.in_burst = rng.random() >= self.leave if self.in_burst else rng.random() < self.enter
+                lost = self.in_burst
+            else:
+                lost = rng.random() < self.p
+            if lost and held is not None:
+                out, out_t = held
+            else:
+                self.held = (mine, now)
         self.n += 1
-        for c, v in zip(cols, out, strict=True):
+        for c, v, t in zip(cols, out, out_t, strict=True):
             values[c] = v
+            times[c] = t
 
 
 class FaultInjector:
@@ -229,13 +269,17 @@ class FaultInjector:
         return thrust if scale is None else [t * s for t, s in zip(thrust, scale, strict=True)]
 
     # ---- sensing: what the gyro and the ESC telemetry report ----
-    def read(self, gyro: np.ndarray, rotor_speed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def read(self, gyro: np.ndarray, rotor_speed: np.ndarray, t_us: int
+             ) -> tuple[np.ndarray, np.ndarray, int | None, np.ndarray | None]:
+        """What the sensors report at `t_us`: (gyro, rotor speed, the gyro's sample time, each
+        motor's); the times are None while no sensing fault is active (sampled at `t_us`)."""
         if not self._sensing:
-            return gyro, rotor_speed
+            return gyro, rotor_speed, None, None
         values = gyro.tolist() + rotor_speed.tolist()
+        times = [t_us] * 7
         for s in self._sensing:
-            s.apply(values, self.rng)
-        return np.array(values[:3]), np.array(values[3:])
+            s.apply(values, times, self.rng)
+        return np.array(values[:3]), np.array(values[3:]), times[0], np.array(times[3:], dtype=np.int64)
 
 
 def mavlink_injector(twin, seed: int | None = None):

@@ -174,7 +174,8 @@ class Twin:
         if fx.gyro_delays:
             gyro = fx.gyro_delayed(gyro, reset=reset)
         if self.faults is not None:
-            gyro, omega = self.faults.read(gyro, omega)
+            gyro, omega, gyro_t_us, rotor_t_us = self.faults.read(gyro, omega, self._t_us)
+            return SensorFrame(self._t_us, gyro, accel, omega, gyro_t_us, rotor_t_us)
         return SensorFrame(self._t_us, gyro, accel, omega)
 
     def clean_gyro(self) -> np.ndarray:

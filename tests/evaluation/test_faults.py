@@ -33,8 +33,13 @@ def test_specs() -> None:
     assert parse_fault("motor:2:thrust=0.7") == Fault("motor", "thrust", 2, 0.7)
     assert parse_fault("esc-telemetry:3:slow:50Hz") == Fault("esc-telemetry", "slow", 3, 0.02)
     assert parse_fault("battery:wrong=75%") == Fault("battery", "wrong", 0, 0.75)
+    assert parse_fault("esc-telemetry:intermittent:1%") == Fault("esc-telemetry", "intermittent", 0, 0.01)
+    assert parse_fault("esc-telemetry:burst:20ms@1%") == Fault("esc-telemetry", "burst", 0, 0.01, 0.02)
+    assert parse_fault("esc-telemetry:2:burst=50ms") == Fault("esc-telemetry", "burst", 2, None, 0.05)
+    assert parse_fault("esc-telemetry:burst:5%") == Fault("esc-telemetry", "burst", 0, 0.05)
     for bad in ("gyro", "gyro:melted", "motor:9:off", "motor:2:thrust=1.7", "esc-telemetry:delayed:soon",
-                "magnet:off", "gyro:stuck:1:2:3"):
+                "magnet:off", "gyro:stuck:1:2:3", "esc-telemetry:burst:20ms@100%",
+                "esc-telemetry:burst:0ms@1%", "gyro:delayed:5ms@1%"):
         with pytest.raises(FaultSpecError):
             parse_fault(bad)
 

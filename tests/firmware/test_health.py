@@ -21,8 +21,9 @@ IRIS = airframe_spec("iris")
 IRIS_RULES = HealthRules.for_airframe(IRIS)
 
 
-def _frame(k: int, gyro, speed) -> SensorFrame:
-    return SensorFrame(k * 1000, np.asarray(gyro, float), ACCEL, np.asarray(speed, float))
+def _frame(k: int, gyro, speed, gyro_t: int | None = None, speed_t=None) -> SensorFrame:
+    return SensorFrame(k * 1000, np.asarray(gyro, float), ACCEL, np.asarray(speed, float), gyro_t,
+                       None if speed_t is None else np.asarray(speed_t, dtype=np.int64))
 
 
 def _hover(k: int) -> tuple[list[float], list[float], np.ndarray]:
@@ -73,14 +74,98 @@ def test_a_stuck_gyro_is_detected_only_while_a_torque_is_asked_for() -> None:
     assert not m.detected
 
 
-def test_rotor_speed_rules_hand_the_policy_over_once() -> None:
+def test_a_lost_rotor_speed_frame_is_held_and_flown_on() -> None:
     def absent(k, g, s, p):
         return g, [math.nan, *s[1:]] if k == 100 else s, p
 
     m = HealthMonitor(IRIS_RULES)
-    _run(m, 200, absent)
-    assert m.handover == "rotor speed 1 absent" and m.detected["handover"] - 1 == 100 and not m.failsafe
-    assert m.outbox == [(4, "Policy hands over to PID: rotor speed 1 absent")]
+    frames = _run(m, 200, absent)
+    assert m.policy_trusted and not m.detected and not m.outbox
+    assert frames[100].rotor_speed.tolist() == [_hover(99)[1][0], *_hover(100)[1][1:]]
+    assert frames[101].rotor_speed.tolist() == _hover(101)[1]
+    rng = np.random.default_rng(0)  # 5 % of every motor's frames lost, each as NaN or as its last sample
+    m = HealthMonitor(IRIS_RULES)
+    _run(m, 2000, lambda k, g, s, p: (g, [math.nan if rng.random() < 0.05 else v for v in s], p))
+    assert m.policy_trusted and not m.detected
+
+
+def test_old_telemetry_hands_over_at_its_age_limit() -> None:
+    """Frames that stop coming (the last sample and its time held) hand over once older than 20 ms
+    (NN_ESC_MAX_AGE); a held sample younger than that is flown on."""
+    m = HealthMonitor(IRIS_RULES)
+    for k in range(300):
+        gyro, speed, pwm = _hover(k)
+        sample = min(k, 100)  # motor 3's telemetry stops after tick 100
+        speed[2] = _hover(sample)[1][2]
+        m.check(_frame(k, gyro, speed, k * 1000, [k * 1000, k * 1000, sample * 1000, k * 1000]), pwm)
+        if k == 120:
+            assert m.policy_trusted
+    assert m.handover == "rotor speed 3 too old" and m.detected["handover"] - 1 == 121
+
+
+def test_a_lossy_link_hands_over_on_its_loss_rate() -> None:
+    """Every other frame of motor 1 lost: never 20 ms old, but half its frames lost over 100 ms
+    (NN_ESC_LOSS_MAX 0.2 over NN_ESC_LOSS_WIN 0.1 s)."""
+    m = HealthMonitor(IRIS_RULES)
+    _run(m, 300, lambda k, g, s, p: (g, [math.nan if k >= 100 and k % 2 else s[0], *s[1:]], p))
+    assert m.handover == "rotor speed 1 losing frames"
+    assert 30 < m.detected["handover"] - 1 - 100 < 80
+    for spec in ("esc_loss_max", "esc_max_age_s", "gyro_max_age_s", "esc_max_lag_s"):
+        assert spec in HealthRules.__dataclass_fields__
+
+
+def test_an_old_gyro_sample_fails_the_gyro() -> None:
+    """A gyro sample older than 10 ms (NN_GYRO_MAX_AGE, PX4's mc_nn_control) fails the gyro as a dead
+    one does; a repeated sample with its old time is a lost frame, never a stuck gyro."""
+    m = HealthMonitor(IRIS_RULES)
+    for k in range(200):
+        _, speed, pwm = _hover(k)
+        sampled = k if k < 100 else 100 + (k - 100) // 8 * 8  # a sample every 8 ms: 7 ms old at most
+        m.check(_frame(k, _hover(sampled)[0], speed, sampled * 1000), pwm)
+    assert not m.detected
+    m = HealthMonitor(IRIS_RULES)
+    for k in range(200):
+        _, speed, pwm = _hover(k)
+        sampled = min(k, 100)
+        m.check(_frame(k, _hover(sampled)[0], speed, sampled * 1000), pwm)
+    assert m.failsafe == "gyro stale" and m.detected["gyro_failed"] - 1 == 111
+    assert m.handover == "gyro stale" and not m.policy_trusted
+
+
+def _telemetry_of(pwm: list[np.ndarray], delay: int) -> list[list[float]]:
+    """What an ESC reports of rotors that follow `pwm` as the Iris's motors do, `delay` ticks late."""
+    rules = IRIS_RULES
+    up = 1.0 - math.exp(-1e-3 / rules.motor_tau_up_s)
+    down = 1.0 - math.exp(-1e-3 / rules.motor_tau_down_s)
+    per_us = rules.rotor_speed_max / (rules.pwm_max - rules.pwm_min)
+    speed = [(pwm[0][i] - rules.pwm_min) * per_us for i in range(4)]
+    out = []
+    for p in pwm:
+        command = [(v - rules.pwm_min) * per_us for v in p]
+        speed = [w + (up if c > w else down) * (c - w) for w, c in zip(speed, command, strict=True)]
+        out.append(speed)
+    return [out[0]] * delay + out[: len(out) - delay]
+
+
+def test_late_telemetry_is_found_by_its_lag_behind_the_commanded_speed() -> None:
+    """The delay that best fits the telemetry to the model of the commanded speed: 5 ms is handed over
+    within 100 ms of moving commands, 2 ms (an ESC's own pipeline) is not, nor is a still rotor."""
+    pwm = [np.array([1600.0, 1600.0, 1600.0, 1600.0]) + 80.0 * math.sin(k / 15.0) * np.array([1, -1, -1, 1])
+           for k in range(400)]
+
+    def fly(delay: int, commands: list[np.ndarray]) -> HealthMonitor:
+        m = HealthMonitor(IRIS_RULES)
+        for k, (p, w) in enumerate(zip(commands, _telemetry_of(commands, delay), strict=True)):
+            m.check(_frame(k, _hover(k)[0], w), p)  # the reading after `p` was written
+        return m
+
+    late = fly(5, pwm)
+    assert late.handover.startswith("rotor speed") and late.handover.endswith("lagging")
+    assert late.detected["handover"] < 100
+    assert not fly(2, pwm).detected
+    assert not fly(0, pwm).detected
+    still = [np.full(4, 1600.0)] * 400
+    assert not fly(5, still).detected
 
     def stale(k, g, s, p):
         return g, [*s[:2], 700.0 if k >= 100 else s[2], s[3]], p
@@ -120,7 +205,7 @@ def test_the_loop_flies_the_pid_once_the_policy_cannot_be_trusted() -> None:
             twin.faults.inject(Fault("esc-telemetry", "intermittent", 2, 0.5))
         flown.append(loop.tick(k * 1000).controller)
     assert set(flown[:200]) == {"main"} and flown[-1] == "pid" and not loop.faults
-    assert loop.health.handover == "rotor speed 2 absent"
+    assert loop.health.handover == "rotor speed 2 losing frames"
 
 
 def test_a_vehicle_armed_at_steady_hover_is_not_stale() -> None:

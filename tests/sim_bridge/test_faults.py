@@ -3,6 +3,7 @@ speed command, the thrust, the supply), and MAVLink's INJECT_FAILURE maps onto t
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -65,10 +66,54 @@ def test_sensor_faults_change_the_reading_not_the_flight(twin) -> None:
     garbage = gyro(_fly(twin, Fault("gyro", "garbage")))[10:]
     assert np.all(np.abs(garbage) <= GYRO_RANGE) and np.std(garbage) > 10.0
     one = speed(_fly(twin, Fault("esc-telemetry", "intermittent", instance=3, value=0.5)))
-    assert np.isnan(one[10:, 2]).sum() > 10 and not np.isnan(one[:, [0, 1, 3]]).any()
+    repeated = (one[11:, 2] == one[10:-1, 2]).sum()  # a lost frame: the last sample again
+    assert repeated > 10 and np.array_equal(one[:, [0, 1, 3]], speed(clean)[:, [0, 1, 3]])
     # what the vehicle did is the same: the fault is in the reading only
     twin_truth = [f.t_us for f in _fly(twin, Fault("gyro", "garbage"))]
     assert twin_truth == [f.t_us for f in clean]
+
+
+def test_every_sample_carries_the_time_a_real_bus_gives_it(twin) -> None:
+    """A lost frame keeps the last sample and its time, a delayed one arrives with its true time, a
+    stuck sensor reports on time; fault-free frames say nothing of their ages (sampled at t_us)."""
+    clean = _fly(twin, None)
+    assert all(f.gyro_t_us is None and f.rotor_speed_t_us is None for f in clean)
+    assert all(f.gyro_age_us() == 0 and not f.rotor_speed_age_us().any() for f in clean)
+    lost = _fly(twin, Fault("esc-telemetry", "intermittent", instance=2, value=0.5))
+    ages = np.array([f.rotor_speed_age_us() for f in lost])
+    assert not ages[:, [0, 2, 3]].any() and ages[10:, 1].max() >= 2000 and (ages[10:, 1] == 0).sum() > 10
+    for f, g in itertools.pairwise(lost[10:]):  # held: the same sample, the same time
+        if g.rotor_speed_age_us()[1]:
+            assert g.rotor_speed[1] == f.rotor_speed[1] and g.rotor_speed_t_us[1] == f.rotor_speed_t_us[1]
+    late = _fly(twin, Fault("esc-telemetry", "delayed", value=0.005))
+    assert [f.rotor_speed_age_us().tolist() for f in late[15:]] == [[5000] * 4] * 45
+    assert [f.rotor_speed_t_us[0] for f in late[15:]] == [f.t_us for f in clean[10:-5]]
+    gyro_late = _fly(twin, Fault("gyro", "delayed", value=0.003))
+    assert [f.gyro_age_us() for f in gyro_late[10:16]] == [0, 1000, 2000, 3000, 3000, 3000]
+    slow = _fly(twin, Fault("gyro", "slow", value=0.01))
+    assert [f.gyro_age_us() for f in slow[10:21]] == [*range(0, 10000, 1000), 0]
+    assert all(f.gyro_age_us() == 0 for f in _fly(twin, Fault("gyro", "stuck")))
+    off = _fly(twin, Fault("esc-telemetry", "off"))
+    assert np.isnan(off[-1].rotor_speed).all() and off[-1].rotor_speed_age_us().tolist() == [49000] * 4
+
+
+def test_bursts_lose_frames_in_runs_at_their_long_run_rate(twin) -> None:
+    """Gilbert–Elliott: runs of lost frames 20 ms long on average, 5 % of frames lost in the long run."""
+    injector = FaultInjector(0.001, 1100.0, seed=4)
+    injector.inject(Fault("esc-telemetry", "burst", 0, 0.05, 0.02))
+    lost = []
+    for k in range(200_000):
+        _, _, _, times = injector.read(np.zeros(3), np.full(4, float(k)), k * 1000)
+        lost.append(times[0] != k * 1000)
+    lost = np.array(lost)
+    starts = np.flatnonzero(lost[1:] & ~lost[:-1])
+    assert lost.mean() == pytest.approx(0.05, rel=0.25)
+    assert lost.sum() / len(starts) == pytest.approx(20.0, rel=0.25)
+    with pytest.raises(FaultSpecError):
+        Fault("esc-telemetry", "burst", 0, 1.0)
+    with pytest.raises(FaultSpecError):
+        Fault("esc-telemetry", "intermittent", 0, 0.1, 0.02)
+    assert Fault("esc-telemetry", "burst").describe() == "esc-telemetry burst 0.02 s @ 0.01"
 
 
 def test_motor_faults_act_on_the_rotor(twin) -> None:

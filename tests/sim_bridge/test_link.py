@@ -65,7 +65,7 @@ def assert_identical(got: list[SensorFrame], expected: list[SensorFrame]) -> Non
     assert len(got) == len(expected)
     for i, (a, b) in enumerate(zip(got, expected, strict=True)):
         assert a.t_us == b.t_us, f"frame {i}"
-        for name, x, y in zip(("gyro", "accel", "rotor_speed"), a[1:], b[1:], strict=True):
+        for name, x, y in zip(("gyro", "accel", "rotor_speed"), a[1:4], b[1:4], strict=True):
             assert x.tobytes() == y.tobytes(), f"frame {i} {name}: {x} != {y}"
 
 

@@ -141,7 +141,8 @@ def run(twin: Twin, seed: int | None, pwms: np.ndarray) -> list[SensorFrame]:
 
 
 def same(a: list[SensorFrame], b: list[SensorFrame]) -> bool:
-    return all(x.t_us == y.t_us and all(u.tobytes() == v.tobytes() for u, v in zip(x[1:], y[1:], strict=True))
+    return all(x.t_us == y.t_us
+               and all(u.tobytes() == v.tobytes() for u, v in zip(x[1:4], y[1:4], strict=True))
                for x, y in zip(a, b, strict=True))
 
 
