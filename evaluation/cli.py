@@ -30,7 +30,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="seed of the perturbed airframes (a stream training never draws from)")
     p.add_argument("--ranges", default=None, metavar="NAME|FILE",
                    help="randomisation ranges for --perturb: a shipped name or a file (default: the "
-                        "airframe's own, e.g. iris for the Iris)")
+                        "airframe's own, iris for the Iris, else the ranges relative to any airframe, "
+                        "relative, built for it)")
     p.add_argument("--fault", action="append", default=None, metavar="SPEC",
                    help="also fly the same commands with this fault injected at a seeded time of each "
                         "episode (repeatable): TARGET:KIND[:VALUE], e.g. gyro:stuck, gyro:spikes, "

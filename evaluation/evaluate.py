@@ -16,9 +16,7 @@ from fcemu.evaluation.perturb import PerturbedAirframe, PerturbedResult, fly_per
 from fcemu.evaluation.report import ControllerResult, write_report
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.controllers import is_policy
-from fcemu.sim_bridge.airframe import load_airframe
-from fcemu.sim_bridge.env_config import own_ranges
-from fcemu.sim_bridge.randomization import RandomizationError, load_randomization
+from fcemu.sim_bridge.randomization import RandomizationError, ranges_for
 from fcemu.sitl.traces import Traces, save_traces
 
 REPORT_CONTINUOUS_S = 10.0
@@ -59,8 +57,7 @@ def _airframes(args) -> tuple[list[PerturbedAirframe], str | None]:
     """The perturbed airframes and the path of the ranges they were drawn from (none without --perturb)."""
     if not args.perturb:
         return [], None
-    ranges = load_randomization(args.ranges or own_ranges(args.airframe))
-    ranges.check_airframe(load_airframe(args.airframe))  # the perturbed airframes are --airframe's
+    ranges = ranges_for(args.airframe, args.ranges)  # drawn around --airframe: its own, or relative ones
     return perturbed_airframes(ranges, args.perturb, args.perturb_seed), str(ranges.path)
 
 

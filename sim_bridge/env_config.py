@@ -27,7 +27,7 @@ from fcemu.firmware.action import ACTION_MAPPINGS, DEFAULT_ACTION_MAPPING
 from fcemu.firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK, FIELDS, ObservationSpec
 from fcemu.sim_bridge.airframe import Airframe, load_airframe
 from fcemu.sim_bridge.plant import SensorNoise
-from fcemu.sim_bridge.randomization import Randomization, load_randomization, randomization_path
+from fcemu.sim_bridge.randomization import RELATIVE, Randomization, randomization_path, ranges_for
 from fcemu.sim_bridge.reward import REWARDS, UNWEIGHTED, RateReward
 from fcemu.sim_bridge.tasks import HOLD_S, OMEGA_MAX, REST_S, TRAINING_TASKS
 
@@ -128,8 +128,10 @@ class EnvConfig:
             raise ValueError(f"unknown task {self.task!r}; choose one of {TASKS}")
         if self.action_mapping not in ACTION_MAPPINGS:
             raise ValueError(f"unknown action mapping {self.action_mapping!r}; known: {ACTION_MAPPINGS}")
-        if isinstance(self.randomize, str | Path):
-            object.__setattr__(self, "randomize", load_randomization(self.randomize))
+        if not isinstance(self.airframe, Airframe):
+            object.__setattr__(self, "airframe", load_airframe(self.airframe))
+        if isinstance(self.randomize, str | Path):  # relative ranges are built for the airframe
+            object.__setattr__(self, "randomize", ranges_for(self.airframe, self.randomize))
         if not isinstance(self.randomize, Randomization):
             unknown = set(self.randomize or {}) - set(RANDOMIZE_KEYS)
             if unknown:
@@ -142,8 +144,6 @@ class EnvConfig:
                              f"got {self.randomize_share}")
         if self.randomize_share < 1.0 and not isinstance(self.randomize, Randomization):
             raise ValueError("a randomised share below 1 needs randomisation ranges (e.g. randomize='iris')")
-        if not isinstance(self.airframe, Airframe):
-            object.__setattr__(self, "airframe", load_airframe(self.airframe))
         if isinstance(self.randomize, Randomization):
             self.randomize.check_airframe(self.airframe)
         if self.noise is None and self.base_airframe.gyro_noise_std:  # the airframe's own gyro noise
@@ -289,11 +289,9 @@ def add_env_arguments(parser: argparse.ArgumentParser, names: tuple[str, ...],
         add_option(parser, name, option.hint, (defaults or {}).get(name, option.default), meta)
 
 
-def own_ranges(airframe: str) -> str:
-    """The randomisation ranges made for `airframe` (a name or a file): its `<name>.randomization.json`."""
-    name = Path(airframe).stem if airframe.endswith(".json") else airframe
-    path = randomization_path(name)
-    if not path.exists():
-        raise ValueError(f"airframe {airframe!r} has no randomisation ranges of its own ({path.name}): "
-                         "give the ranges")
-    return name
+def own_ranges(airframe: str | Path | Airframe) -> str:
+    """The ranges `airframe` is randomised over unless told: its own `<name>.randomization.json`
+    where one is shipped (the Iris's), else the ranges relative to any airframe, built for it
+    (`sim_bridge.randomization.ranges_for`)."""
+    name = (airframe if isinstance(airframe, Airframe) else load_airframe(airframe)).name
+    return name if randomization_path(name).exists() else RELATIVE

@@ -21,7 +21,8 @@ from fcemu.training.config import option, with_env_options
 
 OWN_RANGES = "own"  # --randomize's default: the airframe's training ranges (`training_ranges`)
 # The ranges a student is trained on by default, per airframe: the Iris's default was distilled
-# on ESC delays of up to 2 ticks (policies/README.md); another airframe's are its own ranges.
+# on ESC delays of up to 2 ticks (policies/README.md); another airframe's are its own ranges, or
+# the relative ranges built for it (`sim_bridge.env_config.own_ranges`).
 TRAINING_RANGES = {"iris": "iris_esc2"}
 # The flights' recipe: half the episodes on airframes drawn from the ranges, half nominal.
 DISTILL_RECIPE: dict[str, Any] = {"randomize": OWN_RANGES, "randomize_share": 0.5}
@@ -96,7 +97,7 @@ def training_ranges(airframe: str) -> str:
         name = load_airframe(airframe).name
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"--airframe {airframe}: {exc}") from None
-    return TRAINING_RANGES[name] if name in TRAINING_RANGES else own_ranges(airframe)
+    return TRAINING_RANGES.get(name) or own_ranges(airframe)
 
 
 def register_distill(sub: argparse._SubParsersAction) -> None:

@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.training import sweep_perturbed
 from fcemu.training.config import FIELDS, TrainConfig
 
@@ -370,7 +371,10 @@ def saved_spec(raw: dict[str, Any], spec: SweepSpec) -> dict[str, Any]:
     same as its default, where this sweep leaves it there)."""
     train = raw.get("train", {})
     added = {k: v for k, v in spec.train.items() if k not in train and k in FIELDS and v == FIELDS[k].default}
-    return {"perturb": {}, **raw, "train": {**added, **train}}
+    perturb = raw.get("perturb") or {}
+    if perturb:  # one saved before it named the airframe flew the default
+        perturb = {"airframe": DEFAULT_AIRFRAME, **perturb}
+    return {**raw, "perturb": perturb, "train": {**added, **train}}
 
 
 def sweep_command(args) -> int:

@@ -12,6 +12,7 @@ import sys
 from typing import Any
 
 from fcemu.evaluation.bar import error_sum, meets_perturbed
+from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.training.config import TrainConfig
 
 BAR_COMMAND_SEED = 7  # the deployable bar is flown on the commands of `fcemu eval --seed 7`
@@ -28,11 +29,11 @@ def perturb_from_args(args, cfg: TrainConfig) -> dict[str, Any]:
         raise ValueError(f"--perturb {n} --perturb-seed {seed} --perturb-episodes {episodes}: expected "
                          "N >= 1 airframes, a seed >= 0 and at least one command")
     from fcemu.sim_bridge.env_config import own_ranges
-    from fcemu.sim_bridge.randomization import load_randomization
+    from fcemu.sim_bridge.randomization import ranges_for
 
     ranges = cfg.randomize or own_ranges(cfg.airframe)
-    load_randomization(ranges)  # RandomizationError is a ValueError
-    return {"airframes": n, "seed": seed, "episodes": episodes, "ranges": ranges}
+    ranges_for(cfg.airframe, ranges)  # RandomizationError is a ValueError
+    return {"airframes": n, "seed": seed, "episodes": episodes, "ranges": ranges, "airframe": cfg.airframe}
 
 
 def fly_summary(controller: str, perturb: dict[str, Any], progress: bool = False) -> dict[str, Any]:
@@ -43,9 +44,9 @@ def fly_summary(controller: str, perturb: dict[str, Any], progress: bool = False
     from fcemu.evaluation.metrics import AXES
     from fcemu.evaluation.perturb import fly_perturbed, perturbed_airframes
     from fcemu.evaluation.runner import EvalConfig
-    from fcemu.sim_bridge.randomization import load_randomization
+    from fcemu.sim_bridge.randomization import ranges_for
 
-    ranges = load_randomization(perturb["ranges"])
+    ranges = ranges_for(perturb.get("airframe", DEFAULT_AIRFRAME), perturb["ranges"])
     airframes = perturbed_airframes(ranges, perturb["airframes"], perturb["seed"])
     cfg = EvalConfig(episodes=perturb["episodes"], seed=BAR_COMMAND_SEED)  # flown on each drawn airframe
     with tqdm(total=len(airframes), desc=f"{controller} on perturbed airframes", unit="airframe",

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -145,7 +146,7 @@ def test_eval_flies_another_airframe_end_to_end():
     assert result["airframe"] == "crazyflie" and result["metrics"]["error"]
 
 
-def test_eval_flies_a_scaled_iris_file_and_perturbs_it_only_with_its_own_ranges(tmp_path):
+def test_eval_flies_a_scaled_iris_file_and_perturbs_it_with_ranges_around_it(tmp_path):
     raw = json.loads((AIRFRAME_DIR / "iris.json").read_text())
     raw.update(name="iris_heavy", base_mass_kg=1.7)
     path = tmp_path / "iris_heavy.json"
@@ -155,8 +156,11 @@ def test_eval_flies_a_scaled_iris_file_and_perturbs_it_only_with_its_own_ranges(
     nominal = fcemu("eval", "--controller", "pid:iris", "--episodes", "2", "--json")
     heavy, iris = (json.loads(p.stdout)["metrics"] for p in (flown, nominal))
     assert heavy != iris
-    for ranges in ((), ("--ranges", "iris")):  # none of its own; the Iris's are another airframe's
-        refused = fcemu("eval", "--airframe", str(path), "--controller", "pid:iris", "--episodes", "1",
-                        "--perturb", "1", *ranges)
-        assert refused.returncode == 2 and refused.stderr.startswith("fcemu: error: ")
-        assert refused.stderr.count("\n") == 1 and "iris_heavy" in refused.stderr
+    perturbed = fcemu("eval", "--airframe", str(path), "--controller", "pid:iris", "--episodes", "1",
+                      "--perturb", "2", "--json")  # none of its own: the relative ranges, built for it
+    assert perturbed.returncode == 0, perturbed.stderr
+    assert Path(json.loads(perturbed.stdout)["perturbation"]["ranges"]).name == "relative.randomization.json"
+    refused = fcemu("eval", "--airframe", str(path), "--controller", "pid:iris", "--episodes", "1",
+                    "--perturb", "1", "--ranges", "iris")  # the Iris's are another airframe's
+    assert refused.returncode == 2 and refused.stderr.startswith("fcemu: error: ")
+    assert refused.stderr.count("\n") == 1 and "iris_heavy" in refused.stderr

@@ -47,8 +47,10 @@ def test_an_env_takes_a_config_or_its_fields_as_keywords_not_both():
 def test_the_default_airframe_and_its_own_ranges():
     assert EnvConfig().base_airframe.name == DEFAULT_AIRFRAME
     assert own_ranges(DEFAULT_AIRFRAME) == "iris"
-    with pytest.raises(ValueError, match="no randomisation ranges of its own"):
-        own_ranges("iris_realistic")
+    assert own_ranges("crazyflie") == own_ranges("iris_realistic") == "relative"
+    crazyflie = EnvConfig(airframe="crazyflie", randomize="relative")  # relative ranges, built for it
+    assert crazyflie.randomize.base_airframe() is crazyflie.base_airframe
+    assert EnvConfig(airframe="crazyflie", randomize=own_ranges("crazyflie")).randomize == crazyflie.randomize
 
 
 def _scaled_iris(tmp_path: Path, max_rotor_speed: float) -> Path:

@@ -68,5 +68,4 @@ def test_distillations_default_ranges_are_the_airframes():
     assert DistillConfig(teacher="t.onnx").ranges() == "iris_esc2"
     assert DistillConfig(teacher="t.onnx", randomize="none").ranges() is None
     assert DistillConfig(teacher="t.onnx", randomize="iris").ranges() == "iris"
-    with pytest.raises(ValueError, match="no randomisation ranges of its own"):
-        DistillConfig(teacher="t.onnx", airframe="iris_realistic").ranges()
+    assert DistillConfig(teacher="t.onnx", airframe="crazyflie").ranges() == "relative"  # built for it

@@ -89,6 +89,10 @@ def test_a_sweep_saved_before_an_option_existed_is_the_same_sweep():
         del old["train"][added]
     del old["perturb"]
     assert json.dumps(saved_spec(old, spec), sort_keys=True, default=list) == stored
+    spec = spec_from_args(build_parser().parse_args(["sweep", "--perturb", "2"]), SWEEP_DEFAULTS)
+    old = json.loads(json.dumps(dataclasses.asdict(spec), default=list))
+    del old["perturb"]["airframe"]  # saved before the perturbed flights named their airframe
+    assert saved_spec(old, spec)["perturb"] == spec.perturb == {**old["perturb"], "airframe": "iris"}
     old["train"]["omega_max"] = 3.0  # a sweep that set it is another sweep
     assert json.dumps(saved_spec(old, spec), sort_keys=True, default=list) != stored
 
@@ -161,7 +165,7 @@ def test_a_bad_perturbed_flight_fails_before_any_trial():
         with pytest.raises(ValueError, match=r"perturb|no_such_ranges"):
             spec_from_args(build_parser().parse_args(["sweep", *bad]), SWEEP_DEFAULTS)
     spec = spec_from_args(build_parser().parse_args(["sweep", *PERTURB]), SWEEP_DEFAULTS)
-    assert spec.perturb == {"airframes": 2, "seed": 5, "episodes": 2, "ranges": "iris"}
+    assert spec.perturb == {"airframes": 2, "seed": 5, "episodes": 2, "ranges": "iris", "airframe": "iris"}
     assert spec_from_args(build_parser().parse_args(["sweep"]), SWEEP_DEFAULTS).perturb == {}
 
 
