@@ -76,7 +76,8 @@ class Console:
     def close(self) -> str:
         if self.proc.poll() is None:
             try:
-                self.type("exit")
+                assert self.proc.stdin is not None
+                self.proc.stdin.close()  # MAVProxy quits at the end of its input ('exit' it does not know)
                 self.proc.wait(10)
             except (OSError, subprocess.TimeoutExpired):
                 self.proc.kill()
