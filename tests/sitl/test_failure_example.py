@@ -28,7 +28,9 @@ def test_motor_telemetry_stuck_hands_the_policy_over_and_the_vehicle_lands(sitl,
     assert script.returncode == 0, script.stdout[-2000:] + script.stderr[-3000:] + s.stop()[-2000:]
     summary = json.loads(summary_path.read_text())
     assert summary["failure_text"] == "Failure injected: esc-telemetry 1 stuck", summary
-    assert summary["handover_text"] == "Policy hands over to PID: rotor speed 1 stale", summary
+    # a reading stuck while the motor's command moves: stale (bit-identical) or lagging (the fitted delay)
+    assert summary["handover_text"] in (f"Policy hands over to PID: rotor speed 1 {why}"
+                                        for why in ("stale", "lagging")), summary
     texts = summary["status_texts"]
     assert sum("hands over" in t for t in texts) == 1, texts
     assert summary["mode_after_handover"] == "OFFBOARD" and summary["altitude_after_handover_m"] > 2.0
