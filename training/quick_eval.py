@@ -15,14 +15,13 @@ fly the training airframe as it is, without randomisation; the trace holds the b
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from typing import Any, ClassVar
 
 import numpy as np
 
 from fcemu.evaluation.metrics import EvalMetrics, compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
-from fcemu.firmware.observation import FIELDS
-from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
+from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME, EnvConfig
 from fcemu.sim_bridge.vec_env import BatchedRateEnv
 from fcemu.sitl.traces import Traces
 from fcemu.training.config import SELECT
@@ -55,23 +54,22 @@ def pid_references(specs: tuple[str, ...], n: int, seed: int,
     return out
 
 
-@dataclass
+# The training env's options the race keeps: what the policy observes and how its actions map,
+# on which airframe; the flights are the evaluation's own (`BatchedEvaluator.EVALUATED`).
+OBSERVED = ("memory", "obs_fields", "integral_leak", "rms_leak", "action_mapping", "airframe")
+
+
 class BatchedEvaluator:
-    """Fly a policy (obs → action, already normalised inside) over n fixed commands at hover on `airframe`."""
+    """Fly a policy (obs → action, already normalised inside) over n fixed commands: `EVALUATED`
+    episodes (from rest, at hover) on the nominal airframe, observed as `options` (EnvConfig's
+    fields by keyword: memory, obs_fields, leaks, action_mapping, airframe) say."""
 
-    n: int
-    seed: int
-    memory: int = 1
-    action_mapping: str = "throttle"
-    obs_fields: tuple[str, ...] = FIELDS
-    airframe: str = DEFAULT_AIRFRAME
-    obs_leaks: dict[str, float] = field(default_factory=dict)  # EnvConfig's λ of integrated fields
-    env: BatchedRateEnv = field(init=False)
+    EVALUATED: ClassVar[dict[str, Any]] = {"task": "episodic", "throttle": None, "episode_s": None,
+                                           "randomize": None, "randomize_share": 1.0}
 
-    def __post_init__(self) -> None:
-        self.env = BatchedRateEnv(self.n, task="episodic", memory=self.memory, obs_fields=self.obs_fields,
-                                  action_mapping=self.action_mapping, throttle=None, airframe=self.airframe,
-                                  **self.obs_leaks)
+    def __init__(self, n: int, seed: int, **options: Any) -> None:
+        self.n, self.seed = n, seed
+        self.env = BatchedRateEnv(n, EnvConfig(**{**options, **self.EVALUATED}))
 
     def traces(self, act, name: str = "policy") -> Traces:
         """`act(obs (n, size) float32) -> actions (n, 4)`; trace sample k is tick k, as in the runner."""

@@ -110,9 +110,8 @@ class PidRaceCallback(BaseCallback):
         self._best_key: tuple[int, float] = (2, np.inf)
         self._next = every
         self._t0: float | None = None  # `start_clock`, else when learning starts
-        self.evaluator = quick_eval.BatchedEvaluator(cfg.eval_commands, cfg.eval_seed, cfg.memory,
-                                                     cfg.action_mapping, cfg.obs_fields, cfg.airframe,
-                                                     cfg.obs_leaks)
+        observed = {k: v for k, v in cfg.env_kwargs().items() if k in quick_eval.OBSERVED}
+        self.evaluator = quick_eval.BatchedEvaluator(cfg.eval_commands, cfg.eval_seed, **observed)
         self.pids = quick_eval.pid_references(PID_PRESETS, cfg.eval_commands, cfg.eval_seed, cfg.airframe)
 
     def start_clock(self, t0: float) -> None:

@@ -187,8 +187,8 @@ def test_the_batched_evaluator_observes_with_the_trained_leaks():
     from fcemu.firmware.observation import FIELDS, INTEGRAL, RMS
 
     fields = (*FIELDS, INTEGRAL, RMS)
-    evaluator = quick_eval.BatchedEvaluator(2, 3, memory=2, obs_fields=fields,
-                                            obs_leaks={"integral_leak": 0.99, "rms_leak": 0.9})
+    evaluator = quick_eval.BatchedEvaluator(2, 3, memory=2, obs_fields=fields, integral_leak=0.99,
+                                            rms_leak=0.9)
     spec = evaluator.env.config.observation_spec
     assert (spec.fields, spec.integral_leak, spec.rms_leak) == (fields, 0.99, 0.9)
     evaluator.close()
