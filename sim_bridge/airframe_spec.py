@@ -8,7 +8,7 @@ from itertools import product
 from fcemu.firmware.airframe_spec import AirframeSpec, Envelope
 from fcemu.sim_bridge.airframe import Airframe, load_airframe
 from fcemu.sim_bridge.airframe_file import GRAVITY
-from fcemu.sim_bridge.randomization import PARAMETERS, Randomization, load_randomization
+from fcemu.sim_bridge.randomization import PARAMETERS, Randomization, ranges_for
 
 # Where a policy's randomisation is not known, the envelope is its airframe's scales ± this.
 UNKNOWN_RANGE_MARGIN = 0.25
@@ -68,6 +68,6 @@ def envelope(airframe: Airframe | str, randomization: str | Randomization | None
     af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
     if randomization is None:
         return Envelope.around([airframe_spec(af)]).widened(UNKNOWN_RANGE_MARGIN)
-    ranges = randomization if isinstance(randomization, Randomization) else load_randomization(randomization)
+    ranges = randomization if isinstance(randomization, Randomization) else ranges_for(af, randomization)
     ranges.check_airframe(af)
     return Envelope.around([airframe_spec(c) for c in randomization_corners(ranges, af)])

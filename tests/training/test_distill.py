@@ -161,3 +161,21 @@ def test_a_teacher_made_for_another_airframe_is_refused_unless_chosen(tmp_path):
 def test_the_student_flies_the_airframes_training_ranges_by_default():
     train_cfg, _ = student_train_config(DistillConfig(teacher=str(TEACHER), threads=1), Teacher(TEACHER))
     assert (train_cfg.randomize, train_cfg.randomize_share) == ("iris_esc2", 0.5)
+
+
+def test_a_student_for_another_airframe_flies_its_relative_ranges_and_carries_its_airframe(tmp_path):
+    from fcemu.training.config import TrainConfig
+    from fcemu.training.train import train
+
+    run = tmp_path / "crazyflie"
+    train(TrainConfig(airframe="crazyflie", steps=128, envs=2, seed=1, out=str(run), eval_episodes=0,
+                      checkpoint_every=10**9, hp={"n_steps": 64, "batch_size": 64}, threads=1,
+                      progress=False))
+    out = tmp_path / "student"
+    distill(DistillConfig(teacher=str(run / "policy.onnx"), airframe="crazyflie", out=str(out), rounds=1,
+                          steps=20, envs=2, fit_steps=5, batch_size=64, threads=1, progress=False))
+    config = json.loads((out / "config.json").read_text())
+    assert (config["airframe"], config["randomize"]) == ("crazyflie", "relative") == \
+        (config["env"]["airframe"], config["env"]["randomize"])
+    meta = ort.InferenceSession(str(out / "policy.onnx")).get_modelmeta().custom_metadata_map
+    assert meta["fcemu.airframe"] == "crazyflie"
