@@ -29,9 +29,10 @@ firmware's answers"):
   `esc_lag_base_s`), d and a gain error k fitted by least squares over the last
   `esc_lag_window_s`. It is judged only while the model moves (ṁ's RMS above `esc_lag_motion` ×
   the top speed per tick) and the gain alone leaves a misfit (RMS above `esc_lag_misfit` × the
-  top speed) of which the delay explains at least `esc_lag_explains` (a rotor that cannot follow
-  its command, e.g. on a sagging battery, is not late); d beyond `esc_max_lag_s`
-  (NN_ESC_MAX_LAG) for `esc_lag_ticks` ticks in a row hands over.
+  top speed) of which the delay explains at least `esc_lag_explains`, with a gain error k
+  within `esc_lag_gain_max` (a rotor that cannot follow its command, on a sagging battery or
+  a dead motor, is not late); d beyond `esc_max_lag_s` (NN_ESC_MAX_LAG) for `esc_lag_ticks`
+  ticks in a row hands over.
 - Rotor speed stale: a motor's new samples bit-identical for `rotor_stale_ticks` ticks while its
   PWM moved more than `stale_pwm_us` from where it was when the reading last changed. Rotor speed
   implausible: a new sample farther than `rotor_tolerance` × the top speed from the model, scored
@@ -96,6 +97,7 @@ class HealthRules:
     esc_lag_base_s: float = 0.006
     esc_lag_misfit: float = 0.005
     esc_lag_explains: float = 0.4
+    esc_lag_gain_max: float = 0.1
 
     @classmethod
     def for_airframe(cls, airframe: AirframeSpec, **thresholds: float) -> HealthRules:
@@ -325,7 +327,8 @@ class HealthMonitor:
             gain_error = (sums[0] * sums[4] - sums[1] * sums[3]) / det
             left_by_gain = sums[5] - sums[4] * sums[4] / sums[2]
             left = sums[5] - lag * sums[3] - gain_error * sums[4]
-            late = (lag > self._lag_limit and left_by_gain > self._lag_misfit
+            late = (lag > self._lag_limit and abs(gain_error) < self.rules.esc_lag_gain_max
+                    and left_by_gain > self._lag_misfit
                     and left_by_gain - left > self.rules.esc_lag_explains * left_by_gain)
         if late:
             self._lag_over[i] += 1
