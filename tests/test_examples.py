@@ -1,7 +1,7 @@
 """Each example in examples/ flies what it says against a real `fcemu sitl` on loopback ports:
-the pymavlink flip lands and disarms without a refusal; the MAVSDK offboard-rates example exits 1
-when the vehicle does not follow (that it climbs before it steps on the free rig, and follows, is
-tests/firmware/mavlink/test_mavsdk.py's flight, checked from both ends)."""
+the pymavlink flip (the script `fcemu demo` flies) lands and disarms without a refusal; the MAVSDK
+offboard-rates example exits 1 when the vehicle does not follow (that it climbs before it steps on
+the free rig, and follows, is tests/firmware/mavlink/test_mavsdk.py's flight, checked from both ends)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from pymavlink import mavutil
 
 from tests.firmware.mavlink.conftest import ROOT, free_udp_port
 
@@ -32,6 +33,8 @@ def test_every_example_is_flown_by_a_test() -> None:
 
 @pytest.mark.timeout(180)
 def test_pymavlink_flip_lands_then_disarms_without_a_refusal(sitl, tmp_path: Path) -> None:
+    """The script `fcemu demo` flies (the example runs sitl/demo_flight.py), faster than real time:
+    take-off above 2 m, the flip, a level landing, and the disarm once ON_GROUND."""
     gcs = free_udp_port()
     s = sitl(gcs=gcs, speed="2", controller="pid")
     summary_path = tmp_path / "flip.json"
@@ -41,10 +44,22 @@ def test_pymavlink_flip_lands_then_disarms_without_a_refusal(sitl, tmp_path: Pat
     assert script.returncode == 0, script.stdout[-2000:] + script.stderr[-2000:] + output[-2000:]
     flight = json.loads(summary_path.read_text())
     assert flight["completed"] and flight["phase"] == "done", flight
-    assert flight["flip_deg"] > 250 and flight["final_altitude_m"] < 0.3, flight
+    assert flight["flip_deg"] > 250 and flight["max_altitude_m"] > 2.0, flight
+    assert flight["final_altitude_m"] < 0.3 and flight["final_tilt_deg"] < 20, flight
     vehicle_line = next(line for line in output.splitlines() if line.startswith("vehicle:"))
     assert "disarm_denied" not in vehicle_line, vehicle_line  # it waited for ON_GROUND
     assert not any("Disarming denied" in text for text in flight["vehicle_messages"]), flight
+    # the vehicle's clock against the wall clock of its record; the script's frames in that record
+    log = mavutil.mavlink_connection(str(s.tlog))
+    attitudes, from_script = [], 0
+    while (m := log.recv_match()) is not None:
+        if m.get_srcSystem() == 254:
+            from_script += 1
+        elif m.get_type() == "ATTITUDE":
+            attitudes.append((m.time_boot_ms / 1000.0, m._timestamp))
+    (vehicle0, wall0), (vehicle1, wall1) = attitudes[0], attitudes[-1]
+    speed = (vehicle1 - vehicle0) / (wall1 - wall0)
+    assert speed > 1.0 and from_script > 500, (speed, from_script)
 
 
 @pytest.mark.timeout(120)
