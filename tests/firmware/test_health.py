@@ -189,23 +189,37 @@ def test_late_telemetry_is_found_by_its_lag_behind_the_commanded_speed() -> None
     assert m.policy_trusted and not m.handover and not m.outbox
 
 
-def test_the_loop_flies_the_pid_once_the_policy_cannot_be_trusted() -> None:
+def _fly_policy(fault: Fault | None, ticks: int = 400, at: int = 200) -> tuple[list[str], FlightLoop]:
+    """The default policy on the twin through rate steps at 0.1 and 0.25 s, `fault` injected at tick `at`."""
     twin = Twin(rig="rig")
     first = twin.reset(0, TwinState(rotor_speed=(780.0,) * 4))
     controllers = {"main": load_controller(str(DEFAULT_POLICY), airframe=IRIS),
                    "pid": load_controller("pid", airframe=IRIS)}
-    schedule = [(0.0, (0.0, 0.0, 0.0), 0.7), (0.1, (2.0, 0.0, 0.0), 0.7)]
+    schedule = [(0.0, (0.0, 0.0, 0.0), 0.7), (0.1, (2.0, 0.0, 0.0), 0.7), (0.25, (-2.0, 1.0, 0.0), 0.7)]
     commander = ScriptedCommander(schedule, controller="main")
     loop = FlightLoop(InProcessLink(twin), first, controllers, commander, LockstepClock(), fallback="pid",
                       health=HealthMonitor(IRIS_RULES))
     flown = []
-    for k in range(400):
-        if k == 200:
+    for k in range(ticks):
+        if k == at and fault is not None:
             twin.faults = FaultInjector(twin.dt, IRIS.max_rotor_speed, 3)
-            twin.faults.inject(Fault("esc-telemetry", "intermittent", 2, 0.5))
+            twin.faults.inject(fault)
         flown.append(loop.tick(k * 1000).controller)
+    return flown, loop
+
+
+def test_the_loop_flies_the_pid_once_the_policy_cannot_be_trusted() -> None:
+    flown, loop = _fly_policy(Fault("esc-telemetry", "intermittent", 2, 0.5))
     assert set(flown[:200]) == {"main"} and flown[-1] == "pid" and not loop.faults
     assert loop.health.handover == "rotor speed 2 losing frames"
+    flown, loop = _fly_policy(Fault("esc-telemetry", "delayed", 0, 0.005), at=150)
+    assert loop.health.handover.endswith("lagging") and loop.health.detected["handover"] - 150 <= 100
+
+
+def test_the_policy_flies_on_through_ordinary_telemetry_loss() -> None:
+    for fault in (Fault("esc-telemetry", "intermittent", 0, 0.05), Fault("esc-telemetry", "burst", 0, 0.01)):
+        flown, loop = _fly_policy(fault, at=50)
+        assert set(flown) == {"main"} and not loop.health.detected, fault
 
 
 def test_a_vehicle_armed_at_steady_hover_is_not_stale() -> None:
