@@ -11,8 +11,10 @@ import pytest
 pytestmark = pytest.mark.timeout(60)
 
 
-def test_bench_sim_json_prints_one_object_with_positive_rates() -> None:
-    command = [sys.executable, "-m", "fcemu", "bench", "sim", "--json", "--seconds", "0.3", "--envs", "16"]
+@pytest.mark.parametrize("airframe", [[], ["--airframe", "crazyflie"]])
+def test_bench_sim_json_prints_one_object_with_positive_rates(airframe: list[str]) -> None:
+    command = [sys.executable, "-m", "fcemu", "bench", "sim", "--json", "--seconds", "0.3", "--envs", "16",
+               *airframe]
     done = subprocess.run(command, capture_output=True, text=True, timeout=60, check=True)
     result = json.loads(done.stdout)  # raises if stdout holds anything but one JSON document
     assert isinstance(result, dict)
