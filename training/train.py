@@ -195,8 +195,20 @@ def _observation_spec(cfg: TrainConfig):
     return cfg.env_config().observation_spec
 
 
+def check_references(cfg: TrainConfig) -> None:
+    """The PID the race and the final evaluation compare with (and fall back to) is tuned for the
+    airframe: refused before training (`ControllerSpecError`, one line) rather than after it."""
+    if not (cfg.eval_every or cfg.eval_episodes):
+        return
+    from fcemu.firmware.controllers import load_controller
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    load_controller(PID_PRESETS[0], airframe=airframe_spec(cfg.airframe))
+
+
 def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, Any]:
     """Train, save, export, evaluate; returns the summary (also in runs/NAME/summary.json)."""
+    check_references(cfg)
     torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
     config = run_config(cfg)

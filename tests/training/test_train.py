@@ -182,6 +182,20 @@ def test_the_race_flies_the_training_airframe():
     assert bar.error_sum(race.pids["pid"]) != bar.error_sum(nominal)
 
 
+def test_an_airframe_without_a_tuned_pid_is_refused_before_training_when_the_run_compares_with_it(tmp_path):
+    from fcemu.firmware.controllers import ControllerSpecError
+    from fcemu.sim_bridge.airframe import AIRFRAME_DIR
+
+    raw = json.loads((AIRFRAME_DIR / "iris.json").read_text())
+    raw["name"] = "untuned_quad"
+    path = tmp_path / "untuned_quad.json"
+    path.write_text(json.dumps(raw))
+    out = tmp_path / "run"
+    with pytest.raises(ControllerSpecError, match="no PID tuned for untuned_quad"):
+        train(TrainConfig(airframe=str(path), steps=64, envs=2, out=str(out), progress=False))
+    assert not out.exists()  # nothing trained, nothing written
+
+
 def test_the_batched_evaluator_observes_with_the_trained_leaks():
     """The race scores a policy on the observation it was trained on, leaks included."""
     from fcemu.firmware.observation import FIELDS, INTEGRAL, RMS
