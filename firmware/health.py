@@ -94,6 +94,11 @@ class HealthRules:
     esc_lag_window_s: float = 0.05
     esc_lag_ticks: int = 10
     esc_lag_motion: float = 0.002
+    # The fit's own settings (module docstring): the model's slope taken over 6 ms (twice the
+    # limit, so a 3-5 ms lag interpolates within it); a misfit worth judging, 0.5 % of top speed
+    # RMS; a 5 ms lag explains 60-100 % of what the gain leaves, a sagging battery's transient
+    # 2-13 % (docs/results/faults.md); a late copy of the speed has no gain error, a dead motor
+    # or a 0.75 battery one of 0.25.
     esc_lag_base_s: float = 0.006
     esc_lag_misfit: float = 0.005
     esc_lag_explains: float = 0.4
@@ -121,10 +126,6 @@ class HealthMonitor:
         self._gyro_max_age_us = r.gyro_max_age_s * 1e6
         self._esc_max_age_us = r.esc_max_age_s * 1e6
         self._loss_gain = 1.0 - math.exp(-dt / r.esc_loss_window_s)
-        self._lag_keep = math.exp(-dt / r.esc_lag_window_s)
-        self._lag_limit = r.esc_max_lag_s / dt  # in ticks, the fit's unit
-        self._lag_motion = (r.esc_lag_motion * r.rotor_speed_max) ** 2 / (1.0 - self._lag_keep)
-        self._lag_misfit = (r.esc_lag_misfit * r.rotor_speed_max) ** 2 / (1.0 - self._lag_keep)
         self._lag_base = max(1, round(r.esc_lag_base_s / dt))
         self._speed_per_us = r.rotor_speed_max / (r.pwm_max - r.pwm_min)
         self._tolerance = r.rotor_tolerance * r.rotor_speed_max
@@ -155,12 +156,9 @@ class HealthMonitor:
         self._sample_t: list[int] = [0] * 4  # each motor's newest sample time
         self._held_speed: list[float] | None = None
         self._loss = [0.0] * 4
-        # per motor, decaying sums of ṁ², ṁ·m, m², (m − w)·ṁ, (m − w)·m, (m − w)²: the lag fit's
-        # normal equations and its misfit
-        self._lag_sums = [[0.0] * 6 for _ in range(4)]
+        self._lag = [LagFit(self.rules, self._dt_us * 1e-6) for _ in range(4)]
         self._model_past: list[list[float]] = []  # per motor, the model's last `_lag_base` speeds
         self._past_at = 0
-        self._lag_over = [0] * 4
 
     # ---- verdicts ----
     def _declare(self, what: str, severity: int, text: str) -> None:
@@ -283,7 +281,8 @@ class HealthMonitor:
             if new:
                 self._judge_sample(i, v, pi, first)
                 if not first:
-                    self._judge_lag(i, v, expected[i], slope)
+                    if self._lag[i].late(v, expected[i], slope):
+                        self._hand_over(f"rotor speed {i + 1} lagging")
         return None if replaced is None else np.array(replaced)
 
     def _judge_sample(self, i: int, v: float, pi: float, first: bool) -> None:
@@ -310,9 +309,24 @@ class HealthMonitor:
         elif self._rotor_score[i]:
             self._rotor_score[i] = max(0.0, self._rotor_score[i] - r.recovery)
 
-    def _judge_lag(self, i: int, v: float, m: float, dm: float) -> None:
-        """Motor `i`'s lag fit, given its new sample `v`, the model's speed `m` and its change `dm`."""
-        keep, sums = self._lag_keep, self._lag_sums[i]
+
+class LagFit:
+    """One motor's lag fit (the module docstring): decaying sums of ṁ², ṁ·m, m², (m − w)·ṁ,
+    (m − w)·m and (m − w)², the least-squares fit's normal equations and its misfit."""
+
+    def __init__(self, rules: HealthRules, dt: float) -> None:
+        self.rules = r = rules
+        self.keep = keep = math.exp(-dt / r.esc_lag_window_s)
+        self.limit = r.esc_max_lag_s / dt  # in ticks, the fit's unit
+        self.motion = (r.esc_lag_motion * r.rotor_speed_max) ** 2 / (1.0 - keep)
+        self.misfit = (r.esc_lag_misfit * r.rotor_speed_max) ** 2 / (1.0 - keep)
+        self.sums = [0.0] * 6
+        self.over = 0  # ticks in a row the fit has been late
+
+    def late(self, v: float, m: float, dm: float) -> bool:
+        """Add the sample `v` against the model's speed `m` and slope `dm`; True once the fit has put
+        the telemetry more than the limit late for `esc_lag_ticks` ticks in a row."""
+        keep, sums, r = self.keep, self.sums, self.rules
         miss = m - v
         sums[0] = sums[0] * keep + dm * dm
         sums[1] = sums[1] * keep + dm * m
@@ -322,17 +336,12 @@ class HealthMonitor:
         sums[5] = sums[5] * keep + miss * miss
         det = sums[0] * sums[2] - sums[1] * sums[1]
         late = False
-        if sums[0] > self._lag_motion and det > 0.0:
+        if sums[0] > self.motion and det > 0.0:
             lag = (sums[3] * sums[2] - sums[1] * sums[4]) / det
             gain_error = (sums[0] * sums[4] - sums[1] * sums[3]) / det
             left_by_gain = sums[5] - sums[4] * sums[4] / sums[2]
             left = sums[5] - lag * sums[3] - gain_error * sums[4]
-            late = (lag > self._lag_limit and abs(gain_error) < self.rules.esc_lag_gain_max
-                    and left_by_gain > self._lag_misfit
-                    and left_by_gain - left > self.rules.esc_lag_explains * left_by_gain)
-        if late:
-            self._lag_over[i] += 1
-            if self._lag_over[i] >= self.rules.esc_lag_ticks:
-                self._hand_over(f"rotor speed {i + 1} lagging")
-        else:
-            self._lag_over[i] = 0
+            late = (lag > self.limit and abs(gain_error) < r.esc_lag_gain_max and left_by_gain > self.misfit
+                    and left_by_gain - left > r.esc_lag_explains * left_by_gain)
+        self.over = self.over + 1 if late else 0
+        return self.over >= r.esc_lag_ticks

@@ -132,8 +132,9 @@ def test_an_old_gyro_sample_fails_the_gyro() -> None:
     assert m.handover == "gyro stale" and not m.policy_trusted
 
 
-def _telemetry_of(pwm: list[np.ndarray], delay: int) -> list[list[float]]:
-    """What an ESC reports of rotors that follow `pwm` as the Iris's motors do, `delay` ticks late."""
+def _telemetry_of(pwm: list[np.ndarray], delay: int, gain: float = 1.0) -> list[list[float]]:
+    """What an ESC reports of rotors that follow `pwm` as the Iris's motors do, `delay` ticks late;
+    `gain` scales their speed command (a sagging battery)."""
     rules = IRIS_RULES
     up = 1.0 - math.exp(-1e-3 / rules.motor_tau_up_s)
     down = 1.0 - math.exp(-1e-3 / rules.motor_tau_down_s)
@@ -141,7 +142,7 @@ def _telemetry_of(pwm: list[np.ndarray], delay: int) -> list[list[float]]:
     speed = [(pwm[0][i] - rules.pwm_min) * per_us for i in range(4)]
     out = []
     for p in pwm:
-        command = [(v - rules.pwm_min) * per_us for v in p]
+        command = [(v - rules.pwm_min) * per_us * gain for v in p]
         speed = [w + (up if c > w else down) * (c - w) for w, c in zip(speed, command, strict=True)]
         out.append(speed)
     return [out[0]] * delay + out[: len(out) - delay]
@@ -153,9 +154,9 @@ def test_late_telemetry_is_found_by_its_lag_behind_the_commanded_speed() -> None
     pwm = [np.array([1600.0, 1600.0, 1600.0, 1600.0]) + 80.0 * math.sin(k / 15.0) * np.array([1, -1, -1, 1])
            for k in range(400)]
 
-    def fly(delay: int, commands: list[np.ndarray]) -> HealthMonitor:
+    def fly(delay: int, commands: list[np.ndarray], gain: float = 1.0) -> HealthMonitor:
         m = HealthMonitor(IRIS_RULES)
-        for k, (p, w) in enumerate(zip(commands, _telemetry_of(commands, delay), strict=True)):
+        for k, (p, w) in enumerate(zip(commands, _telemetry_of(commands, delay, gain), strict=True)):
             m.check(_frame(k, _hover(k)[0], w), p)  # the reading after `p` was written
         return m
 
@@ -166,6 +167,7 @@ def test_late_telemetry_is_found_by_its_lag_behind_the_commanded_speed() -> None
     assert not fly(0, pwm).detected
     still = [np.full(4, 1600.0)] * 400
     assert not fly(5, still).detected
+    assert not fly(0, pwm, gain=0.75).detected  # a rotor short of its command is not late
 
     def stale(k, g, s, p):
         return g, [*s[:2], 700.0 if k >= 100 else s[2], s[3]], p
