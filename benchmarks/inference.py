@@ -11,6 +11,7 @@ from fcemu.firmware.airframe_spec import AirframeSpec
 from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.neural import NeuralRateController
 from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
 
 
 def measure_inference(model: str, airframe: AirframeSpec, n: int = 20_000, warmup: int = 2_000) -> dict:
@@ -49,7 +50,7 @@ def bench_inference(args) -> int:
         raise SystemExit("fcemu bench inference: no policy given and none shipped; pass --model FILE.onnx")
     from fcemu.sim_bridge.airframe_spec import airframe_spec
 
-    r = measure_inference(model, airframe_spec(getattr(args, "airframe", "iris")), args.samples)
+    r = measure_inference(model, airframe_spec(getattr(args, "airframe", DEFAULT_AIRFRAME)), args.samples)
     print(json.dumps(r) if args.json else
           f"{r['model']}: onnxruntime median {r['median_us']:.1f} µs, p99 {r['p99_us']:.1f} µs; "
           f"full controller update (observation + inference + mapping) median "

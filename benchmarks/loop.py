@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 from fcemu.firmware.timing import give_loop_a_core
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.faults import Fault, FaultInjector
 from fcemu.sitl.sitl import build_sitl, firmware_airframe, flying_line, load_controllers
 
@@ -36,7 +37,7 @@ def _answers(sitl, fault: Fault | None, start: int) -> dict:
 
 
 def measure_loop(controller: str, seconds: float, rate_hz: float, rig: str = "rig",
-                 mavlink: bool = False, fault: Fault | None = None, airframe: str = "iris") -> dict:
+                 mavlink: bool = False, fault: Fault | None = None, airframe: str = DEFAULT_AIRFRAME) -> dict:
     """DESIGN.md's `bench loop` figures in real time: the scripted doublets, or with `mavlink`
     the Vehicle flown in OFFBOARD by a peer process sending 100 Hz setpoints while every
     telemetry stream goes out to two peers. `fault` is injected into the twin when the measured
@@ -98,7 +99,7 @@ def _measure(controller: str, seconds: float, rate: float, args, fault: Fault | 
     tag = "" if fault is None else f" with {fault.describe()}"
     if not quiet:
         print(f"running {controller} at {rate:.0f} Hz for {seconds:g} s{tag} ...", file=sys.stderr)
-    airframe = getattr(args, "airframe", "iris")
+    airframe = getattr(args, "airframe", DEFAULT_AIRFRAME)
     result = measure_loop(controller, seconds, rate, args.rig, False, fault, airframe)
     if getattr(args, "mavlink", False):
         if not quiet:
@@ -123,7 +124,7 @@ def bench_loop(args) -> int:
     rates = args.rate or [1000.0]
     fault: Fault | None = getattr(args, "fault", None)
     # A bad --controller, or one not for the airframe, fails here, before the line below.
-    load_controllers(controller, rates[0], firmware_airframe(getattr(args, "airframe", "iris"))[1])
+    load_controllers(controller, rates[0], firmware_airframe(getattr(args, "airframe", DEFAULT_AIRFRAME))[1])
     print(flying_line(controller), file=sys.stderr)
     results = []
     for rate in rates:

@@ -40,7 +40,7 @@ from fcemu.firmware.loop import Command, FlightLoop
 from fcemu.firmware.mixer import BETAFLIGHT_QUAD_X
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.firmware.timing import LockstepClock
-from fcemu.sim_bridge.airframe import Airframe, load_airframe
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME, Airframe, load_airframe
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sim_bridge.link import InProcessLink
 from fcemu.sim_bridge.tasks import episodic_commands
@@ -70,7 +70,7 @@ class _Hold:
 
 
 def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, progress: bool = False,
-              airframe: Airframe | str = "iris") -> Traces:
+              airframe: Airframe | str = DEFAULT_AIRFRAME) -> Traces:
     """fcemu's firmware loop, lockstep on the rig, each command from rest (as `fcemu eval`)."""
     twin = Twin(airframe, rig="rig")
     controller = load_controller(spec, airframe=airframe_spec(twin.airframe))
@@ -89,7 +89,7 @@ def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, prog
 
 def fly_betaflight(commands: np.ndarray, throttle_ch: int, ticks: int, run_dir: Path, speed: float,
                    rc: RcMap, progress: bool = False, firmware: NeuralFirmware | None = None,
-                   airframe: Airframe | str = "iris") -> Traces:
+                   airframe: Airframe | str = DEFAULT_AIRFRAME) -> Traces:
     bar = tqdm(total=len(commands), desc="betaflight", unit="ep", disable=not progress, leave=False)
     with BetaflightFlight(run_dir, Twin(airframe, rig="rig"), rc, speed=speed, firmware=firmware,
                           neural=firmware is not None) as flight:
@@ -111,7 +111,7 @@ def first_answer_tick(pwm: np.ndarray, idle_us: float) -> int:
 
 
 def replay_residual(bf: Traces, spec: str, throttle: float, idle_us: float,
-                    airframe: Airframe | str = "iris") -> dict[str, Any]:
+                    airframe: Airframe | str = DEFAULT_AIRFRAME) -> dict[str, Any]:
     """Open loop: `spec` gets Betaflight's gyro and command each tick (the command from the tick
     Betaflight first answered it); the rms difference of the per-axis motor mix (µs) from
     Betaflight's, pooled over all episodes and as the median of the episodes' rms."""
@@ -269,7 +269,7 @@ def _run(args) -> int:
     if args.rig == "free":
         return _run_free(args, rc, firmware)
     commands = rc.quantise(episodic_commands(args.seed, args.episodes))
-    airframe = load_airframe(getattr(args, "airframe", "iris"))
+    airframe = load_airframe(getattr(args, "airframe", DEFAULT_AIRFRAME))
     hover = airframe.hover_throttle()
     throttle_ch = rc.throttle_channel(hover)
     ticks = round(args.episode_s * 1000)
@@ -342,7 +342,7 @@ def _run_free(args, rc: RcMap, firmware: NeuralFirmware | None) -> int:
         raise BetaflightError(f"--rig free with --firmware: NEURAL is on until {NEURAL_WINDOW_S[1]:g} s; "
                               "give --duration longer than that (the PID lands after it)")
     window = NEURAL_WINDOW_S if firmware else None
-    airframe = load_airframe(getattr(args, "airframe", "iris"))
+    airframe = load_airframe(getattr(args, "airframe", DEFAULT_AIRFRAME))
     twin = Twin(airframe, rig="free")
     with BetaflightFlight(run_dir, twin, rc, speed=args.speed, firmware=firmware) as flight:
         traces = flight.fly_script(scripted_flight("free", hover=airframe.hover_throttle()), args.duration,

@@ -30,6 +30,7 @@ from fcemu import __version__
 from fcemu.firmware.airframe_spec import AirframeSpec, Envelope
 from fcemu.firmware.neural import META_PREFIX, NeuralRateController
 from fcemu.firmware.observation import ObservationSpec, observe_step
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.airframe_spec import airframe_spec, envelope
 
 ALGORITHMS = ("ppo", "trpo", "ddpg", "td3", "sac")
@@ -206,7 +207,7 @@ def _write_graph(module: nn.Module, size: int, out: Path, obs: np.ndarray, expec
 def trained_on(cfg: dict) -> tuple[AirframeSpec, Envelope]:
     """The airframe a run's config names and the envelope its randomisation spanned (± a margin
     where the run names no randomisation file)."""
-    airframe = cfg.get("airframe", "iris")
+    airframe = cfg.get("airframe", DEFAULT_AIRFRAME)
     randomize = cfg.get("randomize")
     try:
         return airframe_spec(airframe), envelope(airframe, randomize if isinstance(randomize, str) else None)

@@ -28,6 +28,7 @@ from fcemu.sim_bridge.airframe_file import (
 )
 
 AIRFRAME_DIR = Path(__file__).parent / "airframes"
+DEFAULT_AIRFRAME = "iris"  # what every command flies unless told otherwise
 FLU_FROM_FRD = np.array([1.0, -1.0, -1.0])  # also NED <-> (north, west, up)
 RIGS = ("rig", "free")
 LEG_RADIUS = 0.01
@@ -234,7 +235,7 @@ def effect_fields() -> tuple[str, ...]:
     return tuple(f.name for f in fields(Airframe) if f.name in EFFECT_KEYS.values())
 
 
-def load_airframe(name_or_path: str | Path = "iris") -> Airframe:
+def load_airframe(name_or_path: str | Path = DEFAULT_AIRFRAME) -> Airframe:
     """The airframe of a shipped name or a file; an `AirframeError` names the field of any problem."""
     path, raw = _read(name_or_path)
     check_airframe_file(path, raw)

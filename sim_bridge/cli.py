@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     twin = sub.add_parser("twin", help="the digital twin on its own")
@@ -13,7 +15,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument("--host", default="127.0.0.1")
     serve.add_argument("--port", type=int, default=9002)
     serve.add_argument("--rig", choices=("rig", "free"), default="rig")
-    serve.add_argument("--airframe", default="iris", help="airframe name or JSON file")
+    serve.add_argument("--airframe", default=DEFAULT_AIRFRAME, help="airframe name or JSON file")
     serve.add_argument("--quiet", action="store_true", help="no periodic status line")
     serve.set_defaults(handler="fcemu.sim_bridge.twin_server:serve_command")
 

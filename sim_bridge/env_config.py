@@ -25,13 +25,12 @@ from typing import Any
 
 from fcemu.firmware.action import ACTION_MAPPINGS, DEFAULT_ACTION_MAPPING
 from fcemu.firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK, FIELDS, ObservationSpec
-from fcemu.sim_bridge.airframe import Airframe, load_airframe
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME, Airframe, load_airframe
 from fcemu.sim_bridge.plant import SensorNoise
 from fcemu.sim_bridge.randomization import RELATIVE, Randomization, randomization_path, ranges_for
 from fcemu.sim_bridge.reward import REWARDS, UNWEIGHTED, RateReward
 from fcemu.sim_bridge.tasks import HOLD_S, OMEGA_MAX, REST_S, TRAINING_TASKS
 
-DEFAULT_AIRFRAME = "iris"  # what every command flies unless told otherwise
 TASKS = TRAINING_TASKS
 RANDOMIZE_KEYS = ("mass", "inertia", "kf", "km")  # also the draw order
 DEFAULT_EPISODE_S = {"episodic": 1.0, "continuous": 10.0}

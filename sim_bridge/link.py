@@ -25,6 +25,7 @@ from typing import Protocol, TypeVar
 import numpy as np
 
 from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.protocol import (
     FRAME_MSG,
     HEADER,
@@ -261,7 +262,7 @@ class UdpTwinClient:
         raise RemoteError(msg.code, msg.text, seq)
 
 
-def spawn_server(rig: str = "rig", airframe: str = "iris", host: str = "127.0.0.1",
+def spawn_server(rig: str = "rig", airframe: str = DEFAULT_AIRFRAME, host: str = "127.0.0.1",
                  startup_timeout: float = 30.0) -> tuple[subprocess.Popen, tuple[str, int]]:
     """Start `fcemu twin serve` on a free port in another process; returns it and its address."""
     proc = subprocess.Popen(

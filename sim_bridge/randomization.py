@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from fcemu.sim_bridge.airframe import AIRFRAME_DIR, Airframe, load_airframe
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR, DEFAULT_AIRFRAME, Airframe, load_airframe
 
 SUFFIX = ".randomization.json"
 RELATIVE = "relative"  # the shipped ranges relative to any airframe (sim_bridge.relative_ranges)
@@ -191,7 +191,8 @@ def randomization_path(name_or_path: str | Path) -> Path:
     return path if path.suffix else AIRFRAME_DIR / f"{name_or_path}{SUFFIX}"
 
 
-def load_randomization(name_or_path: str | Path = "iris", airframe: Airframe | None = None) -> Randomization:
+def load_randomization(name_or_path: str | Path = DEFAULT_AIRFRAME,
+                       airframe: Airframe | None = None) -> Randomization:
     """Read, validate and check against its airframe; every problem is a `RandomizationError`.
 
     Ranges relative to the airframe (`relative`) need `airframe` and are built for it; absolute

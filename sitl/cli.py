@@ -7,6 +7,8 @@ import math
 from collections.abc import Callable
 from typing import TypeVar
 
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
+
 T = TypeVar("T", int, float)
 
 
@@ -68,7 +70,7 @@ _peer = _accepted_by(_check_peer)
 
 def add_airframe_option(p: argparse.ArgumentParser, what: str = "the twin flies and the firmware is "
                         "configured for (its PID tune, health rules, hover throttle)") -> None:
-    p.add_argument("--airframe", default="iris", metavar="NAME|FILE",
+    p.add_argument("--airframe", default=DEFAULT_AIRFRAME, metavar="NAME|FILE",
                    help=f"the airframe {what}: sim_bridge/airframes/NAME.json or a file (default iris)")
 
 

@@ -23,6 +23,7 @@ from fcemu.firmware.controllers import load_controller
 from fcemu.firmware.health import HealthMonitor, HealthRules
 from fcemu.firmware.loop import Commander, FlightLoop, ScriptedCommander, TelemetrySink, TickSample
 from fcemu.firmware.timing import LockstepClock, RealTimeClock, give_loop_a_core, prioritize_loop
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
 
 # A loop that shares its CPU sleeps between ticks and spins only this last stretch (time.sleep
 # overshoots): spinning through the period would starve the MAVLink processes beside it.
@@ -93,7 +94,7 @@ def parse_speed(text: str) -> float | None:
 
 
 def scripted_flight(rig: str, controller: str = "pid", hover: float | None = None,
-                    airframe: str = "iris") -> ScriptedCommander:
+                    airframe: str = DEFAULT_AIRFRAME) -> ScriptedCommander:
     """What `fcemu sitl --no-mavlink` flies: rate doublets on each axis in turn, about `hover`
     (the throttle that holds the weight; None: `airframe`'s)."""
     if hover is None:
@@ -150,7 +151,7 @@ def firmware_airframe(airframe: str | object) -> tuple[object, AirframeSpec]:
 def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, realtime: bool = True,
                commander: Commander | None = None, sinks: Sequence[TelemetrySink] = (),
                twin_address: tuple[str, int] | None = None, speed: float = 1.0,
-               spin_us: int | None = None, airframe: str | object = "iris") -> Sitl:
+               spin_us: int | None = None, airframe: str | object = DEFAULT_AIRFRAME) -> Sitl:
     """`airframe` (a name, a file or an Airframe): the twin's, and what the firmware's controllers,
     health rules and scripted hover are for (over UDP, the remote twin must fly the same one)."""
     from fcemu.sim_bridge.link import InProcessLink, UdpTwinClient
@@ -232,7 +233,7 @@ class VehicleSitl:
 
 def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float | None, config,
                        explicit_controller: bool = True, spin_us: int | None = None,
-                       airframe: str | object = "iris") -> VehicleSitl:
+                       airframe: str | object = DEFAULT_AIRFRAME) -> VehicleSitl:
     """Build the loop with a `Vehicle` commander and start its MAVLink process (`config`)."""
     from fcemu.firmware.mavlink.bridge import LinkedVehicle, start_mavlink
     from fcemu.firmware.params import ParamTable
