@@ -101,14 +101,16 @@ def fly_together(peers: list[Peer], seconds: float, thrust: float | None) -> Non
 def until(peers: list[Peer], cond, thrust: float | None, timeout: float = 20.0, ask=None) -> None:
     """Fly until `cond` holds for every peer; `ask(peer)` (a command) is repeated each second to
     the peers it does not hold for yet, as a ground station retries."""
-    end = time.monotonic() + timeout
+    end, next_ask = time.monotonic() + timeout, 0.0
     while not all(cond(p) for p in peers):
         assert time.monotonic() < end, [(p.sysid, p.state(), [(a.command, a.result) for a in p.acks])
                                         for p in peers]
-        for peer in peers:
-            if ask is not None and not cond(peer):
-                ask(peer)
-        fly_together(peers, 1.0, thrust)
+        if ask is not None and time.monotonic() >= next_ask:
+            for peer in peers:
+                if not cond(peer):
+                    ask(peer)
+            next_ask = time.monotonic() + 1.0
+        fly_together(peers, 0.1, thrust)
 
 
 @pytest.mark.slow
