@@ -95,13 +95,15 @@ class HealthRules:
     esc_lag_ticks: int = 10
     esc_lag_motion: float = 0.002
     # The fit's own settings (module docstring): the model's slope taken over 6 ms (twice the
-    # limit, so a 3-5 ms lag interpolates within it); a misfit worth judging, 0.5 % of top speed
-    # RMS; a 5 ms lag explains 60-100 % of what the gain leaves, a sagging battery's transient
-    # 2-13 % (docs/results/faults.md); a late copy of the speed has no gain error, a dead motor
-    # or a 0.75 battery one of 0.25.
+    # limit, so a 3-5 ms lag interpolates within it). A lag worth judging moves the reading by
+    # 0.9 % of the top speed RMS (10 rad/s on the Iris; a 5 ms lag of the in-flight task moves it
+    # 11-28) and explains 60 % of what a gain error leaves (a 5 ms lag: 62-100 %; a sagging
+    # battery's transient 2-13 %; iris_realistic's 1-tick ESC, sagging battery and noisy gyro
+    # together 45-66 %, RMS 7-12). A late copy of the speed has no gain error; a dead motor or a
+    # 0.75 battery one of 0.25.
     esc_lag_base_s: float = 0.006
-    esc_lag_misfit: float = 0.005
-    esc_lag_explains: float = 0.4
+    esc_lag_misfit: float = 0.009
+    esc_lag_explains: float = 0.6
     esc_lag_gain_max: float = 0.1
 
     @classmethod
