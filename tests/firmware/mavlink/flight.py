@@ -71,6 +71,9 @@ class Flight:
 
 
 def params(conn, flight: Flight) -> dict[str, float]:
+    for _ in range(100_000):  # what queued meanwhile first: a full socket buffer would drop the list
+        if conn.recv_msg() is None:
+            break
     conn.mav.param_request_list_send(1, 1)
     values: dict[str, float] = {}
     deadline = time.monotonic() + 15
