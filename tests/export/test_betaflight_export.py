@@ -103,6 +103,7 @@ def stm32_export(tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(480)  # the first one builds both images: 270 s on two busy cores
 @pytest.mark.parametrize("chip", CHIPS, ids=lambda c: c.target)
 def test_the_stm32_image_builds_with_the_policy_in_it_and_fits_the_chip(stm32_export, chip):
     out, manifest = stm32_export
