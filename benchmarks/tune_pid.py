@@ -16,7 +16,7 @@ import sys
 
 from fcemu.firmware.errors import UserError
 from fcemu.training.cli import register_tune
-from fcemu.training.pid_tune import tune_command
+from fcemu.training.pid_tune_cli import tune_command
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -79,7 +79,7 @@ def register_tune(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rounds", type=int, default=12,
                    help="most rounds of the search per stage, if the budget lasts (default 12)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
-    p.set_defaults(handler="fcemu.training.pid_tune:tune_command")
+    p.set_defaults(handler="fcemu.training.pid_tune_cli:tune_command")
 
 
 def user_error(message: str) -> int:

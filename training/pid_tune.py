@@ -1,4 +1,4 @@
-"""`fcemu tune`: a Betaflight-style rate PID tuned for any airframe in minutes.
+"""A Betaflight-style rate PID tuned for any airframe in minutes (`fcemu tune`: `training.pid_tune_cli`).
 
     fcemu tune --airframe x500 --out runs/tune_x500 --json
 
@@ -27,8 +27,6 @@ import hashlib
 import json
 import math
 import os
-import signal
-import sys
 import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -39,7 +37,6 @@ import numpy as np
 from fcemu.firmware.errors import UserError
 from fcemu.firmware.mixer import QuadXMixer
 from fcemu.firmware.pid_controller import load_preset
-from fcemu.firmware.timing import available_cpus
 from fcemu.sim_bridge.airframe import Airframe, effect_fields, load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.training.pid_search import AXES, CandidatePool, Knob, Score, SearchState, pattern_search
@@ -79,6 +76,35 @@ def nominal(airframe: Airframe) -> Airframe:
     """The airframe with every effect at its nominal-twin default (what `rig_constants` reads)."""
     defaults = {f.name: f.default for f in fields(Airframe) if f.name in effect_fields()}
     return replace(airframe, **defaults)
+
+
+def settle_limits(airframe: Airframe, commands: np.ndarray) -> dict[str, Any]:
+    """What physics allows Success: per axis, the largest angular acceleration any motor command
+    gives (each motor at full thrust where it helps, off where it does not; no lag, no spin-up),
+    the largest command that could still meet Success's rule (mean |Ω* − Ω| over 0.5–1 s at most
+    10 % of it) flying at that acceleration from rest, and how many of `commands` ask for more:
+    no controller settles those, so they fail Success on that axis."""
+    from fcemu.evaluation.bound import rig_constants
+    from fcemu.evaluation.metrics import SETTLE_S, SUCCESS_BAND
+
+    rig = rig_constants(nominal(airframe))
+    t_max = rig.kf * rig.w_max**2
+    accel = np.array([np.clip(rig.B[j], 0.0, None).sum() for j in range(3)]) * t_max
+    window = np.linspace(SETTLE_S, 1.0, 501)
+
+    def settles(e0: float, a: float) -> bool:
+        return float(np.maximum(e0 - a * window, 0.0).mean()) <= SUCCESS_BAND * e0
+
+    largest = []
+    for a in accel:
+        lo, hi = 0.0, a * 2.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if settles(mid, a) else (lo, mid)
+        largest.append(lo)
+    over = (np.abs(np.asarray(commands)) > np.array(largest)).sum(axis=0)
+    return {"max_angular_acceleration_rad_s2": per_axis(accel), "largest_settleable_rad_s": per_axis(largest),
+            "unsettleable_commands": {a: int(n) for a, n in zip(AXES, over, strict=True)}}
 
 
 def loop_physics(airframe: Airframe, mixer: QuadXMixer | None = None, dt: float = 0.001) -> LoopPhysics:
@@ -283,107 +309,6 @@ class Tuner:
                                                "met": bool(rough <= SMOOTHNESS_CAP + 1e-9)},
         }
         out["meets_lines"] = all(v["met"] for v in out["lines"].values())
+        out["settle_limits"] = settle_limits(self.airframe, cmds)
         out["wall_s"] = {"bound": bound["wall_s"], "flights": round(time.monotonic() - t_check, 1)}
         return out
-
-
-def failure_reasons(check: dict[str, Any]) -> list[str]:
-    """One sentence per line the held-out check does not meet, with the numbers that say why."""
-    reasons = []
-    lines, tuned = check["lines"], check["tuned"]
-    if lines["error_times_bound"]["met"] is False:
-        bound = check["bound"]
-        split = bound["split_at_optimum"]
-        axes = ", ".join(f"{a} {tuned['error'][a]:.1f} vs {split[a]:.1f}" for a in AXES)
-        worst = max(AXES, key=lambda a: tuned["error"][a] - split[a])
-        reasons.append(f"Error {tuned['error_sum']:.1f} = {tuned['times_bound']:.3f} × the bound "
-                       f"{bound['sum']:.1f} (line {TIMES_BOUND_LINE}); per axis, tuned vs the optimum's "
-                       f"split: {axes}; most of the excess is on {worst}")
-    elif lines["error_times_bound"]["met"] is None:
-        reasons.append(f"no bound: {check['bound_refused']}")
-    if not lines["success_pct"]["met"]:
-        low = [f"{a} {v:.1f} %" for a, v in tuned["success_pct"].items() if v is None or v < SUCCESS_LINE]
-        reasons.append(f"Success below {SUCCESS_LINE} % on {', '.join(low)}")
-    if not lines["smoothness_noisy_gyro_vs_start"]["met"]:
-        rough = lines["smoothness_noisy_gyro_vs_start"]["value"]
-        reasons.append(f"motors {rough:.2f} × the start's roughness on the noisy gyro "
-                       f"(line {SMOOTHNESS_CAP})")
-    return reasons
-
-
-def dumps(preset: dict[str, Any]) -> str:
-    """Indented JSON with every list of numbers on one line (the presets' layout)."""
-    import re
-
-    text = json.dumps(preset, indent=2)
-    flat = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + re.sub(r"\s+", " ", m.group(1)) + "]", text)
-    return flat + "\n"
-
-
-def tune(opts: TuneOptions, log: Any = None) -> tuple[dict[str, Any], dict[str, Any]]:
-    """(the tuned preset with its "tuning" record, the summary `--json` prints)."""
-    tuner = Tuner(opts, log)
-    tuned, record, check = tuner.run()
-    wall = round(tuner.elapsed(), 1)
-    command = (f"fcemu tune --airframe {opts.airframe} --seed {opts.seed} --episodes {opts.episodes} "
-               f"--check-episodes {opts.check_episodes} --rounds {opts.rounds} --budget-s {opts.budget_s:g} "
-               f"--jobs {opts.jobs}")
-    summary = {"airframe": opts.airframe, "cost_version": COST_VERSION, "command": command,
-               "physics": tuner.physics.to_json(),
-               "reference": {"airframe": REFERENCE[0], "preset": REFERENCE[1],
-                             "physics": tuner.ref_physics.to_json()},
-               "gyro_noise": opts.gyro_noise, "smoothness_cap": SMOOTHNESS_CAP, **record,
-               "held_out": check, "meets_lines": check["meets_lines"], "fails": failure_reasons(check),
-               "time_s": {"bound": check["wall_s"]["bound"],
-                          **{s["stage"]: s["wall_s"] for s in record["stages"]},
-                          "check": check["wall_s"]["flights"], "total": wall},
-               "budget_s": opts.budget_s}
-    preset = {"name": tuner.start["name"],
-              "description": (f"PID tuned for the {tuner.airframe.name} twin by `{command}`: the Iris tune "
-                              "carried over by the loop's physics, then searched on the noise-free twin and "
-                              "with a noisy gyro. Gains in GymFC units: see firmware/pid.py."),
-              "pid": tuned["pid"], "mixer": tuned["mixer"],
-              "tuning": {k: summary[k] for k in ("airframe", "cost_version", "command", "seed", "episodes",
-                                                 "gyro_noise", "smoothness_cap", "stages", "tuning_set",
-                                                 "held_out", "time_s")}}
-    return preset, summary
-
-
-def _exit_on_sigterm(signum: int, frame: Any) -> None:
-    raise SystemExit(128 + signum)
-
-
-def tune_command(args: Any) -> int:
-    """`fcemu tune`: tune, write DIR/pid.json, report on stderr (and one JSON object on stdout)."""
-    if args.budget_s <= 0 or min(args.episodes, args.check_episodes, args.rounds) < 1 or args.jobs < 0:
-        raise UserError("tune: --budget-s must be > 0, --episodes, --check-episodes and --rounds ≥ 1, "
-                        "--jobs ≥ 0")
-    try:
-        load_airframe(args.airframe)
-    except (FileNotFoundError, ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise UserError(f"tune: cannot load airframe {args.airframe!r}: {exc}") from None
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write-test"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as exc:
-        raise UserError(f"tune: --out {out} is not a writable directory: {exc.strerror or exc}") from None
-    jobs = args.jobs or available_cpus()
-    opts = TuneOptions(args.airframe, args.seed, args.episodes, args.check_episodes, args.budget_s, jobs,
-                       args.rounds)
-    before = signal.signal(signal.SIGTERM, _exit_on_sigterm)  # so the workers are stopped with the tune
-    try:
-        preset, summary = tune(opts, log=lambda line: print(line, file=sys.stderr, flush=True))
-    finally:
-        signal.signal(signal.SIGTERM, before)
-    path = out / "pid.json"
-    path.write_text(dumps(preset))
-    summary["preset"] = str(path)
-    (out / "tune.json").write_text(json.dumps(summary, indent=2) + "\n")
-    verdict = "meets every line" if summary["meets_lines"] else "fails: " + "; ".join(summary["fails"])
-    print(f"wrote {path} in {summary['time_s']['total']:.0f} s; held out: {verdict}", file=sys.stderr)
-    if args.json:
-        print(json.dumps(summary))
-    return 0

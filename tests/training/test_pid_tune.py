@@ -9,8 +9,9 @@ from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.mixer import QuadXMixer
 from fcemu.firmware.pid_controller import load_preset
 from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.training.pid_search import Score
-from fcemu.training.pid_tune import SMOOTHNESS_CAP, carried_over, cost, knobs_for, loop_physics
+from fcemu.training.pid_tune import SMOOTHNESS_CAP, carried_over, cost, knobs_for, loop_physics, settle_limits
 
 
 def test_loop_physics_follows_inertia_thrust_and_motor_lag():
@@ -40,6 +41,18 @@ def test_the_reference_airframe_starts_from_the_reference_tune_and_others_scale_
     assert start["dterm_lowpass_hz"] == pytest.approx(iris_preset["pid"]["dterm_lowpass_hz"] / 2.0)
     knobs = {k.name: k for k in knobs_for(iris, slower)}
     assert knobs["kp_roll"].lowest < start["kp"][0] < knobs["kp_roll"].highest
+
+
+def test_settle_limits_say_which_commands_no_controller_settles():
+    commands = episodic_commands(2019, 50)
+    iris = settle_limits(load_airframe("iris"), commands)
+    assert iris["unsettleable_commands"] == {"roll": 0, "pitch": 0, "yaw": 0}
+    weak_yaw = settle_limits(load_airframe("iris").scaled(km=0.05), commands)
+    accel = weak_yaw["max_angular_acceleration_rad_s2"]["yaw"]
+    assert accel == pytest.approx(0.05 * iris["max_angular_acceleration_rad_s2"]["yaw"], abs=0.01)
+    largest = weak_yaw["largest_settleable_rad_s"]["yaw"]
+    assert 0.5 * accel < largest < accel  # it must be reached by about half the window
+    assert weak_yaw["unsettleable_commands"]["yaw"] == int((np.abs(commands[:, 2]) > largest).sum()) > 0
 
 
 def _score(error: float = 100.0, smoothness: float = 2.0, success: float = 100.0) -> Score:
