@@ -12,13 +12,14 @@ crossover kp·B, which a lag τ limits to ∝ 1/τ; so from the reference airfra
     kd = kd_r·(B_r/B)              kff = kff_r·(B_r/B)      filter cut-offs ×τ_r/τ
 
 (D and feedforward add an acceleration per rate change: dimensionless, so only B scales
-them.) The search bounds move with the gains. Then `pid_search.pattern_search` refines the
-start in two stages on the tuning commands (seed S): on the noise-free twin, then with a gyro
-of 0.01 rad/s white noise, where the cost caps the motors' roughness (mean |Δpwm|) at
-`SMOOTHNESS_CAP` × the start's on the same noisy gyro, so no gain buys step response with
-motor noise. The result is checked on held-out commands (seed S + 1) against `fcemu bound`'s
-lower bound on the Error (`evaluation.bound`), and written as a preset that
-`--controller pid:DIR/pid.json` flies.
+them.) An axis of less authority than the reference's gets its pidsum limit raised (up to the
+whole output range) to keep the reference's angular acceleration at the limit. The search
+bounds move with the gains. Then `pid_search.pattern_search` refines the start in two stages
+on the tuning commands (seed S): on the noise-free twin, then with a gyro of 0.01 rad/s white
+noise, where the cost caps the motors' roughness (mean |Δpwm|) at `SMOOTHNESS_CAP` × the
+start's on the same noisy gyro, so no gain buys step response with motor noise. The result
+is checked on held-out commands (seed S + 1) against `fcemu bound`'s lower bound on the Error
+(`evaluation.bound`), and written as a preset that `--controller pid:DIR/pid.json` flies.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from fcemu.sim_bridge.airframe import Airframe, effect_fields, load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.training.pid_search import AXES, CandidatePool, Knob, Score, SearchState, pattern_search
 
-COST_VERSION = "fcemu-pid-tune/1"
+COST_VERSION = "fcemu-pid-tune/2"
 REFERENCE = ("iris", "iris")  # (airframe, preset) the start is carried over from
 GYRO_NOISE = 0.01  # rad/s white noise per sample, a MEMS gyro's order at 1 kHz
 SMOOTHNESS_CAP = 1.2  # motor |Δpwm| on the noisy gyro, at most this × the start's
@@ -131,6 +132,10 @@ def carried_over(reference: dict[str, Any], ref: LoopPhysics, new: LoopPhysics) 
     pid = preset["pid"]
     for key, factor in scale.items():
         pid[key] = [float(f"{v * f:.9g}") for v, f in zip(pid[key], factor, strict=True)]
+    # An axis with less authority than the reference's gets at least the reference's angular
+    # acceleration at the limit, as far as the whole output range allows.
+    pid["pidsum_limit"] = [float(f"{min(1.0, v * max(1.0, g)):.9g}")
+                           for v, g in zip(pid["pidsum_limit"], gain, strict=True)]
     for key, _, (_, highest) in FILTER_KNOBS:
         if pid.get(key, 0.0) > 0.0:
             pid[key] = float(f"{min(pid[key] * speed, highest):.9g}")
@@ -156,8 +161,9 @@ def cost(s: Score, ref: Score, noisy: bool) -> float:
     3·ΣError/ΣError_ref + 0.5·Σ Rise/Rise_ref + 0.05 per % of Peak above max(110 %, the start's)
     + (100 − Success %)/5 per axis + 0.1 per % of the worst episode's settling error above
     SETTLE_MARGIN_PCT of |e0| (Success's line is 10 %: a margin for commands not tuned on)
-    + 0.25·smoothness/smoothness_ref; on the noisy gyro + 10 per unit of smoothness ratio
-    above SMOOTHNESS_CAP. Infinite if an axis never rises."""
+    + 0.25·smoothness/smoothness_ref; on the noisy gyro + 100 per unit of smoothness ratio
+    above SMOOTHNESS_CAP (a wall: no step response is bought with motor noise). Infinite if an
+    axis never rises."""
     if not np.all(np.isfinite(s.error)) or np.any(s.not_risen > 0) or not math.isfinite(s.smoothness):
         return float("inf")
     error = 3.0 * s.error.sum() / ref.error.sum()
@@ -166,7 +172,7 @@ def cost(s: Score, ref: Score, noisy: bool) -> float:
     failed = float(np.sum(100.0 - s.success_pct)) / 5.0
     failed += 0.1 * float(np.sum(np.maximum(s.worst_settle_pct - SETTLE_MARGIN_PCT, 0.0)))
     rough = s.smoothness / ref.smoothness
-    shaking = 0.25 * rough + (10.0 * max(rough - SMOOTHNESS_CAP, 0.0) if noisy else 0.0)
+    shaking = 0.25 * rough + (100.0 * max(rough - SMOOTHNESS_CAP, 0.0) if noisy else 0.0)
     return float(error + rise + overshoot + failed + shaking)
 
 

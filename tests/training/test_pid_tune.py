@@ -39,6 +39,8 @@ def test_the_reference_airframe_starts_from_the_reference_tune_and_others_scale_
     np.testing.assert_allclose(start["ki"], np.array(iris_preset["pid"]["ki"]) * gain / 4.0, rtol=1e-5)
     np.testing.assert_allclose(start["kd"], np.array(iris_preset["pid"]["kd"]) * gain, rtol=1e-5)
     assert start["dterm_lowpass_hz"] == pytest.approx(iris_preset["pid"]["dterm_lowpass_hz"] / 2.0)
+    limits = np.minimum(1.0, np.array(iris_preset["pid"]["pidsum_limit"]) * gain)
+    np.testing.assert_allclose(start["pidsum_limit"], limits, rtol=1e-6)
     knobs = {k.name: k for k in knobs_for(iris, slower)}
     assert knobs["kp_roll"].lowest < start["kp"][0] < knobs["kp_roll"].highest
 
@@ -66,7 +68,7 @@ def test_cost_rewards_error_and_caps_motor_roughness_on_the_noisy_gyro():
     assert cost(_score(error=90.0), ref, True) < cost(ref, ref, True)
     assert cost(_score(success=98.0), ref, True) > cost(ref, ref, True) + 1.0
     rough = _score(smoothness=2.0 * (SMOOTHNESS_CAP + 0.1))
-    assert cost(rough, ref, True) - cost(rough, ref, False) == pytest.approx(10.0 * 0.1)
+    assert cost(rough, ref, True) - cost(rough, ref, False) == pytest.approx(100.0 * 0.1)
     never = Score(ref.error, ref.rise_ms, ref.peak_pct, ref.success_pct, np.array([0, 1, 0]), 2.0,
                   ref.worst_settle_pct)
     assert cost(never, ref, False) == float("inf")
