@@ -188,6 +188,11 @@ class TuneOptions:
     gyro_noise: float = GYRO_NOISE
 
 
+def _finite(value: float) -> float | None:
+    """Rounded for the JSON; None for an infinite cost (a start on which an axis never rises)."""
+    return round(value, 4) if math.isfinite(value) else None
+
+
 def bound_cache_path(rig: Any, commands: np.ndarray, horizon: int) -> Path:
     """Where the bound of these commands on this rig is kept: it depends on nothing else (not on
     the PID), and its programmes cost more than the search on a small machine."""
@@ -283,7 +288,7 @@ class Tuner:
             self.say(name, f"done: cost {state.cost:.4f} after {state.evaluations} flights of "
                            f"{o.episodes} commands ({state.score.line()})")
             stages.append({"stage": name, "gyro_noise": o.gyro_noise if noisy else 0.0,
-                           "start_cost": round(cost(ref, ref, noisy), 4), "cost": round(state.cost, 4),
+                           "start_cost": _finite(cost(ref, ref, noisy)), "cost": _finite(state.cost),
                            "evaluations": state.evaluations, "rounds": state.rounds,
                            "wall_s": round(time.monotonic() - t_stage, 1)})
             scores[name] = {"start": ref.to_json(), "tuned": state.score.to_json()}
