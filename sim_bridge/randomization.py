@@ -237,6 +237,17 @@ def ranges_for(airframe: Airframe | str | Path, name_or_path: str | Path | None 
     return load_randomization(name_or_path, airframe)
 
 
+def known_parameters(raw: dict, where: str) -> dict:
+    """The file's "parameters" object, refused unless non-empty and every key is in `PARAMETERS`."""
+    params = raw.get("parameters")
+    if not isinstance(params, dict) or not params:
+        raise RandomizationError(f"{where}: \"parameters\" must be a non-empty object")
+    unknown = sorted(set(params) - set(PARAMETERS))
+    if unknown:
+        raise RandomizationError(f"{where}: unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
+    return params
+
+
 def parse_randomization(raw: Any, where: str = "ranges") -> Randomization:
     """Validate the file's JSON object: known keys, finite numbers (positive, lo <= nominal <= hi for
     scale factors; >= 0 for effects; whole for ticks), lo <= hi, a source."""
@@ -245,12 +256,7 @@ def parse_randomization(raw: Any, where: str = "ranges") -> Randomization:
     airframe = raw.get("airframe")
     if not isinstance(airframe, str) or not airframe:
         raise RandomizationError(f"{where}: \"airframe\" must name the airframe file the ranges are for")
-    params = raw.get("parameters")
-    if not isinstance(params, dict) or not params:
-        raise RandomizationError(f"{where}: \"parameters\" must be a non-empty object")
-    unknown = sorted(set(params) - set(PARAMETERS))
-    if unknown:
-        raise RandomizationError(f"{where}: unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
+    params = known_parameters(raw, where)
     ranges = Randomization(airframe, tuple(_parameter(key, entry, where) for key, entry in params.items()))
     _check_inertia(ranges, where)
     return ranges

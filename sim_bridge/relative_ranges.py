@@ -20,7 +20,7 @@ from typing import Any
 
 from fcemu.sim_bridge.airframe import Airframe
 from fcemu.sim_bridge.airframe_file import GRAVITY
-from fcemu.sim_bridge.randomization import PARAMETERS, RandomizationError
+from fcemu.sim_bridge.randomization import PARAMETERS, RandomizationError, known_parameters
 
 AIR_DENSITY = 1.225  # kg/m³, ISA sea level
 # PX4 SITL's Iris rotor drag (gazebo_motor_model rotorDragCoefficient) for its 10-inch props; the
@@ -101,12 +101,7 @@ def is_relative(raw: Any) -> bool:
 
 def absolute_ranges(raw: dict, airframe: Airframe, where: str) -> dict:
     """The relative file `raw` on `airframe`, as an absolute randomisation file's JSON object."""
-    params = raw.get("parameters")
-    if not isinstance(params, dict) or not params:
-        raise RandomizationError(f"{where}: \"parameters\" must be a non-empty object")
-    unknown = sorted(set(params) - set(PARAMETERS))
-    if unknown:
-        raise RandomizationError(f"{where}: unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
+    params = known_parameters(raw, where)
     out = {key: _absolute(key, entry, airframe, f"{where}: {key}") for key, entry in params.items()}
     if all(key in out for key in INERTIA_AXES):
         _rigid(out)
