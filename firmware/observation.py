@@ -28,7 +28,6 @@ the model) and a batch (arrays with any leading shape), with the same IEEE opera
 from __future__ import annotations
 
 import json
-import warnings
 from dataclasses import InitVar, asdict, dataclass
 from functools import cached_property
 from operator import itemgetter, mul
@@ -82,11 +81,6 @@ FIELD_DEFS: dict[str, FieldDef] = {
 LEAKS = frozenset(d.leak for d in FIELD_DEFS.values() if d.leak)  # the spec's λ attributes
 
 
-# What a spec built without its airframe scaled rotor speed by (the shipped policies' scale):
-# kept while callers move to `max_rotor_speed=`; each such build warns.
-_UNSCALED_FALLBACK = 1.0 / 1100.0  # airframe-constant: allowed until every caller passes max_rotor_speed
-
-
 @dataclass(frozen=True)
 class ObservationSpec:
     """`rotor_speed_scale` is 1 / the airframe's max rotor speed: give it, or `max_rotor_speed`."""
@@ -108,9 +102,8 @@ class ObservationSpec:
                 raise ValueError(f"max_rotor_speed must be > 0 rad/s, got {max_rotor_speed}")
             object.__setattr__(self, "rotor_speed_scale", 1.0 / max_rotor_speed)
         elif self.rotor_speed_scale is None:
-            warnings.warn("ObservationSpec without max_rotor_speed: pass the airframe's "
-                          "(motor.max_rotor_speed)", DeprecationWarning, stacklevel=3)
-            object.__setattr__(self, "rotor_speed_scale", _UNSCALED_FALLBACK)
+            raise ValueError("an observation spec needs its airframe's top rotor speed: give max_rotor_speed "
+                             "(rad/s) or rotor_speed_scale")
         if self.memory < 1:
             raise ValueError(f"memory must be >= 1, got {self.memory}")
         unknown = set(self.fields) - set(FIELD_DEFS)

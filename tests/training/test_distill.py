@@ -22,7 +22,7 @@ from fcemu.firmware.observation import (
     ObservationSpec,
     observe_step,
 )
-from fcemu.sim_bridge.airframe import AIRFRAME_DIR
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR, DEFAULT_AIRFRAME, load_airframe
 from fcemu.training.distill import (
     DistillConfig,
     DistillError,
@@ -37,6 +37,11 @@ from fcemu.training.distill import (
 TEACHER = Path(__file__).parents[2] / "policies" / "iris_rate_ppo_rms64_mo.onnx"
 
 
+def _spec(**kwargs) -> ObservationSpec:
+    """An observation spec scaled for the default airframe's top rotor speed."""
+    return ObservationSpec(max_rotor_speed=load_airframe(DEFAULT_AIRFRAME).motor.max_rotor_speed, **kwargs)
+
+
 def _history(spec: ObservationSpec, steps: list[tuple[np.ndarray, ...]]) -> np.ndarray:
     """The firmware's observation after these (setpoint, gyro, rotor, previous u) steps."""
     history = ObservationHistory(spec)
@@ -48,12 +53,12 @@ def _history(spec: ObservationSpec, steps: list[tuple[np.ndarray, ...]]) -> np.n
 
 
 @pytest.mark.parametrize("student", [
-    ObservationSpec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL, RMS, MOTOR_OUTPUT)),
-    ObservationSpec(memory=1, fields=("rate_error", "rotor_speed", RMS)),
-    ObservationSpec(memory=5, fields=("rate_error", "rotor_speed", MOTOR_OUTPUT, INTEGRAL)),
+    _spec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL, RMS, MOTOR_OUTPUT)),
+    _spec(memory=1, fields=("rate_error", "rotor_speed", RMS)),
+    _spec(memory=5, fields=("rate_error", "rotor_speed", MOTOR_OUTPUT, INTEGRAL)),
 ])
 def test_each_policy_reads_from_the_union_what_the_firmware_builds_for_it(student):
-    teacher = ObservationSpec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL, RMS))
+    teacher = _spec(memory=3, fields=("rate_error", "rotor_speed", INTEGRAL, RMS))
     union = union_spec(teacher, student)
     rng = np.random.default_rng(0)
     steps = [(rng.uniform(-5, 5, 3), rng.uniform(-5, 5, 3), rng.uniform(0, 1100, 4), rng.uniform(0, 1, 4))
@@ -73,13 +78,13 @@ def test_by_default_the_student_reads_the_teachers_whole_history_and_a_bad_memor
 
 def test_a_student_with_other_leaks_than_the_teacher_is_refused():
     with pytest.raises(DistillError, match="rms_leak"):
-        union_spec(ObservationSpec(fields=("rate_error", "rotor_speed", RMS)),
-                   ObservationSpec(fields=("rate_error", "rotor_speed", RMS), rms_leak=0.9))
+        union_spec(_spec(fields=("rate_error", "rotor_speed", RMS)),
+                   _spec(fields=("rate_error", "rotor_speed", RMS), rms_leak=0.9))
 
 
 def test_a_nudge_moves_only_the_students_columns_and_the_teacher_labels_the_moved_state():
     teacher = Teacher(TEACHER)
-    student = ObservationSpec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL, RMS, MOTOR_OUTPUT),
+    student = _spec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL, RMS, MOTOR_OUTPUT),
                               integral_leak=teacher.spec.integral_leak, rms_leak=teacher.spec.rms_leak)
     union = union_spec(teacher.spec, student)
     cols = (columns(teacher.spec, union), columns(student, union))

@@ -10,7 +10,13 @@ import pytest
 import torch
 
 from fcemu.firmware.observation import INTEGRAL, MOTOR_OUTPUT, RMS, ObservationSpec
+from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME, load_airframe
 from fcemu.training.init import InitError, _widen, init_checkpoint
+
+
+def _spec(**kwargs) -> ObservationSpec:
+    """An observation spec scaled for the default airframe's top rotor speed."""
+    return ObservationSpec(max_rotor_speed=load_airframe(DEFAULT_AIRFRAME).motor.max_rotor_speed, **kwargs)
 
 
 def _run(tmp_path: Path, spec: ObservationSpec, algo: str = "ppo") -> Path:
@@ -26,8 +32,8 @@ def _config(spec: ObservationSpec, algo: str = "ppo") -> dict:
 
 
 def test_an_added_field_maps_to_no_column_and_the_others_to_theirs_step_by_step(tmp_path):
-    theirs = ObservationSpec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL))
-    ours = ObservationSpec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL, MOTOR_OUTPUT))
+    theirs = _spec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL))
+    ours = _spec(memory=2, fields=("rate_error", "rotor_speed", INTEGRAL, MOTOR_OUTPUT))
     source = init_checkpoint(str(_run(tmp_path, theirs)), _config(ours))
     assert source.added == (MOTOR_OUTPUT,)
     step0, step1 = list(range(10)), list(range(10, 20))  # their 10 columns per step, newest first
@@ -35,29 +41,29 @@ def test_an_added_field_maps_to_no_column_and_the_others_to_theirs_step_by_step(
 
 
 def test_a_field_in_the_middle_is_added_where_this_run_has_it(tmp_path):
-    theirs = ObservationSpec(fields=("rate_error", "rotor_speed", RMS))
-    ours = ObservationSpec(fields=("rate_error", "rotor_speed", INTEGRAL, RMS), integral_leak=0.99)
+    theirs = _spec(fields=("rate_error", "rotor_speed", RMS))
+    ours = _spec(fields=("rate_error", "rotor_speed", INTEGRAL, RMS), integral_leak=0.99)
     source = init_checkpoint(str(_run(tmp_path, theirs)), _config(ours))
     assert source.added == (INTEGRAL,)
     assert source.column_map().tolist() == [0, 1, 2, 3, 4, 5, 6, -1, -1, -1, 7, 8, 9]
 
 
 @pytest.mark.parametrize("ours", [
-    ObservationSpec(fields=("rate_error",)),  # a field taken away
-    ObservationSpec(memory=2, fields=("rate_error", "rotor_speed", MOTOR_OUTPUT)),  # another memory
-    ObservationSpec(fields=("rate_error", "rotor_speed", RMS, MOTOR_OUTPUT), rms_leak=0.9),  # another leak
-    ObservationSpec(fields=("rate_error", "rotor_speed", RMS, MOTOR_OUTPUT), rate_scale=0.5),  # another scale
+    _spec(fields=("rate_error",)),  # a field taken away
+    _spec(memory=2, fields=("rate_error", "rotor_speed", MOTOR_OUTPUT)),  # another memory
+    _spec(fields=("rate_error", "rotor_speed", RMS, MOTOR_OUTPUT), rms_leak=0.9),  # another leak
+    _spec(fields=("rate_error", "rotor_speed", RMS, MOTOR_OUTPUT), rate_scale=0.5),  # another scale
 ])
 def test_only_added_fields_are_accepted(tmp_path, ours):
-    run = _run(tmp_path, ObservationSpec(fields=("rate_error", "rotor_speed", RMS)))
+    run = _run(tmp_path, _spec(fields=("rate_error", "rotor_speed", RMS)))
     with pytest.raises(InitError, match="a fine-tune may only add fields"):
         init_checkpoint(str(run), _config(ours))
 
 
 def test_another_algorithm_is_refused(tmp_path):
-    run = _run(tmp_path, ObservationSpec(), algo="sac")
+    run = _run(tmp_path, _spec(), algo="sac")
     with pytest.raises(InitError, match="trained by 'sac', this run is 'ppo'"):
-        init_checkpoint(str(run), _config(ObservationSpec()))
+        init_checkpoint(str(run), _config(_spec()))
 
 
 def test_widen_puts_the_saved_columns_where_they_map_and_zeros_elsewhere():
