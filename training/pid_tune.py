@@ -251,6 +251,7 @@ class Tuner:
         else:
             n = len(self.held_out)
             every = max(1, n // 5)
+            self.say("bound", f"solving {n} linear programmes: the floor under the held-out Error")
             found = pool.bounds(self.held_out, lambda done: done % every == 0 and done < n and self.say(
                 "bound", f"{done}/{n} held-out commands"))
             per_command = np.array([[b.bound, *b.split] for b in found])
