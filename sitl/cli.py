@@ -106,6 +106,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     sitl.add_argument("--rate", type=loop_rate, default=1000.0, help="loop rate in Hz")
     sitl.add_argument("--quiet", action="store_true", help="no live status line")
     sitl.add_argument("--no-mavlink", action="store_true", help="fly the scripted doublets, no MAVLink")
+    sitl.add_argument("--ulog", default=None, metavar="FILE.ulg",
+                      help="write the flight's PX4 ULog here when it ends (gyro, rate setpoints, motor "
+                           "commands and outputs, ESC rpm at the loop rate; docs/identify.md)")
     add_airframe_option(sitl)
     add_mavlink_options(sitl)
     sitl.set_defaults(handler="fcemu.sitl.sitl:sitl_command")

@@ -312,6 +312,13 @@ def sitl_command(args) -> int:
     own_core = owns_a_core(args.instance)
     spin_us = None if own_core else SHARED_SPIN_US
     vs = None
+    ulog = None
+    if getattr(args, "ulog", None):
+        from fcemu.sitl.sitl_args import check_ulog
+        from fcemu.sitl.ulog_writer import ULogRecorder
+
+        check_ulog(args.ulog)
+        ulog = ULogRecorder()
     if args.no_mavlink:
         from fcemu.sitl.sitl_args import refuse_mavlink_options
 
@@ -327,6 +334,8 @@ def sitl_command(args) -> int:
             from fcemu.firmware.params import load_warning
 
             print(load_warning(vs.params_file, vs.param_problems), file=sys.stderr)
+    if ulog is not None:
+        sitl.loop.sinks.append(ulog)
     print(flying_line(controller), file=sys.stderr)
     extra = None
     if vs is not None:
@@ -348,6 +357,9 @@ def sitl_command(args) -> int:
           f"  misses {summary['deadline_misses']}  p99 period error "
           f"{summary['period_error_us']['p99']:.0f} µs  p99 compute {summary['compute_us']['p99']:.0f} µs"
           + (f"  faults {sitl.loop.faults}" if sitl.loop.faults else ""))
+    if ulog is not None and len(ulog):
+        written = ulog.write(args.ulog, {"ver_hw": f"fcemu SITL {args.airframe}"})
+        print(f"ulog: {written}, {len(ulog)} samples per topic")
     if vs is not None:
         print(f"vehicle: {vs.vehicle.counters or 'no events'}  ipc dropped {vs.linked.dropped}  "
               f"mavlink: {mav_stats or 'no stats'}")

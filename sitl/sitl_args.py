@@ -82,6 +82,20 @@ def check_tlog(path: str) -> None:
         raise UserError(f"--tlog {path}: cannot write it ({_reason(exc)})") from None
 
 
+def check_ulog(path: str) -> None:
+    """The ULog can be written where asked: it is written when the flight ends, too late to say so."""
+    existed = os.path.lexists(path)
+    try:
+        if Path(path).is_dir():
+            raise IsADirectoryError(21, "Is a directory")
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o644))
+        if not existed:
+            os.unlink(path)
+    except OSError as exc:
+        raise UserError(f"--ulog {path}: cannot write it ({_reason(exc)})") from None
+
+
 def check_params_file(path: str) -> None:
     """The parameter file is saved by writing a file beside it and renaming it over: that must work."""
     where = Path(path)
