@@ -18,7 +18,7 @@ from fcemu import __version__
 
 # Packages that contribute commands, in the order `fcemu --help` lists them.
 _COMMAND_MODULES = ("fcemu.sitl.cli", "fcemu.benchmarks.cli", "fcemu.sim_bridge.cli", "fcemu.training.cli",
-                    "fcemu.export.cli", "fcemu.evaluation.cli")
+                    "fcemu.export.cli", "fcemu.evaluation.cli", "fcemu.evaluation.identify_cli")
 
 
 USAGE_ERROR = 2

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import os
 import struct
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -141,8 +142,9 @@ class ULogRecorder:
                 "actuator_motors": motors, "actuator_outputs": outputs, "esc_status": esc,
                 "actuator_armed": arm}
 
-    def write(self, path: str | os.PathLike[str], info: dict[str, str] | None = None) -> Path:
-        """The ULog at `path`; `info` adds string info messages (e.g. sys_name, ver_hw)."""
+    def write(self, path: str | os.PathLike[str], info: dict[str, str] | None = None,
+              topics: Sequence[str] = TOPICS) -> Path:
+        """The ULog at `path` with `topics`; `info` adds string info messages (e.g. sys_name, ver_hw)."""
         log = _ArrayULog(None)
         log._file_version = 1
         log._start_timestamp = self.boot_us
@@ -151,7 +153,8 @@ class ULogRecorder:
         log._msg_info_dict_types = {key: f"char[{len(value.encode())}]" for key, value in info.items()}
         log._message_formats = {name: ULog.MessageFormat(f"{name}:{fields}".encode(), None)
                                 for name, fields in FORMATS.items()}
-        for msg_id, (name, fields) in enumerate(self.topics().items()):
+        kept = {name: fields for name, fields in self.topics().items() if name in topics}
+        for msg_id, (name, fields) in enumerate(kept.items()):
             added = ULog._MessageAddLogged(struct.pack("<BH", 0, msg_id) + name.encode(), None,
                                            log._message_formats)
             rows = np.empty(len(fields["timestamp"]), added.dtype)

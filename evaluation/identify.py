@@ -1,0 +1,290 @@
+"""What a rate controller depends on, fitted to a flight log by least squares.
+
+The model is the twin's (`sim_bridge.plant`): each motor's speed follows its command
+u (0..1) after `esc_delay` ticks through a first-order lag, ω ← ω + α(a + b·u − ω), α from
+τ_up rising and τ_down falling; each axis accelerates by c·Σ(lever_i·ω_i²) (the lever: −y_i
+on roll, x_i on pitch, the spin on yaw, from the base airframe's geometry), minus a damping
+d·rate, plus on yaw the rotors' spin-up reaction j·Σ spin_i·dω_i/dt; the gyro reads the rate
+`gyro_delay` ticks late. With ESC rpm in the log the motors are fitted to it and the rates to
+the measured speeds; without, the rate fit takes the speeds its own motor model makes of the
+commands and the time constants are those that fit the rates best (the base's up/down ratio).
+Every estimate carries its 95 % interval (parameter covariance of the fit, residual variance).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import butter, sosfiltfilt, welch
+
+from fcemu.evaluation.identify_log import IDLE, FlightLog
+from fcemu.sim_bridge.airframe import Airframe
+
+MAX_DELAY_TICKS = 6
+SMOOTH_HZ = 40.0
+NOISE_BAND_HZ = (250.0, 450.0)  # above any rotor's frequency, below Nyquist at 1 kHz
+Z95 = 1.959964
+AXES = ("roll", "pitch", "yaw")
+
+
+@dataclass(frozen=True)
+class Estimate:
+    value: float
+    low: float
+    high: float
+
+    @classmethod
+    def normal(cls, value: float, std: float) -> Estimate:
+        return cls(float(value), float(value - Z95 * std), float(value + Z95 * std))
+
+    def text(self, unit: str = "") -> str:
+        """The value and its interval, with digits enough to tell the three apart."""
+        half = (self.high - self.low) / 2
+        ratio = abs(self.value) / half if half > 0 else 1.0
+        digits = int(np.clip(np.ceil(np.log10(max(ratio, 1.0))) + 2, 3, 9)) if half > 0 else 4
+        return (f"{self.value:.{digits}g}{unit} (95 % interval {self.low:.{digits}g} to "
+                f"{self.high:.{digits}g}{unit})")
+
+
+@dataclass(frozen=True)
+class MotorFit:
+    delay_ticks: int
+    speed_at_zero: Estimate  # a: rad/s the command 0 asks for (the line's intercept)
+    speed_per_command: Estimate  # b: rad/s per unit of command
+    tau_up: Estimate  # s
+    tau_down: Estimate  # s
+    from_rpm: bool  # fitted to the ESC rpm (else to the rates)
+
+
+@dataclass(frozen=True)
+class AxisFit:
+    effectiveness: Estimate  # c: rad/s² per (rad/s)² of lever-weighted rotor speed squared
+    damping: Estimate  # d: 1/s
+    spin_up: Estimate | None  # j (yaw only): rad/s² per rad/s² of signed rotor acceleration
+    delay_ticks: int
+    rms: float  # rad/s² of the acceleration residual
+
+
+@dataclass(frozen=True)
+class RateFit:
+    axes: tuple[AxisFit, AxisFit, AxisFit]
+    gyro_delay_ticks: int
+    gyro_noise_std: float  # rad/s
+    accel: np.ndarray  # (T, 3) modelled acceleration at each tick (the last row repeated), rad/s²
+    speed: np.ndarray  # (T, 4) rotor speed the fit used, rad/s
+
+
+def levers(airframe: Airframe) -> np.ndarray:
+    """(3, 4): each rotor's share in roll, pitch and yaw torque per unit thrust (yaw per k_M)."""
+    p = airframe.rotor_positions
+    return np.stack([-p[:, 1], p[:, 0], airframe.yaw_sign])
+
+
+def _tau(alpha: float, dt: float) -> float:
+    alpha = min(max(alpha, 1e-9), 1 - 1e-12)
+    return -dt / np.log1p(-alpha)
+
+
+def _tau_estimate(alpha: float, std: float, dt: float) -> Estimate:
+    """τ from α; its interval is α's mapped through the (decreasing) τ(α)."""
+    return Estimate(_tau(alpha, dt), _tau(alpha + Z95 * std, dt), _tau(alpha - Z95 * std, dt))
+
+
+def _covariance(jac: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    n, p = jac.shape
+    sigma2 = float(residual @ residual) / max(n - p, 1)
+    return np.linalg.pinv(jac.T @ jac) * sigma2
+
+
+def fit_motors(log: FlightLog) -> MotorFit:
+    """The motor lag, delay and speed line fitted to the ESC rpm (the log must have it)."""
+    assert log.rotor_speed is not None
+    w, u, dt = log.rotor_speed, log.command, log.dt
+    best = None
+    for delay in range(MAX_DELAY_TICKS + 1):
+        n = len(w) - 1 - delay
+        if n < 50:
+            break
+        step = (w[delay + 1:] - w[delay:-1]).ravel()
+        speed = w[delay:-1].ravel()
+        cmd = u[:n].ravel()
+        ok = (cmd > IDLE) & (cmd < 0.99)
+        step, speed, cmd = step[ok], speed[ok], cmd[ok]
+        # A symmetric lag first, linear in (α·a, α·b, α); then up and down apart.
+        x = np.stack([np.ones_like(cmd), cmd, -speed], axis=1)
+        p0, p1, alpha = np.linalg.lstsq(x, step, rcond=None)[0]
+        alpha = float(np.clip(alpha, 1e-4, 0.9))
+
+        def residual(theta: np.ndarray, step=step, speed=speed, cmd=cmd) -> np.ndarray:
+            a, b, up, down = theta
+            gap = a + b * cmd - speed
+            return step - np.where(gap > 0, up, down) * gap
+
+        fit = least_squares(residual, [p0 / alpha, p1 / alpha, alpha, alpha], method="lm")
+        if best is None or fit.cost < best[1].cost:
+            best = (delay, fit)
+    if best is None:
+        raise ValueError("too few ESC rpm samples to fit the motors")
+    delay, fit = best
+    std = np.sqrt(np.diag(_covariance(fit.jac, fit.fun)))
+    a, b, up, down = fit.x
+    return MotorFit(delay, Estimate.normal(a, std[0]), Estimate.normal(b, std[1]),
+                    _tau_estimate(up, std[2], dt), _tau_estimate(down, std[3], dt), from_rpm=True)
+
+
+def lagged_speed(target: np.ndarray, alpha_up: np.ndarray, alpha_down: np.ndarray,
+                 start: np.ndarray) -> np.ndarray:
+    """(G, T, 4): the lag ω ← ω + α(target − ω) of `target` (T, 4) for G pairs of (α_up, α_down)."""
+    out = np.empty((len(alpha_up), *target.shape))
+    w = np.broadcast_to(start, (len(alpha_up), 4)).copy()
+    up, down = alpha_up[:, None], alpha_down[:, None]
+    for k in range(len(target)):
+        out[:, k] = w
+        gap = target[k] - w
+        w += np.where(gap > 0, up, down) * gap
+    return out
+
+
+def axis_regressors(speed: np.ndarray, lever: np.ndarray, dt: float, axis: int) -> np.ndarray:
+    """(T, n) columns per tick k: lever-weighted ω² at k+1 and, on yaw, the signed spin-up."""
+    torque = (speed**2) @ lever[axis]
+    columns = [np.append(torque[1:], torque[-1])]
+    if axis == 2:
+        spin = speed @ lever[2]
+        columns.append(np.append(np.diff(spin) / dt, 0.0))
+    return np.stack(columns, axis=1)
+
+
+def smooth(x: np.ndarray, dt: float) -> np.ndarray:
+    """The same zero-phase low-pass on both sides of the fit: the relation between rate and rotor
+    speeds is linear, so it holds of the filtered signals, which lose the gyro's noise and the
+    rotors' vibration (above `SMOOTH_HZ`)."""
+    sos = butter(4, SMOOTH_HZ, fs=1.0 / dt, output="sos")
+    return sosfiltfilt(sos, x, axis=0)
+
+
+def gyro_noise(gyro: np.ndarray, dt: float) -> float:
+    """rad/s: the white noise's standard deviation, from the gyro's spectrum above the rotors'
+    frequencies (the median level, deaf to a vibration's lines), per axis, then their median."""
+    freq, psd = welch(gyro, fs=1.0 / dt, nperseg=min(1024, len(gyro)), axis=0)
+    band = (freq >= NOISE_BAND_HZ[0]) & (freq <= min(NOISE_BAND_HZ[1], 0.45 / dt))
+    if not band.any():
+        return 0.0
+    level = np.median(psd[band], axis=0)  # one-sided density of white noise: 2σ²·dt
+    return float(np.median(np.sqrt(level / (2 * dt))))
+
+
+def fit_rates(log: FlightLog, speed: np.ndarray, lever: np.ndarray) -> RateFit:
+    """Per axis c, d (and j on yaw) by least squares, at the gyro delay that fits best."""
+    dt = log.dt
+    g = smooth(log.gyro, dt)
+    accel = np.diff(g, axis=0) / dt  # tick k → k + 1
+    fits: list[AxisFit] = []
+    results = []
+    for axis in range(3):
+        base = smooth(axis_regressors(speed, lever, dt, axis), dt)
+        best = None
+        for delay in range(MAX_DELAY_TICKS + 1):
+            n = len(accel) - delay
+            x = np.column_stack([base[:n], -g[delay:delay + n, axis], np.ones(n)])
+            y = accel[delay:, axis]
+            beta, *_ = np.linalg.lstsq(x, y, rcond=None)
+            residual = y - x @ beta
+            if best is None or residual @ residual < best[0]:
+                best = (float(residual @ residual), delay, x, beta, residual)
+        _, delay, x, beta, residual = best
+        # The filtered residual is correlated over about 1 / (2·SMOOTH_HZ·dt) ticks: count them as one sample.
+        std = np.sqrt(np.diag(_covariance(x, residual) / (2 * SMOOTH_HZ * dt)))
+        spin = Estimate.normal(beta[1], std[1]) if axis == 2 else None
+        k = 2 if axis == 2 else 1
+        fits.append(AxisFit(Estimate.normal(beta[0], std[0]), Estimate.normal(beta[k], std[k]), spin, delay,
+                            float(np.sqrt(np.mean(residual**2)))))
+        results.append((delay, base, beta))
+    gyro_delay = int(np.median([f.delay_ticks for f in fits]))
+    modelled = np.zeros((len(g), 3))
+    for axis, (delay, base, beta) in enumerate(results):
+        n = len(g) - delay
+        modelled[delay:, axis] = np.column_stack([base[:n], -g[delay:, axis], np.ones(n)]) @ beta
+    return RateFit((fits[0], fits[1], fits[2]), gyro_delay, gyro_noise(log.gyro, dt), modelled, speed)
+
+
+def fit_without_rpm(log: FlightLog, base: Airframe, lever: np.ndarray) -> tuple[MotorFit, RateFit]:
+    """No ESC telemetry: the base's speed line; the time constants (the base's up/down ratio kept)
+    and the command-to-gyro delay are those whose modelled speeds fit the rates best."""
+    m = base.motor
+    scale = np.geomspace(0.25, 4.0, 29)
+    pwm = 1000.0 + 1000.0 * log.command
+    target = np.clip(pwm, m.pwm_min, m.pwm_max) - m.pwm_min
+    target *= m.max_rotor_speed / (m.pwm_max - m.pwm_min)
+    dt = log.dt
+    up, down = 1 - np.exp(-dt / (m.tau_up * scale)), 1 - np.exp(-dt / (m.tau_down * scale))
+    speeds = lagged_speed(target, up, down, target[0])
+    g = smooth(log.gyro, dt)
+    accel = np.diff(g, axis=0) / dt
+    scores = np.zeros((len(scale), MAX_DELAY_TICKS + 1))
+    for i in range(len(scale)):
+        for axis in range(3):
+            columns = smooth(axis_regressors(speeds[i], lever, dt, axis), dt)
+            for delay in range(MAX_DELAY_TICKS + 1):
+                n = len(accel) - delay
+                x = np.column_stack([columns[:n], -g[delay:delay + n, axis], np.ones(n)])
+                y = accel[delay:, axis]
+                beta, *_ = np.linalg.lstsq(x, y, rcond=None)
+                scores[i, delay] += float(np.sum((y - x @ beta) ** 2))
+    i, delay = np.unravel_index(np.argmin(scores), scores.shape)
+    # The scale's interval: where the residual sum of squares stays within χ²(1)'s 95 % of its least,
+    # counting the filtered ticks as 1 / (2·SMOOTH_HZ·dt) as many independent samples.
+    n_eff = 3 * len(accel) * 2 * SMOOTH_HZ * dt
+    within = scale[scores[:, delay] <= scores[i, delay] * (1 + Z95**2 / n_eff)]
+    lo, hi = within.min(), within.max()
+    rate = fit_rates(log, speeds[i], lever)
+    b = m.max_rotor_speed * 1000.0 / (m.pwm_max - m.pwm_min)
+    a = -b * (m.pwm_min - 1000.0) / 1000.0
+    motors = MotorFit(0, Estimate(a, a, a), Estimate(b, b, b),
+                      Estimate(m.tau_up * scale[i], m.tau_up * lo, m.tau_up * hi),
+                      Estimate(m.tau_down * scale[i], m.tau_down * lo, m.tau_down * hi), from_rpm=False)
+    return motors, rate
+
+
+def hover_command(log: FlightLog, blocks: int = 20) -> Estimate:
+    """The collective (mean motor command) the flight holds: the median, its interval from the
+    spread of the medians of `blocks` stretches."""
+    collective = log.command.mean(axis=1)
+    medians = np.array([np.median(part) for part in np.array_split(collective, blocks)])
+    return Estimate.normal(float(np.median(collective)), float(medians.std(ddof=1) / np.sqrt(blocks)))
+
+
+def predict_ahead(log: FlightLog, accel: np.ndarray, horizon: int) -> np.ndarray:
+    """(T, 3) rates predicted `horizon` ticks ahead from the measured rate and the modelled
+    acceleration in between (NaN for the first `horizon` ticks)."""
+    area = np.vstack([np.zeros((1, 3)), np.cumsum(accel[:-1], axis=0) * log.dt])
+    out = np.full_like(log.gyro, np.nan)
+    out[horizon:] = log.gyro[:-horizon] + area[horizon:] - area[:-horizon]
+    return out
+
+
+def airframe_accel(log: FlightLog, speed: np.ndarray, airframe: Airframe, lever: np.ndarray) -> np.ndarray:
+    """(T, 3) the acceleration `airframe`'s twin gives the logged rotor speeds and rates (its
+    effectiveness, damping, spin-up reaction and gyro delay, the twin's own tick included)."""
+    inertia = airframe.inertia()
+    m = airframe.motor
+    c = [m.kf / inertia[0], m.kf / inertia[1], m.kf * m.km / inertia[2]]
+    damping = np.array(airframe.rate_damping) / inertia
+    delay = airframe.gyro_delay_ticks + 1
+    g = smooth(log.gyro, log.dt)
+    out = np.zeros_like(g)
+    n = len(g) - delay
+    for axis in range(3):
+        columns = smooth(axis_regressors(speed, lever, log.dt, axis), log.dt)
+        coef = [c[axis]] + ([airframe.rotor_inertia / inertia[2]] if axis == 2 else [])
+        out[delay:, axis] = columns[:n] @ np.array(coef) - damping[axis] * g[delay:, axis]
+    return out
+
+
+def prediction_fit(log: FlightLog, predicted: np.ndarray) -> np.ndarray:
+    """(3,) per axis, 100·(1 − ‖measured − predicted‖ / ‖measured − its mean‖) where predicted."""
+    ok = np.isfinite(predicted).all(axis=1)
+    y, p = log.gyro[ok], predicted[ok]
+    return 100.0 * (1.0 - np.linalg.norm(y - p, axis=0) / np.linalg.norm(y - y.mean(axis=0), axis=0))

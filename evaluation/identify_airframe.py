@@ -1,0 +1,213 @@
+"""From the fits of `evaluation.identify` to an airframe file `--airframe` flies.
+
+What a rate log gives are ratios: the torque each rotor speed makes per unit of inertia, the
+motors' lag and delay, the speed a command asks for, the command that hovers. A file needs
+absolute numbers, so the base airframe gives what the log cannot (mass, geometry, the yaw
+moment constant, the rotor and body sizes, battery and vibration), and the rest follows:
+k_F from the mass and the hover rotor speed, each axis's inertia from k_F (and k_M) over its
+fitted effectiveness. Each number's `sources` entry says which it is: "identified from LOG"
+with its 95 % interval, derived, or the base's.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from fcemu.evaluation.identify import (
+    AXES,
+    Estimate,
+    MotorFit,
+    RateFit,
+    fit_motors,
+    fit_rates,
+    fit_without_rpm,
+    hover_command,
+    levers,
+)
+from fcemu.evaluation.identify_log import FlightLog, LogError
+from fcemu.sim_bridge.airframe import EFFECT_KEYS, Airframe
+from fcemu.sim_bridge.airframe_file import GRAVITY
+
+# MuJoCo computes the gyro before it integrates a step, so the twin's gyro reads the rate one
+# tick late with no delay configured: that tick of the measured delay is the twin's own.
+TWIN_GYRO_LAG_TICKS = 1
+ATTRIBUTE_OF_EFFECT = {attribute: key for key, attribute in EFFECT_KEYS.items()}
+
+
+@dataclass(frozen=True)
+class Identification:
+    log: FlightLog
+    base: Airframe
+    base_label: str  # how the base was named (a shipped name or a file)
+    motors: MotorFit
+    rates: RateFit
+    hover: Estimate  # the collective, 0..1
+
+    @property
+    def hover_rotor_speed(self) -> Estimate:
+        a, b, u = self.motors.speed_at_zero, self.motors.speed_per_command, self.hover
+        value = a.value + b.value * u.value
+        std = np.sqrt(sum(((e.high - e.low) / (2 * 1.959964)) ** 2 * w**2
+                          for e, w in ((a, 1.0), (b, u.value), (u, b.value))))
+        return Estimate.normal(value, float(std))
+
+
+def identify(log: FlightLog, base: Airframe, base_label: str) -> Identification:
+    lever = levers(base)
+    if log.rotor_speed is not None:
+        motors = fit_motors(log)
+        rates = fit_rates(log, log.rotor_speed, lever)
+    else:
+        motors, rates = fit_without_rpm(log, base, lever)
+    hover = hover_command(log)
+    if not 0.02 < hover.value < 0.98:
+        raise LogError(f"{log.path}: the collective holds at {hover.value:.2f}, not a hover")
+    return Identification(log, base, base_label, motors, rates, hover)
+
+
+def _effects_document(airframe: Airframe) -> dict:
+    sources = dict(airframe.effect_sources)
+    out = {}
+    for attribute, key in ATTRIBUTE_OF_EFFECT.items():
+        value = getattr(airframe, attribute)
+        out[key] = {"value": list(value) if isinstance(value, tuple) else value,
+                    "source": sources.get(attribute, "")}
+    return out
+
+
+def airframe_document(airframe: Airframe, source: str, sources: dict[str, str]) -> dict:
+    """The airframe file of `airframe` (`sim_bridge.airframe.load_airframe` reads it back)."""
+    m = airframe.motor
+    names = ("rear_right", "front_right", "rear_left", "front_left")
+    doc = {
+        "name": airframe.name, "source": source,
+        "frame": "FRD body axes, metres; motors in Betaflight Quad X order",
+        "base_mass_kg": airframe.base_mass, "base_inertia_kg_m2": list(airframe.base_inertia),
+        "base_box_m": list(airframe.base_box), "rotor_mass_kg": airframe.rotor_mass,
+        "rotor_radius_m": airframe.rotor_radius,
+        "rotor_body_inertia_kg_m2": list(airframe.rotor_body_inertia),
+        "motors": [{"name": name, "position_m": [float(v) for v in p], "spin": "ccw" if s > 0 else "cw"}
+                   for name, p, s in zip(names, airframe.rotor_positions, airframe.spin, strict=True)],
+        "motor": {"max_rotor_speed_rad_s": m.max_rotor_speed, "thrust_coefficient_N_per_rad_s2": m.kf,
+                  "moment_constant_m": m.km, "time_constant_up_s": m.tau_up,
+                  "time_constant_down_s": m.tau_down,
+                  "pwm_min_us": m.pwm_min, "pwm_max_us": m.pwm_max, "poles": m.poles},
+        "landing_gear_half_height_m": airframe.gear_half_height,
+        "sources": sources,
+        "effects": _effects_document(airframe),
+    }
+    return json.loads(json.dumps(doc, default=float))
+
+
+def _scaled(e: Estimate, factor: float) -> Estimate:
+    lo, hi = sorted((e.low * factor, e.high * factor))
+    return Estimate(e.value * factor, lo, hi)
+
+
+def _nonnegative(e: Estimate, log_name: str, unit: str) -> tuple[float, str]:
+    if e.low <= 0.0:
+        return 0.0, f"identified from {log_name}: {e.text(unit)}; not distinguishable from 0, so 0"
+    return e.value, f"identified from {log_name}: {e.text(unit)}"
+
+
+def identified_document(ident: Identification, name: str) -> dict:
+    """The airframe file: the base's, with every number the log gives replaced and sourced."""
+    base, log, mf, rf = ident.base, ident.log, ident.motors, ident.rates
+    at = f"identified from {log.name}"
+    kept = f"from the base airframe {ident.base_label} (a rate log cannot give it)"
+    sources = {key: kept for key in ("base_mass_kg", "base_box_m", "rotor_mass_kg", "rotor_radius_m",
+                                     "rotor_body_inertia_kg_m2", "motors", "landing_gear_half_height_m",
+                                     "motor.moment_constant_m", "motor.poles")}
+    omega_h = ident.hover_rotor_speed
+    b = mf.speed_per_command.value
+    if mf.from_rpm:
+        max_speed = mf.speed_at_zero.value + b
+        pwm_min = 1000.0 - 1000.0 * mf.speed_at_zero.value / b
+        line = (f"{at}: ESC rpm against the motor command, ω = a + b·u with a "
+                f"{mf.speed_at_zero.text(' rad/s')}, b {mf.speed_per_command.text(' rad/s')}")
+        sources["motor.max_rotor_speed_rad_s"] = f"{line}; a + b"
+        sources["motor.pwm_min_us"] = f"{line}; where ω = 0 on the 1000-2000 µs scale"
+        kf = base.mass * GRAVITY / (4 * omega_h.value**2)
+        rel = 2 * (omega_h.high - omega_h.low) / (2 * omega_h.value)
+        kf_est = Estimate(kf, kf * (1 - rel), kf * (1 + rel))
+        sources["motor.thrust_coefficient_N_per_rad_s2"] = (
+            f"derived: the base's mass {base.mass:.4g} kg held by four rotors at the hover speed "
+            f"{omega_h.text(' rad/s')} ({at}: hover command {ident.hover.text()}); {kf_est.text()}")
+        effectiveness_scale = 1.0
+    else:
+        m = base.motor
+        pwm_min, kf = m.pwm_min, m.kf
+        omega_h = Estimate.normal(base.hover_rotor_speed(), 0.0)
+        hover_pwm = 1000.0 + 1000.0 * ident.hover.value
+        max_speed = omega_h.value * (m.pwm_max - m.pwm_min) / (hover_pwm - m.pwm_min)
+        sources["motor.thrust_coefficient_N_per_rad_s2"] = f"{kept}; no ESC rpm in {log.name}"
+        sources["motor.pwm_min_us"] = f"{kept}; no ESC rpm in {log.name}"
+        sources["motor.max_rotor_speed_rad_s"] = (
+            f"derived: the base's hover rotor speed at the hover command {ident.hover.text()} ({at}); "
+            "no ESC rpm in the log")
+        effectiveness_scale = (m.max_rotor_speed / max_speed) ** 2  # the fit's speeds were the base line's
+    sources["motor.pwm_max_us"] = "the firmware's PWM scale (1000-2000 µs)"
+    how = "ESC rpm against the command" if mf.from_rpm else "the rate response to the motor commands"
+    sources["motor.time_constant_up_s"] = f"{at} ({how}): {mf.tau_up.text(' s')}"
+    sources["motor.time_constant_down_s"] = f"{at} ({how}): {mf.tau_down.text(' s')}"
+    km = base.motor.km
+    c = [_scaled(rf.axes[i].effectiveness, effectiveness_scale) for i in range(3)]
+    if min(ci.value for ci in c) <= 0:
+        raise LogError(f"{log.path}: a motor command turns the vehicle the wrong way round "
+                       f"({', '.join(f'{a} {ci.value:.3g}' for a, ci in zip(AXES, c, strict=True))}): "
+                       "motor order or spins differ from the base's")
+    total = [kf / c[0].value, kf / c[1].value, kf * km / c[2].value]
+    rotors_part = base.inertia() - np.array(base.base_inertia)
+    inertia = [t - r for t, r in zip(total, rotors_part, strict=True)]
+    if min(inertia) <= 0:
+        raise LogError(f"{log.path}: the identified inertia {total} is below the rotors' own share: the base "
+                       f"{ident.base_label} does not fit this vehicle")
+    parts = [f"{a} {ci.text(' rad/s² per (N·m/k_F)')}" for a, ci in zip(AXES, c, strict=True)]
+    sources["base_inertia_kg_m2"] = (f"derived: k_F (k_F·k_M on yaw) over the effectiveness {at} "
+                                     f"({'; '.join(parts)}), less the rotors' share by the base's geometry")
+    delay_esc = mf.delay_ticks
+    delay_gyro = max(0, rf.gyro_delay_ticks - TWIN_GYRO_LAG_TICKS)
+    noise = rf.gyro_noise_std
+    effects = {}
+    damping, damping_text = [], []
+    for i in range(3):
+        value, text = _nonnegative(rf.axes[i].damping, log.name, " /s")
+        damping.append(value * (total[i]))
+        damping_text.append(f"{AXES[i]} {text}")
+    effects["rate_damping"] = (tuple(damping), "; ".join(damping_text) + " (× the derived inertia)")
+    spin = rf.axes[2].spin_up
+    if spin is not None:
+        value, text = _nonnegative(spin, log.name, "")
+        effects["rotor_inertia"] = (value * total[2], f"yaw spin-up reaction {text} (× the derived I_zz)")
+    esc_text = (f"{at}: ESC rpm against the command, the delay that fits best" if mf.from_rpm else
+                f"no ESC rpm in {log.name}: the whole command-to-gyro delay is given to the gyro")
+    effects["esc_delay_ticks"] = (delay_esc, esc_text)
+    effects["gyro_delay_ticks"] = (delay_gyro, f"{at}: {rf.gyro_delay_ticks} ticks from rotor speed to gyro, "
+                                               f"less the twin's own {TWIN_GYRO_LAG_TICKS}")
+    effects["gyro_noise_std"] = (noise, f"{at}: the gyro spectrum's level at 250-450 Hz")
+    airframe = ident.base.scaled(**{k: v for k, (v, _) in effects.items()})
+    base_sources = dict(ident.base.effect_sources)
+    effect_sources = tuple((attr, effects[attr][1] if attr in effects else
+                            f"{kept}: {base_sources.get(attr, '')}".rstrip(": "))
+                           for attr in ATTRIBUTE_OF_EFFECT)
+    motor = replace(base.motor, max_rotor_speed=float(max_speed), kf=float(kf), tau_up=mf.tau_up.value,
+                    tau_down=mf.tau_down.value, pwm_min=float(pwm_min), pwm_max=1000.0 + 1000.0)
+    airframe = replace(airframe, name=name, base_inertia=tuple(float(v) for v in inertia), motor=motor,
+                       effect_sources=effect_sources)
+    source = (f"Identified by fcemu identify from {log.name} ({len(log.t)} samples at {1 / log.dt:.0f} Hz, "
+              f"motor commands from {log.command_source}{', ESC rpm' if mf.from_rpm else ', no ESC rpm'}) "
+              f"on the base airframe {ident.base_label}.")
+    return airframe_document(airframe, source, sources)
+
+
+def write_airframe(doc: dict, path: Path) -> Airframe:
+    """Write the file and read it back as `--airframe` would (its checks refuse an unflyable one)."""
+    from fcemu.sim_bridge.airframe import load_airframe
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+    return load_airframe(path)

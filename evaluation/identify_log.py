@@ -1,0 +1,170 @@
+"""A PX4 ULog read for identification: gyro, motor commands and ESC rpm on one time grid.
+
+The grid is the gyro's samples (`vehicle_angular_velocity.timestamp_sample`); the motor
+commands (`actuator_motors.control`, normalised 0..1, or else `actuator_outputs.output` in µs on
+the firmware's 1000-2000 µs scale) are held from the gyro sample each was computed from, and the
+ESC rpm (`esc_status.esc[i].esc_rpm`) is interpolated to it. Only the armed stretch of the log,
+motors above idle, is kept. A log that cannot be identified is one `LogError` line saying what
+it lacks.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fcemu.firmware.action import PWM_MIN, PWM_SPAN
+from fcemu.firmware.errors import UserError
+
+GYRO = "vehicle_angular_velocity"
+MIN_FLIGHT_S = 1.0  # of armed flight with the motors above idle
+MIN_RATE = 0.3  # rad/s: a log whose rates never reach it was not flown (or never excited)
+IDLE = 0.02  # motor command 0..1 below which a motor is at rest
+
+
+class LogError(UserError):
+    """A log that cannot be identified: not a ULog, truncated, missing a topic, not a flight."""
+
+
+@dataclass(frozen=True)
+class FlightLog:
+    path: Path
+    t: np.ndarray  # (T,) s from the first sample kept
+    gyro: np.ndarray  # (T, 3) rad/s FRD
+    command: np.ndarray  # (T, 4) 0..1, Betaflight/PX4 motor order
+    rotor_speed: np.ndarray | None  # (T, 4) rad/s from the ESC telemetry; None where none was logged
+    throttle: np.ndarray | None  # (T,) the collective setpoint, 0..1
+    command_source: str  # which topic the motor commands came from
+
+    @property
+    def dt(self) -> float:
+        return float(np.median(np.diff(self.t)))
+
+    @property
+    def name(self) -> str:
+        return self.path.name
+
+
+def _read(path: Path):
+    from pyulog import ULog
+    from pyulog.core import ULogException
+
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(7)
+    except OSError as exc:
+        raise LogError(f"{path}: cannot read it ({(exc.strerror or type(exc).__name__).lower()})") from None
+    if head != bytes(ULog.HEADER_BYTES[:7]):
+        raise LogError(f"{path}: not a PX4 ULog (no ULog header; a Betaflight blackbox log is not read yet)")
+    _check_complete(path)
+    try:
+        log = ULog(str(path))
+    except (ULogException, ValueError, struct.error, IndexError, UnicodeDecodeError) as exc:
+        raise LogError(f"{path}: not a readable ULog ({' '.join(str(exc).split())[:120]})") from None
+    if log.file_corruption:
+        raise LogError(f"{path}: the ULog is truncated or corrupt (pyulog found a broken message)")
+    return log
+
+
+def _check_complete(path: Path) -> None:
+    """pyulog drops a message cut off at the end of the file without a word: walk the messages
+    (each a uint16 size, a uint8 type and the payload, after the 16-byte file header) to the end."""
+    data = path.read_bytes()
+    position = 16
+    while position + 3 <= len(data):
+        (size,) = struct.unpack_from("<H", data, position)
+        position += 3 + size
+    if position != len(data):
+        raise LogError(f"{path}: truncated: its last message stops {position - len(data)} bytes short "
+                       f"(the file ends at byte {len(data)})")
+
+
+def _dataset(log, name: str):
+    found = [d for d in log.data_list if d.name == name]
+    return min(found, key=lambda d: d.multi_id) if found else None
+
+
+def _times(data: dict, key: str = "timestamp_sample") -> np.ndarray:
+    return (data[key] if key in data else data["timestamp"]).astype(np.int64)
+
+
+def read_flight_log(path: str | Path) -> FlightLog:
+    path = Path(path)
+    log = _read(path)
+    gyro_set = _dataset(log, GYRO)
+    motors_set = _dataset(log, "actuator_motors")
+    outputs_set = _dataset(log, "actuator_outputs")
+    if gyro_set is None:
+        raise LogError(f"{path}: no {GYRO} topic (the gyro); log it at the loop rate "
+                       "(SDLOG_PROFILE: high rate)")
+    if motors_set is None and outputs_set is None:
+        raise LogError(f"{path}: no actuator_motors or actuator_outputs topic (the motor commands)")
+    g = gyro_set.data
+    t_us = _times(g)
+    gyro = np.stack([g[f"xyz[{i}]"] for i in range(3)], axis=1).astype(np.float64)
+    if motors_set is not None:
+        m = motors_set.data
+        raw = np.stack([m[f"control[{i}]"] for i in range(4)], axis=1).astype(np.float64)
+        source, cmd_t = "actuator_motors", _times(m)
+    else:
+        m = outputs_set.data
+        raw = (np.stack([m[f"output[{i}]"] for i in range(4)], axis=1) - PWM_MIN) / PWM_SPAN
+        source, cmd_t = "actuator_outputs (1000-2000 µs)", _times(m, "timestamp")
+    if len(t_us) < 2 or len(cmd_t) < 2:
+        raise LogError(f"{path}: {GYRO} and {source} need more than one sample each")
+    held = np.clip(np.searchsorted(cmd_t, t_us, side="right") - 1, 0, len(cmd_t) - 1)
+    command = np.nan_to_num(raw[held], nan=0.0)
+    keep = (t_us >= cmd_t[0]) & (command.max(axis=1) > IDLE)
+    armed_set = _dataset(log, "actuator_armed")
+    if armed_set is not None:
+        a = armed_set.data
+        at = _times(a, "timestamp")
+        was = a["armed"][np.clip(np.searchsorted(at, t_us, side="right") - 1, 0, len(at) - 1)]
+        if not np.any(a["armed"]):
+            raise LogError(f"{path}: the vehicle was never armed (actuator_armed): a ground-only log")
+        keep &= was.astype(bool)
+    rotor = _rotor_speed(log, t_us)
+    throttle = None
+    setpoint_set = _dataset(log, "vehicle_rates_setpoint")
+    if setpoint_set is not None and "thrust_body[2]" in setpoint_set.data:
+        s = setpoint_set.data
+        st = _times(s, "timestamp")
+        throttle = -s["thrust_body[2]"][np.clip(np.searchsorted(st, t_us, side="right") - 1, 0, len(st) - 1)]
+    dt = float(np.median(np.diff(t_us))) * 1e-6
+    if keep.sum() * dt < MIN_FLIGHT_S:
+        raise LogError(f"{path}: {keep.sum() * dt:.2f} s with the motors armed and above idle, at least "
+                       f"{MIN_FLIGHT_S:g} s needed: a ground-only log")
+    first, last = np.flatnonzero(keep)[[0, -1]]
+    window = slice(first, last + 1)
+    peak = np.abs(gyro[window]).max(axis=0)
+    if peak.max() < MIN_RATE:
+        raise LogError(f"{path}: the body rates never reach {MIN_RATE} rad/s (peak "
+                       f"{', '.join(f'{p:.2f}' for p in peak)}): a ground-only or unexcited log")
+    quiet = [axis for axis, p in zip(("roll", "pitch", "yaw"), peak, strict=True) if p < MIN_RATE]
+    if quiet:
+        raise LogError(f"{path}: {' and '.join(quiet)} never turned faster than {MIN_RATE} rad/s: fly a "
+                       "doublet or chirp on every axis (docs/identify.md)")
+    return FlightLog(path, (t_us[window] - t_us[first]) * 1e-6, gyro[window], command[window],
+                     None if rotor is None else rotor[window],
+                     None if throttle is None else np.asarray(throttle[window], dtype=np.float64), source)
+
+
+def _rotor_speed(log, t_us: np.ndarray) -> np.ndarray | None:
+    """(T, 4) rad/s from esc_status, None where it is not logged or reports no rpm."""
+    esc = _dataset(log, "esc_status")
+    if esc is None or "esc[3].esc_rpm" not in esc.data:
+        return None
+    speeds = []
+    for i in range(4):
+        key = f"esc[{i}].timestamp"
+        stamped = key in esc.data and esc.data[key].any()
+        et = (esc.data[key] if stamped else esc.data["timestamp"]).astype(np.int64)
+        rpm = esc.data[f"esc[{i}].esc_rpm"].astype(np.float64)
+        order = np.argsort(et, kind="stable")
+        speeds.append(np.interp(t_us, et[order], rpm[order]) * (2 * math.pi / 60))
+    out = np.stack(speeds, axis=1)
+    return out if np.abs(out).max() > 0 else None

@@ -1,0 +1,124 @@
+"""`fcemu identify`: the twin an identification flight was flown on comes back from its log,
+and a log that cannot be identified is one line and exit 2."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fcemu.cli import main
+from fcemu.evaluation.identify_airframe import identified_document, identify
+from fcemu.evaluation.identify_flight import fly_identification
+from fcemu.evaluation.identify_log import read_flight_log
+from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.loop import Command
+from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sitl.sitl import build_sitl
+from fcemu.sitl.ulog_writer import TOPICS, ULogRecorder
+
+TRUE = "iris_realistic"  # every effect a log shows is on: ESC and gyro delay, noise, vibration, damping
+
+
+@pytest.fixture(scope="module")
+def flown(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fly")
+    assert main(["identify", "--fly", TRUE, "--out", str(out), "--json"]) == 0
+    return out
+
+
+def _effectiveness(airframe) -> np.ndarray:
+    inertia, m = airframe.inertia(), airframe.motor
+    return np.array([m.kf / inertia[0], m.kf / inertia[1], m.kf * m.km / inertia[2]])
+
+
+def test_the_flight_s_log_gives_back_the_twin_it_was_flown_on(flown) -> None:
+    assert {"flight.ulg", "airframe.json", "report.md", "rates.png"} <= {p.name for p in flown.iterdir()}
+    identified, true = load_airframe(flown / "airframe.json"), load_airframe(TRUE)
+    assert identified.motor.tau_up == pytest.approx(true.motor.tau_up, rel=0.05)
+    assert identified.motor.tau_down == pytest.approx(true.motor.tau_down, rel=0.05)
+    assert np.allclose(_effectiveness(identified), _effectiveness(true), rtol=0.02)
+    assert (identified.esc_delay_ticks, identified.gyro_delay_ticks) == (true.esc_delay_ticks,
+                                                                        true.gyro_delay_ticks)
+    assert identified.gyro_noise_std == pytest.approx(true.gyro_noise_std, rel=0.1)
+    assert identified.hover_throttle() == pytest.approx(true.hover_throttle(), abs=0.01)
+    assert np.allclose(np.array(identified.rate_damping) / identified.inertia(),
+                       np.array(true.rate_damping) / true.inertia(), rtol=0.1)
+    doc = json.loads((flown / "airframe.json").read_text())
+    assert doc["sources"]["motor.time_constant_up_s"].startswith("identified from flight.ulg")
+    assert "95 % interval" in doc["sources"]["motor.time_constant_up_s"]
+    assert doc["sources"]["base_mass_kg"].startswith("from the base airframe iris")
+    assert doc["effects"]["gyro_delay_ticks"]["source"].startswith("identified from flight.ulg")
+    report = (flown / "report.md").read_text()
+    assert "| motor time constant up |" in report and "![measured and predicted rates](rates.png)" in report
+
+
+def test_without_esc_rpm_the_time_constants_come_from_the_rate_response(tmp_path) -> None:
+    true = load_airframe("iris")
+    path = fly_identification(true, "pid", axis_s=3.0).write(
+        tmp_path / "no_rpm.ulg", topics=[t for t in TOPICS if t != "esc_status"])
+    log = read_flight_log(path)
+    assert log.rotor_speed is None
+    ident = identify(log, true, "iris")
+    assert not ident.motors.from_rpm
+    assert ident.motors.tau_up.value == pytest.approx(true.motor.tau_up, rel=0.15)
+    assert ident.motors.tau_up.low <= ident.motors.tau_up.value <= ident.motors.tau_up.high
+    doc = identified_document(ident, "no_rpm")
+    assert "no ESC rpm" in doc["sources"]["motor.thrust_coefficient_N_per_rad_s2"]
+
+
+class _Held:
+    """A commander holding one command: the vehicle on the ground, armed or not."""
+
+    def __init__(self, armed: bool, throttle: float) -> None:
+        self.cmd = Command(armed, RateSetpoint(np.zeros(3), throttle), "pid")
+
+    def command(self, t_us: int, frame) -> Command:
+        return self.cmd
+
+
+def _ground_log(path, armed: bool) -> str:
+    recorder = ULogRecorder()
+    sitl = build_sitl("pid", rig="free", realtime=False, commander=_Held(armed, 0.0), sinks=[recorder])
+    sitl.loop.run(1.5)
+    return str(recorder.write(path))
+
+
+def _log_without(flown, tmp_path, topic: str) -> str:
+    recorder = fly_identification(load_airframe("iris"), "pid", axis_s=0.6)
+    return str(recorder.write(tmp_path / f"no_{topic}.ulg", topics=[t for t in TOPICS if t != topic]))
+
+
+@pytest.mark.parametrize(("case", "line"), [
+    ("text", "not a PX4 ULog"),
+    ("truncated", "truncated: its last message stops"),
+    ("no gyro", "no vehicle_angular_velocity topic"),
+    ("no motors", "no actuator_motors or actuator_outputs topic"),
+    ("disarmed", "never armed (actuator_armed): a ground-only log"),
+    ("on the ground", "never reach 0.3 rad/s (peak 0.00, 0.00, 0.00): a ground-only"),
+])
+def test_a_log_that_cannot_be_identified_is_one_line_and_exit_2(case, line, flown, tmp_path, capsys) -> None:
+    if case == "text":
+        log = tmp_path / "notes.ulg"
+        log.write_text("not a log\n")
+    elif case == "truncated":
+        log = tmp_path / "cut.ulg"
+        log.write_bytes((flown / "flight.ulg").read_bytes()[:-7])
+    elif case == "no gyro":
+        log = _log_without(flown, tmp_path, "vehicle_angular_velocity")
+    elif case == "no motors":
+        recorder = fly_identification(load_airframe("iris"), "pid", axis_s=0.6)
+        log = recorder.write(tmp_path / "no_motors.ulg",
+                             topics=[t for t in TOPICS if t not in ("actuator_motors", "actuator_outputs")])
+    else:
+        log = _ground_log(tmp_path / "ground.ulg", armed=case != "disarmed")
+    assert main(["identify", str(log), "--out", str(tmp_path / "out.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"fcemu: error: {log}: ") and line in err and err.count("\n") == 1
+    assert not (tmp_path / "out.json").exists()
+
+
+def test_identify_takes_a_log_or_fly_not_both(tmp_path, capsys) -> None:
+    assert main(["identify", "--out", str(tmp_path / "a.json")]) == 2
+    assert "a LOG or --fly AIRFRAME, one of them" in capsys.readouterr().err
