@@ -122,3 +122,15 @@ def test_a_log_that_cannot_be_identified_is_one_line_and_exit_2(case, line, flow
 def test_identify_takes_a_log_or_fly_not_both(tmp_path, capsys) -> None:
     assert main(["identify", "--out", str(tmp_path / "a.json")]) == 2
     assert "a LOG or --fly AIRFRAME, one of them" in capsys.readouterr().err
+
+
+def test_perturb_seed_draws_the_flown_airframe_from_the_ranges_and_keeps_it(tmp_path) -> None:
+    from fcemu.evaluation.identify_cli import _flown_airframe
+
+    drawn = _flown_airframe("iris", 201, tmp_path)
+    kept = load_airframe(tmp_path / "true_airframe.json")
+    assert kept.name == drawn.name == "iris_perturbed_201"
+    assert kept.motor == drawn.motor and np.allclose(kept.inertia(), drawn.inertia())
+    assert (kept.esc_delay_ticks, kept.gyro_noise_std) == (drawn.esc_delay_ticks, drawn.gyro_noise_std)
+    assert kept.motor.tau_up != load_airframe("iris").motor.tau_up
+    assert _flown_airframe("iris", 201, tmp_path / "again").motor == drawn.motor  # the seed decides
