@@ -9,6 +9,11 @@ Packet layouts are Betaflight 4.6's (`src/platform/SIMULATOR/target/SITL/target.
   `FDM_PACKET_RPM`: the same 18 doubles and the four rotor speeds in rpm, Betaflight motor
   order, which its SITL serves as the bidirectional DShot telemetry (`getDshotRpm`) the
   NEURAL mode reads. Stock Betaflight accepts only the 144-byte packet.
+  Each step carries one telemetry frame per motor, as bidirectional DShot answers each motor
+  update: a motor whose frame was lost (the twin's sample did not advance, a dropped or stopped
+  ESC telemetry; or its reading is not finite) is sent as NaN, which that SITL counts as an
+  invalid frame, keeping the motor's last valid rpm (`telemetry_frames`). A delayed sample goes
+  out when it arrives, as a valid frame: the firmware sees it late, as it would on a board.
 - RC, us → SITL on UDP 9004: `rc_packet`, timestamp (s) and 16 uint16 channels (µs), AETR1234.
 - Motors, SITL → us on UDP 9002: `servo_packet`, 4 floats, (µs − mincommand) / 1000.
 
@@ -81,6 +86,15 @@ def pack_fdm(timestamp_s: float, gyro_frd: Sequence[float], accel_frd: Sequence[
     if rotor_speed is None:
         return FDM_PACKET.pack(*values)
     return FDM_PACKET_RPM.pack(*values, *(float(w) * RAD_S_TO_RPM for w in rotor_speed))
+
+
+def telemetry_frames(frame: SensorFrame, last_sampled_us: np.ndarray | None) -> np.ndarray:
+    """The rotor speeds (rad/s) to send for `frame`: NaN for each motor whose sample is not newer than
+    the one sent before (`last_sampled_us`, None: no earlier times known) or not finite."""
+    speed = np.array(frame.rotor_speed, dtype=float)
+    if frame.rotor_speed_t_us is not None and last_sampled_us is not None:
+        speed[np.asarray(frame.rotor_speed_t_us) <= last_sampled_us] = np.nan
+    return speed
 
 
 def unpack_fdm(data: bytes) -> dict[str, object]:
@@ -164,6 +178,7 @@ class BetaflightBridge:
         self.outputs = (0.0, 0.0, 0.0, 0.0)
         self.pwm = motor_pwm(self.outputs)
         self.frame: SensorFrame = twin.reset()
+        self._rotor_sampled_us: np.ndarray | None = None  # the sample times of the rotor speeds sent last
         self.silent_steps = 0  # consecutive steps without an answer
         self._k = 0  # twin steps since the bridge started: the FDM clock, never reset
         self._t0 = time.perf_counter()
@@ -186,6 +201,7 @@ class BetaflightBridge:
         """Put the twin back at its initial state; the FDM clock keeps running (the SITL drops
         packets whose timestamp goes backwards)."""
         self.frame = self.twin.reset(seed, state)
+        self._rotor_sampled_us = None  # the twin's clock starts again
         return self.frame
 
     def step(self, rc: Sequence[int],
@@ -212,7 +228,11 @@ class BetaflightBridge:
         t = k * self.dt
         truth = self.twin.truth()
         sent_at = time.perf_counter()
-        rotor = frame.rotor_speed if self.send_rotor_speed else None
+        rotor = None
+        if self.send_rotor_speed:
+            rotor = telemetry_frames(frame, self._rotor_sampled_us)
+            sampled = frame.rotor_speed_t_us
+            self._rotor_sampled_us = None if sampled is None else np.array(sampled)
         self._out.sendto(pack_fdm(t, frame.gyro, frame.accel, truth.attitude, truth.velocity,
                                   truth.position, rotor_speed=rotor), self._fdm_addr)
         self.stats.sent += 1

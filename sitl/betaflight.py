@@ -17,7 +17,9 @@ is the twin's gyro as fcemu's policy sees it. In the SITL the policy steps once 
 the first time on the first packet after NEURAL is seen on. With `neural=True` each episode
 sends the sticks and AUX2 high in an RC packet alone and waits until Betaflight reports them
 read (MSP_RC; its RX task runs on its own schedule) before the first tick, so the policy starts
-fresh on that tick, as fcemu's does.
+fresh on that tick, as fcemu's does. Its debug mode is NEURAL: `neural_health()` reads what the
+mode's sensor-health rules made of the episode (the state, why and when the policy was dropped,
+the oldest rpm telemetry and the largest loss rate it flew on).
 
 Clock. The SITL's clock is not the twin's: it integrates wall time times the ratio of the last
 pair of FDM timestamp steps to their arrival interval. Each episode reads that clock over MSP
@@ -41,7 +43,13 @@ from pathlib import Path
 import numpy as np
 
 from fcemu.sim_bridge.betaflight_link import BetaflightBridge
-from fcemu.sitl.betaflight_process import BetaflightError, BetaflightMsp, BetaflightSitl, NeuralFirmware
+from fcemu.sitl.betaflight_process import (
+    NEURAL_STATES,
+    BetaflightError,
+    BetaflightMsp,
+    BetaflightSitl,
+    NeuralFirmware,
+)
 from fcemu.sitl.traces import Traces
 
 ARM_CH_US = 1900
@@ -81,7 +89,8 @@ def neural_settings(firmware: NeuralFirmware) -> list[str]:
     export/betaflight/neural.patch, flight/neural.c)."""
     return [f"aux 1 {firmware.box_id} 1 1700 2100 0 0",  # NEURAL on AUX2 high
             # the SITL has no dynamic notch (USE_DYN_NOTCH_FILTER is off in its target)
-            "set gyro_lpf1_static_hz = 0", "set gyro_lpf1_dyn_min_hz = 0", "set gyro_lpf2_static_hz = 0"]
+            "set gyro_lpf1_static_hz = 0", "set gyro_lpf1_dyn_min_hz = 0", "set gyro_lpf2_static_hz = 0",
+            "set debug_mode = NEURAL"]  # the sensor-health verdicts over MSP_DEBUG (neural_health)
 
 
 @dataclass(frozen=True)
@@ -295,13 +304,24 @@ class BetaflightFlight:
     def sitl_clock_ms(self) -> int:
         return self._msp(lambda msp: msp.clock_ms())
 
+    def neural_health(self) -> dict[str, object]:
+        """What the NEURAL mode's sensor-health rules made of the flight since it was last switched on
+        (its DEBUG_NEURAL values; ticks are the policy's, 1 ms): the state now, why the policy was
+        dropped ("" if it was not) and after how many ticks, the oldest rpm telemetry (ticks since a
+        motor's last valid frame) and the largest loss rate it flew on, the ticks it flew."""
+        v = self._msp(lambda msp: msp.debug_values())
+        return {"state": NEURAL_STATES[v[0]], "dropped": NEURAL_STATES[v[1]] if v[1] else "",
+                "dropped_after_ticks": v[2] if v[1] else None, "max_rpm_age_ticks": v[3],
+                "max_loss_rate": v[4] / 1000.0, "gyro_age_ticks": v[5], "policy_ticks": v[6]}
+
     def fly_episode(self, rates_frd: Sequence[float], throttle_ch: int, ticks: int,
-                    rate: np.ndarray, pwm: np.ndarray) -> int:
+                    rate: np.ndarray, pwm: np.ndarray, on_tick: Callable[[int], None] | None = None) -> int:
         """Re-arm, put the twin at rest, hold the step for `ticks` steps; fills rate (gyro sent to
         Betaflight) and pwm (what it answered) per step. Returns how many steps were late.
 
         An episode in which Betaflight lost an answer or disarmed is flown again on a restarted
-        SITL (its clock can break under host load; see README), at most `retries` times."""
+        SITL (its clock can break under host load; see README), at most `retries` times.
+        `on_tick(k)` runs before step k (e.g. to inject a fault into the twin)."""
         assert self.bridge is not None
         why = ""
         for attempt in range(self.retries + 1):
@@ -310,7 +330,7 @@ class BetaflightFlight:
             stats = self.bridge.stats
             before = stats.to_json()
             try:
-                self._fly(rates_frd, throttle_ch, ticks, rate, pwm)
+                self._fly(rates_frd, throttle_ch, ticks, rate, pwm, on_tick)
             except _Stalled:
                 why = "it stopped answering"
                 continue
@@ -325,7 +345,7 @@ class BetaflightFlight:
                               f"see {self.sitl.log_path}")
 
     def _fly(self, rates_frd: Sequence[float], throttle_ch: int, ticks: int,
-             rate: np.ndarray, pwm: np.ndarray) -> None:
+             rate: np.ndarray, pwm: np.ndarray, on_tick: Callable[[int], None] | None = None) -> None:
         assert self.bridge is not None
         self.disarm()
         self.bridge.idle(self.centre, 0.02)  # the arm switch must be seen low before it counts
@@ -339,6 +359,8 @@ class BetaflightFlight:
         clock0 = self.sitl_clock_ms()
         self.bridge.drain()
         for k in range(ticks):  # the first answer after the pauses above may take long (see step)
+            if on_tick is not None:
+                on_tick(k)
             frame, out, _ = self.bridge.step(rc, FIRST_REPLY_TIMEOUT_S if k == 0 else None)
             rate[k] = frame.gyro
             pwm[k] = out

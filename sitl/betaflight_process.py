@@ -180,6 +180,10 @@ ARMING_DISABLE_FLAGS = (
 MSP_STATUS_EX = 150
 MSP_RTC, MSP_SET_RTC = 247, 246
 MSP_RC_CHANNELS = 105
+MSP_DEBUG = 254
+# neuralState_e (export/betaflight/neural.patch, flight/neural.h), by value.
+NEURAL_STATES = ("off", "flying", "policy error", "no rpm", "wrong loop rate", "rpm too old",
+                 "rpm losing frames", "gyro too old")
 RTC_EPOCH_S = 1_000_000_000  # any date: only differences of the clock are read
 
 
@@ -229,6 +233,11 @@ class BetaflightMsp:
         """The RC channels (µs) as the firmware last read them (MSP_RC)."""
         body = self.request(MSP_RC_CHANNELS)
         return [int.from_bytes(body[i:i + 2], "little") for i in range(0, len(body) - 1, 2)]
+
+    def debug_values(self) -> list[int]:
+        """Betaflight's debug[] (MSP_DEBUG): what the selected `debug_mode` set, as int16."""
+        body = self.request(MSP_DEBUG)
+        return [int.from_bytes(body[i:i + 2], "little", signed=True) for i in range(0, len(body) - 1, 2)]
 
     def set_clock(self, seconds: int = RTC_EPOCH_S) -> None:
         """Start Betaflight's RTC at `seconds` (MSP_SET_RTC): from then on it counts the SITL's

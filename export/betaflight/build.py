@@ -271,5 +271,13 @@ def readme(manifest: dict) -> str:
         "(`fcemu betaflight --firmware` flies the SITL with them off, as the policy was trained).",
         "With NEURAL on and armed the policy writes the motors each PID loop; on a tick it returns an "
         "error, Betaflight's own mix flies that tick, and the policy starts afresh on the next. "
-        "Switched off, the PID takes over with its I-term reset.", ""])
+        "Switched off, the PID takes over with its I-term reset.", "",
+        "Sensor health (fcemu's rules, firmware/health.py): a lost or invalid DShot frame keeps the "
+        "motor's last valid rpm; the policy is dropped, and the PID flies until NEURAL is switched off "
+        "or the quad disarmed, when a motor's last valid frame is older than `neural_esc_max_age_ms` "
+        "(20), or it loses more than `neural_esc_loss_max` % (20) of its frames averaged over "
+        "`neural_esc_loss_win_ms` (100), or the last new gyro sample is older than "
+        "`neural_gyro_max_age_ms` (10). `set debug_mode = NEURAL` logs the state, why and when the "
+        "policy was dropped, the oldest rpm telemetry and the largest loss rate it flew on "
+        "(flight/neural.h).", ""])
 

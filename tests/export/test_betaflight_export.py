@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
+from dataclasses import fields
 
 import onnx
 import pytest
@@ -12,6 +14,7 @@ import pytest
 from fcemu.cli import main
 from fcemu.export.betaflight.build import (
     CHIPS,
+    PATCH,
     BetaflightExportError,
     apply_patch,
     betaflight_source,
@@ -20,6 +23,7 @@ from fcemu.export.betaflight.build import (
     motors_of,
     readme,
 )
+from fcemu.firmware.health import HealthRules
 from tests.export.mcu_tools import SHIPPED, _missing, require_codegen
 
 try:
@@ -91,6 +95,20 @@ def test_an_unknown_betaflight_target_is_refused(tmp_path, capsys):
 
 def test_the_patch_applies_to_the_package_s_betaflight_unchanged():
     apply_patch(betaflight_source(), dry_run=True)  # checks only: the package is never written to
+
+
+def test_the_neural_mode_s_health_limits_default_to_the_firmware_s():
+    patch = PATCH.read_text()
+    defaults = {k: int(v) for k, v in re.findall(r"^\+    \.(\w+) = (\d+),", patch, re.MULTILINE)}
+    rules = {f.name: f.default for f in fields(HealthRules)}
+    assert defaults == {"esc_max_age_ms": round(rules["esc_max_age_s"] * 1000),
+                        "esc_loss_window_ms": round(rules["esc_loss_window_s"] * 1000),
+                        "esc_loss_max_percent": round(rules["esc_loss_max"] * 100),
+                        "gyro_max_age_ms": round(rules["gyro_max_age_s"] * 1000)}
+    setup = readme({"model": str(SHIPPED), "contract": check_contract(SHIPPED), "builds": {}})
+    for setting in ("neural_esc_max_age_ms", "neural_esc_loss_win_ms", "neural_esc_loss_max",
+                    "neural_gyro_max_age_ms"):
+        assert f'{{ "{setting}",' in patch and f"`{setting}`" in setup
 
 
 @pytest.fixture(scope="module")

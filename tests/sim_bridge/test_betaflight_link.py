@@ -14,9 +14,12 @@ from fcemu.sim_bridge.betaflight_link import (
     motor_pwm,
     pack_fdm,
     pack_rc,
+    telemetry_frames,
     unpack_fdm,
     unpack_motors,
 )
+from fcemu.sim_bridge.faults import Fault, FaultInjector
+from fcemu.sim_bridge.twin import Twin
 
 
 def test_packet_sizes_match_the_c_structs():
@@ -52,3 +55,41 @@ def test_rc_packet_pads_with_switch_low_and_rejects_too_many_channels():
     assert ts == 0.5 and ch[:5] == [1500, 1600, 1000, 1400, 1900] and ch[5:] == [1000] * 11
     with pytest.raises(ValueError, match="at most 16"):
         pack_rc(0.0, [1500] * 17)
+
+
+def _telemetry_sent(fault: Fault, ticks: int = 300) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """What the twin read and what the link sends each tick, hovering with `fault` on the ESC telemetry."""
+    twin = Twin(rig="rig")
+    twin.reset()
+    twin.faults = FaultInjector(twin.dt, twin.airframe.motor.max_rotor_speed, seed=3)
+    twin.faults.inject(fault)
+    read, sent, last = [], [], None
+    for _ in range(ticks):
+        frame = twin.step(np.full(4, 1500.0))
+        read.append(frame.rotor_speed)
+        sent.append(telemetry_frames(frame, last))
+        last = frame.rotor_speed_t_us
+    return read, sent
+
+
+def test_a_lost_rotor_speed_frame_goes_out_as_nan_and_a_new_one_as_read():
+    read, sent = _telemetry_sent(Fault("esc-telemetry", "intermittent", 0, 0.05))
+    lost = np.array([np.isnan(s).all() for s in sent[1:]])
+    assert 0.02 < lost.mean() < 0.1  # 5 % of the frames, the four motors' together
+    assert all(np.array_equal(s, r) for s, r, gone in zip(sent[1:], read[1:], lost, strict=True) if not gone)
+
+
+def test_a_stopped_motor_telemetry_is_lost_every_tick_and_the_others_are_not():
+    _, sent = _telemetry_sent(Fault("esc-telemetry", "off", 2), ticks=50)
+    assert all(np.isnan(s[1]) and np.isfinite(s[[0, 2, 3]]).all() for s in sent)
+
+
+def test_delayed_rotor_speed_frames_go_out_as_valid_once_the_delay_line_is_full():
+    _, sent = _telemetry_sent(Fault("esc-telemetry", "delayed", 0, 0.005), ticks=50)
+    assert all(np.isfinite(s).all() for s in sent[6:])
+
+
+def test_without_sample_times_every_frame_is_new():
+    frame = Twin(rig="rig").reset()
+    assert frame.rotor_speed_t_us is None
+    assert np.array_equal(telemetry_frames(frame, np.zeros(4, dtype=np.int64)), frame.rotor_speed)

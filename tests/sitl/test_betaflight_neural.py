@@ -1,5 +1,7 @@
 """Betaflight 4.6 built with the shipped policy (`fcemu export --target betaflight`) on the rig:
-NEURAL on, the policy flies (its first answers are fcemu's C policy's); off, Betaflight's PID."""
+NEURAL on, the policy flies (its first answers are fcemu's C policy's); off, Betaflight's PID.
+With the twin's ESC telemetry losing frames NEURAL flies on; with a motor's telemetry stopped it
+hands over to the PID at the first tick past neural_esc_max_age_ms."""
 
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from fcemu.firmware.sensors import SensorFrame
 from fcemu.sim_bridge.betaflight_link import pack_fdm, unpack_fdm
 from fcemu.sim_bridge.twin import Twin
 from fcemu.sitl.betaflight import BetaflightFlight, RcMap
+from fcemu.sitl.betaflight_health import SCENARIOS, fly_scenarios
 from fcemu.sitl.betaflight_process import BetaflightError, neural_firmware, port_in_use
 from fcemu.sitl.traces import Traces
 from tests.export.mcu_tools import SHIPPED, require_codegen
@@ -78,6 +81,37 @@ def test_neural_on_the_policy_tracks_a_roll_step_and_off_the_pid_does(firmware, 
             assert np.abs(pwm[0] - first).max() <= 1.5
         else:  # Betaflight's PID answers the step differently
             assert np.abs(pwm[0] - first).max() > 20.0
+
+
+@pytest.fixture(scope="module")
+def telemetry_faults(firmware, tmp_path_factory):
+    """Fault-free, 1 % and 5 % of the rpm frames lost, motor 1's telemetry stopped at tick 100."""
+    if port_in_use(5761):
+        pytest.fail("another Betaflight SITL holds TCP 5761; its UDP ports would take our packets")
+    names = ("fault-free", "esc-telemetry:intermittent:1%", "esc-telemetry:intermittent:5%",
+             "esc-telemetry:1:off at 100 ms")
+    scenarios = tuple(s for s in SCENARIOS if s.name in names)
+    rows = fly_scenarios(firmware.directory, tmp_path_factory.mktemp("telemetry_faults"), scenarios)
+    return {row["scenario"]: row for row in rows}
+
+
+@pytest.mark.slow
+def test_lost_rpm_frames_are_held_and_neural_flies_on(telemetry_faults):
+    clean = telemetry_faults["fault-free"]
+    assert clean["dropped"] == "" and clean["max_loss_rate"] == 0.0
+    for lost in ("esc-telemetry:intermittent:1%", "esc-telemetry:intermittent:5%"):
+        row = telemetry_faults[lost]
+        assert row["dropped"] == "" and row["state"] == "flying" and row["policy_ticks"] == TICKS, row
+        assert 0.0 < row["max_loss_rate"] < 0.2  # frames were lost, below neural_esc_loss_max
+        assert row["roll_error_rad_s"] <= 1.3 * clean["roll_error_rad_s"], row
+
+
+@pytest.mark.slow
+def test_a_motor_whose_telemetry_stops_drops_neural_past_the_age_limit(telemetry_faults):
+    row = telemetry_faults["esc-telemetry:1:off at 100 ms"]
+    assert row["dropped"] == "rpm too old" and row["state"] == "rpm too old", row
+    assert row["max_rpm_age_ticks"] == 21  # the first tick past 20 ms (neural_esc_max_age_ms)
+    assert 20 <= row["dropped_after_ticks"] - row["fault_at_tick"] <= 22, row
 
 
 def test_the_extended_fdm_packet_carries_the_rotor_speeds_in_rpm():
