@@ -17,14 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.signal import butter, sosfiltfilt, welch
+from scipy.signal import butter, sosfiltfilt
 
 from fcemu.evaluation.identify_log import IDLE, FlightLog
 from fcemu.sim_bridge.airframe import Airframe
 
 MAX_DELAY_TICKS = 6
 SMOOTH_HZ = 40.0
-NOISE_BAND_HZ = (250.0, 450.0)  # above any rotor's frequency, below Nyquist at 1 kHz
 Z95 = 1.959964
 AXES = ("roll", "pitch", "yaw")
 
@@ -71,7 +70,6 @@ class AxisFit:
 class RateFit:
     axes: tuple[AxisFit, AxisFit, AxisFit]
     gyro_delay_ticks: int
-    gyro_noise_std: float  # rad/s
     accel: np.ndarray  # (T, 3) modelled acceleration at each tick (the last row repeated), rad/s²
     speed: np.ndarray  # (T, 4) rotor speed the fit used, rad/s
 
@@ -165,17 +163,6 @@ def smooth(x: np.ndarray, dt: float) -> np.ndarray:
     return sosfiltfilt(sos, x, axis=0)
 
 
-def gyro_noise(gyro: np.ndarray, dt: float) -> float:
-    """rad/s: the white noise's standard deviation, from the gyro's spectrum above the rotors'
-    frequencies (the median level, deaf to a vibration's lines), per axis, then their median."""
-    freq, psd = welch(gyro, fs=1.0 / dt, nperseg=min(1024, len(gyro)), axis=0)
-    band = (freq >= NOISE_BAND_HZ[0]) & (freq <= min(NOISE_BAND_HZ[1], 0.45 / dt))
-    if not band.any():
-        return 0.0
-    level = np.median(psd[band], axis=0)  # one-sided density of white noise: 2σ²·dt
-    return float(np.median(np.sqrt(level / (2 * dt))))
-
-
 def fit_rates(log: FlightLog, speed: np.ndarray, lever: np.ndarray) -> RateFit:
     """Per axis c, d (and j on yaw) by least squares, at the gyro delay that fits best."""
     dt = log.dt
@@ -207,7 +194,7 @@ def fit_rates(log: FlightLog, speed: np.ndarray, lever: np.ndarray) -> RateFit:
     for axis, (delay, base, beta) in enumerate(results):
         n = len(g) - delay
         modelled[delay:, axis] = np.column_stack([base[:n], -g[delay:, axis], np.ones(n)]) @ beta
-    return RateFit((fits[0], fits[1], fits[2]), gyro_delay, gyro_noise(log.gyro, dt), modelled, speed)
+    return RateFit((fits[0], fits[1], fits[2]), gyro_delay, modelled, speed)
 
 
 def fit_without_rpm(log: FlightLog, base: Airframe, lever: np.ndarray) -> tuple[MotorFit, RateFit]:
@@ -249,9 +236,10 @@ def fit_without_rpm(log: FlightLog, base: Airframe, lever: np.ndarray) -> tuple[
 
 
 def hover_command(log: FlightLog, blocks: int = 20) -> Estimate:
-    """The collective (mean motor command) the flight holds: the median, its interval from the
-    spread of the medians of `blocks` stretches."""
-    collective = log.command.mean(axis=1)
+    """The collective the flight holds: the median of the collective setpoint where the log has
+    it (the mixer may move the motors' mean off it to keep the demands unclipped), else of the
+    motors' mean command; its interval from the spread of the medians of `blocks` stretches."""
+    collective = log.command.mean(axis=1) if log.throttle is None else log.throttle
     medians = np.array([np.median(part) for part in np.array_split(collective, blocks)])
     return Estimate.normal(float(np.median(collective)), float(medians.std(ddof=1) / np.sqrt(blocks)))
 

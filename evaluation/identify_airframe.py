@@ -3,7 +3,7 @@
 What a rate log gives are ratios: the torque each rotor speed makes per unit of inertia, the
 motors' lag and delay, the speed a command asks for, the command that hovers. A file needs
 absolute numbers, so the base airframe gives what the log cannot (mass, geometry, the yaw
-moment constant, the rotor and body sizes, battery and vibration), and the rest follows:
+moment constant, the rotor and body sizes, the battery), and the rest follows:
 k_F from the mass and the hover rotor speed, each axis's inertia from k_F (and k_M) over its
 fitted effectiveness. Each number's `sources` entry says which it is: "identified from LOG"
 with its 95 % interval, derived, or the base's.
@@ -28,6 +28,7 @@ from fcemu.evaluation.identify import (
     hover_command,
     levers,
 )
+from fcemu.evaluation.identify_gyro import GyroFit, fit_gyro
 from fcemu.evaluation.identify_log import FlightLog, LogError
 from fcemu.sim_bridge.airframe import EFFECT_KEYS, Airframe
 from fcemu.sim_bridge.airframe_file import GRAVITY
@@ -46,6 +47,7 @@ class Identification:
     motors: MotorFit
     rates: RateFit
     hover: Estimate  # the collective, 0..1
+    gyro: GyroFit
 
     @property
     def hover_rotor_speed(self) -> Estimate:
@@ -66,7 +68,8 @@ def identify(log: FlightLog, base: Airframe, base_label: str) -> Identification:
     hover = hover_command(log)
     if not 0.02 < hover.value < 0.98:
         raise LogError(f"{log.path}: the collective holds at {hover.value:.2f}, not a hover")
-    return Identification(log, base, base_label, motors, rates, hover)
+    gyro = fit_gyro(log, base.motor.max_rotor_speed)
+    return Identification(log, base, base_label, motors, rates, hover, gyro)
 
 
 def _effects_document(airframe: Airframe) -> dict:
@@ -171,7 +174,6 @@ def identified_document(ident: Identification, name: str) -> dict:
                                      f"({'; '.join(parts)}), less the rotors' share by the base's geometry")
     delay_esc = mf.delay_ticks
     delay_gyro = max(0, rf.gyro_delay_ticks - TWIN_GYRO_LAG_TICKS)
-    noise = rf.gyro_noise_std
     effects = {}
     damping, damping_text = [], []
     for i in range(3):
@@ -188,7 +190,13 @@ def identified_document(ident: Identification, name: str) -> dict:
     effects["esc_delay_ticks"] = (delay_esc, esc_text)
     effects["gyro_delay_ticks"] = (delay_gyro, f"{at}: {rf.gyro_delay_ticks} ticks from rotor speed to gyro, "
                                                f"less the twin's own {TWIN_GYRO_LAG_TICKS}")
-    effects["gyro_noise_std"] = (noise, f"{at}: the gyro spectrum's level at 250-450 Hz")
+    effects["gyro_noise_std"] = (ident.gyro.noise_std, f"{at}: {ident.gyro.noise_how}")
+    vibration = ident.gyro.vibration
+    if vibration is not None:
+        parts = [f"{a} {e.text()}" for a, e in zip(AXES, vibration, strict=True)]
+        effects["gyro_vibration"] = (tuple(e.value for e in vibration),
+                                     f"{at}: the gyro against the rotors' angles from the ESC rpm "
+                                     f"({'; '.join(parts)})")
     airframe = ident.base.scaled(**{k: v for k, (v, _) in effects.items()})
     base_sources = dict(ident.base.effect_sources)
     effect_sources = tuple((attr, effects[attr][1] if attr in effects else

@@ -89,6 +89,9 @@ def write_report(ident: Identification, airframe: Airframe, airframe_path: Path,
             _row("gyro noise", f"{airframe.gyro_noise_std:.4g} rad/s", true(truth and truth.gyro_noise_std),
                  " rad/s")]
     for i, name in enumerate(AXES):
+        rows.append(_row(f"{name} gyro vibration", f"{airframe.gyro_vibration[i]:.4g} rad/s per (rad/s)²",
+                         true(truth and truth.gyro_vibration[i]), " rad/s per (rad/s)²"))
+    for i, name in enumerate(AXES):
         rows.append(_row(f"{name} effectiveness k_F/I (k_F·k_M/I on yaw)", rf.axes[i].effectiveness.text(),
                          None if truth is None else _effectiveness(truth)[i]))
         rows.append(_row(f"{name} inertia (whole airframe)", f"{inertia[i]:.4g} kg·m²",
@@ -105,7 +108,7 @@ def write_report(ident: Identification, airframe: Airframe, airframe_path: Path,
         f"# {airframe.name}: identified from {log.name}", "",
         f"`{airframe_path}` from `{log.path}`: {len(log.t)} samples at {1 / log.dt:.0f} Hz, motor commands "
         f"from {log.command_source}, {'with' if mf.from_rpm else 'without'} ESC rpm; base airframe "
-        f"{ident.base_label}. Mass, geometry, k_M, rotor sizes, battery and gyro vibration are the base's "
+        f"{ident.base_label}. Mass, geometry, k_M, rotor sizes and the battery are the base's "
         "(a rate log cannot give them); k_F follows from the base's mass and the hover rotor speed, the "
         "inertia from k_F over the effectiveness. Every number's source is in the airframe file.", "",
         *rows, "",

@@ -18,7 +18,7 @@ from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sitl.sitl import build_sitl
 from fcemu.sitl.ulog_writer import TOPICS, ULogRecorder
 
-TRUE = "iris_realistic"  # every effect a log shows is on: ESC and gyro delay, noise, vibration, damping
+TRUE = "iris_realistic"  # every effect a log shows is on: delays, noise, vibration, damping, battery sag
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +42,7 @@ def test_the_flight_s_log_gives_back_the_twin_it_was_flown_on(flown) -> None:
     assert (identified.esc_delay_ticks, identified.gyro_delay_ticks) == (true.esc_delay_ticks,
                                                                         true.gyro_delay_ticks)
     assert identified.gyro_noise_std == pytest.approx(true.gyro_noise_std, rel=0.1)
+    assert np.allclose(identified.gyro_vibration, true.gyro_vibration, rtol=0.1)
     assert identified.hover_throttle() == pytest.approx(true.hover_throttle(), abs=0.01)
     assert np.allclose(np.array(identified.rate_damping) / identified.inertia(),
                        np.array(true.rate_damping) / true.inertia(), rtol=0.1)
