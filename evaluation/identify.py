@@ -199,39 +199,51 @@ def fit_rates(log: FlightLog, speed: np.ndarray, lever: np.ndarray) -> RateFit:
 
 def fit_without_rpm(log: FlightLog, base: Airframe, lever: np.ndarray) -> tuple[MotorFit, RateFit]:
     """No ESC telemetry: the base's speed line; the time constants (the base's up/down ratio kept)
-    and the command-to-gyro delay are those whose modelled speeds fit the rates best."""
+    and the command-to-gyro delay are those whose modelled speeds fit the rates best: a coarse
+    search over scales of the base's time constants and the delays, then a fine one around the best."""
     m = base.motor
-    scale = np.geomspace(0.25, 4.0, 29)
     pwm = 1000.0 + 1000.0 * log.command
     target = np.clip(pwm, m.pwm_min, m.pwm_max) - m.pwm_min
     target *= m.max_rotor_speed / (m.pwm_max - m.pwm_min)
     dt = log.dt
-    up, down = 1 - np.exp(-dt / (m.tau_up * scale)), 1 - np.exp(-dt / (m.tau_down * scale))
-    speeds = lagged_speed(target, up, down, target[0])
     g = smooth(log.gyro, dt)
     accel = np.diff(g, axis=0) / dt
-    scores = np.zeros((len(scale), MAX_DELAY_TICKS + 1))
-    for i in range(len(scale)):
-        for axis in range(3):
-            columns = smooth(axis_regressors(speeds[i], lever, dt, axis), dt)
-            for delay in range(MAX_DELAY_TICKS + 1):
-                n = len(accel) - delay
-                x = np.column_stack([columns[:n], -g[delay:delay + n, axis], np.ones(n)])
-                y = accel[delay:, axis]
-                beta, *_ = np.linalg.lstsq(x, y, rcond=None)
-                scores[i, delay] += float(np.sum((y - x @ beta) ** 2))
-    i, delay = np.unravel_index(np.argmin(scores), scores.shape)
+
+    def scores(scale: np.ndarray, delays: range) -> tuple[np.ndarray, np.ndarray]:
+        up, down = 1 - np.exp(-dt / (m.tau_up * scale)), 1 - np.exp(-dt / (m.tau_down * scale))
+        speeds = lagged_speed(target, up, down, target[0])
+        out = np.zeros((len(scale), len(delays)))
+        for i in range(len(scale)):
+            for axis in range(3):
+                columns = smooth(axis_regressors(speeds[i], lever, dt, axis), dt)
+                for j, delay in enumerate(delays):
+                    n = len(accel) - delay
+                    x = np.column_stack([columns[:n], -g[delay:delay + n, axis], np.ones(n)])
+                    y = accel[delay:, axis]
+                    beta, *_ = np.linalg.lstsq(x, y, rcond=None)
+                    out[i, j] += float(np.sum((y - x @ beta) ** 2))
+        return out, speeds
+
+    coarse = np.geomspace(0.25, 4.0, 29)
+    coarse_scores, _ = scores(coarse, range(MAX_DELAY_TICKS + 1))
+    i, delay = np.unravel_index(np.argmin(coarse_scores), coarse_scores.shape)
+    step = coarse[1] / coarse[0]
+    fine = coarse[i] * np.geomspace(1 / step, step, 21)
+    fine_scores, speeds = scores(fine, range(delay, delay + 1))
+    best = int(np.argmin(fine_scores[:, 0]))
     # The scale's interval: where the residual sum of squares stays within χ²(1)'s 95 % of its least,
-    # counting the filtered ticks as 1 / (2·SMOOTH_HZ·dt) as many independent samples.
+    # counting the filtered ticks as 1 / (2·SMOOTH_HZ·dt) as many independent samples, and at
+    # least the fine search's step either side.
     n_eff = 3 * len(accel) * 2 * SMOOTH_HZ * dt
-    within = scale[scores[:, delay] <= scores[i, delay] * (1 + Z95**2 / n_eff)]
-    lo, hi = within.min(), within.max()
-    rate = fit_rates(log, speeds[i], lever)
+    within = fine[fine_scores[:, 0] <= fine_scores[best, 0] * (1 + Z95**2 / n_eff)]
+    fine_step = fine[1] / fine[0]
+    lo, hi = min(within.min(), fine[best] / fine_step), max(within.max(), fine[best] * fine_step)
+    rate = fit_rates(log, speeds[best], lever)
     b = m.max_rotor_speed * 1000.0 / (m.pwm_max - m.pwm_min)
     a = -b * (m.pwm_min - 1000.0) / 1000.0
     motors = MotorFit(0, Estimate(a, a, a), Estimate(b, b, b),
-                      Estimate(m.tau_up * scale[i], m.tau_up * lo, m.tau_up * hi),
-                      Estimate(m.tau_down * scale[i], m.tau_down * lo, m.tau_down * hi), from_rpm=False)
+                      Estimate(m.tau_up * fine[best], m.tau_up * lo, m.tau_up * hi),
+                      Estimate(m.tau_down * fine[best], m.tau_down * lo, m.tau_down * hi), from_rpm=False)
     return motors, rate
 
 
