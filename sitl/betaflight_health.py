@@ -1,18 +1,21 @@
 """Betaflight's NEURAL mode meets the twin's ESC-telemetry faults: does it hold lost frames and drop
 the policy only when a motor's telemetry is too old or too often lost?
 
-`python -m fcemu.sitl.betaflight_health --firmware DIR` flies the rig's roll step once per scenario
-in `SCENARIOS` (fault-free, frames lost at random and in bursts, delayed, one motor's telemetry
-stopped mid-episode), each fault injected into the twin (sim_bridge/faults.py) and carried to the
-SITL as DShot would (sim_bridge/betaflight_link.py: a lost frame arrives as an invalid one), and
-prints, per scenario, what the mode's health rules made of it (`BetaflightFlight.neural_health`)
-and how well the roll step was tracked.
+`python -m fcemu.sitl.betaflight_health --firmware DIR` flies the rig's roll step `--episodes`
+times per scenario in `SCENARIOS` (fault-free, frames lost at random and in bursts, delayed, one
+motor's telemetry stopped mid-episode), each fault injected into the twin (sim_bridge/faults.py)
+and carried to the SITL as DShot would (sim_bridge/betaflight_link.py: a lost frame arrives as an
+invalid one), and prints, per episode, what the mode's health rules made of it
+(`BetaflightFlight.neural_health`) and how well the roll step was tracked, and per scenario a
+summary (`summarise`).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,12 +73,39 @@ def fly_scenario(flight: BetaflightFlight, scenario: Scenario, seed: int = 0,
 
 
 def fly_scenarios(firmware_dir: str | Path, run_dir: str | Path, scenarios: tuple[Scenario, ...] = SCENARIOS,
-                  speed: float = 0.25, seed: int = 0) -> list[dict[str, object]]:
-    """Each scenario once, on one SITL with the export in `firmware_dir`."""
+                  speed: float = 0.25, seed: int = 0, episodes: int = 1) -> list[dict[str, object]]:
+    """Each scenario `episodes` times (the faults' draws seeded `seed`, `seed` + 1, ...), on one SITL
+    with the export in `firmware_dir`."""
     firmware = neural_firmware(firmware_dir)
     with BetaflightFlight(run_dir, Twin(rig="rig"), RcMap(), speed=speed, firmware=firmware,
                           neural=True) as flight:
-        return [fly_scenario(flight, s, seed + i) for i, s in enumerate(scenarios)]
+        return [{**fly_scenario(flight, s, seed + e), "episode": e}
+                for s in scenarios for e in range(episodes)]
+
+
+def summarise(rows: list[dict]) -> list[dict[str, object]]:
+    """Per scenario: episodes the policy flew to the end, why the others dropped it and how many
+    ticks after the fault, the oldest telemetry and largest loss rate it flew on, the median roll
+    error and its ratio to the fault-free scenario's."""
+    by_name: dict[str, list[dict]] = {}
+    for row in rows:
+        by_name.setdefault(str(row["scenario"]), []).append(row)
+    clean = by_name.get("fault-free")
+    clean_error = statistics.median(r["roll_error_rad_s"] for r in clean) if clean else None
+    summary = []
+    for name, group in by_name.items():
+        dropped = [r for r in group if r["dropped"]]
+        error = statistics.median(r["roll_error_rad_s"] for r in group)
+        after = sorted(r["dropped_after_ticks"] - r["fault_at_tick"] for r in dropped)
+        summary.append({"scenario": name, "episodes": len(group),
+                        "flew_to_the_end": len(group) - len(dropped),
+                        "dropped": dict(Counter(r["dropped"] for r in dropped)),
+                        "dropped_ticks_after_fault": after,
+                        "max_rpm_age_ticks": max(r["max_rpm_age_ticks"] for r in group),
+                        "max_loss_rate": max(r["max_loss_rate"] for r in group),
+                        "roll_error_rad_s_median": error,
+                        "error_ratio": round(error / clean_error, 2) if clean_error else None})
+    return summary
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,12 +116,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--run-dir", default="betaflight_health_run", metavar="DIR")
     parser.add_argument("--speed", type=float, default=0.25, help="× real time (default 0.25)")
     parser.add_argument("--seed", type=int, default=0, help="the faults' random draws")
+    parser.add_argument("--episodes", type=int, default=1, help="per scenario (default 1)")
     args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.exit(2, "fcemu: error: --episodes must be >= 1\n")
     try:
-        rows = fly_scenarios(args.firmware, args.run_dir, speed=args.speed, seed=args.seed)
+        rows = fly_scenarios(args.firmware, args.run_dir, speed=args.speed, seed=args.seed,
+                             episodes=args.episodes)
     except BetaflightError as exc:
         parser.exit(2, f"fcemu: error: {exc}\n")
-    print(json.dumps(rows, indent=1))
+    print(json.dumps({"summary": summarise(rows), "episodes": rows}, indent=1))
     return 0
 
 
