@@ -68,7 +68,7 @@ def identify(log: FlightLog, base: Airframe, base_label: str) -> Identification:
     hover = hover_command(log)
     if not 0.02 < hover.value < 0.98:
         raise LogError(f"{log.path}: the collective holds at {hover.value:.2f}, not a hover")
-    gyro = fit_gyro(log, base.motor.max_rotor_speed)
+    gyro = fit_gyro(log, base.motor.max_rotor_speed, rates.speed)
     return Identification(log, base, base_label, motors, rates, hover, gyro)
 
 
@@ -195,8 +195,11 @@ def identified_document(ident: Identification, name: str) -> dict:
     if vibration is not None:
         parts = [f"{a} {e.text()}" for a, e in zip(AXES, vibration, strict=True)]
         effects["gyro_vibration"] = (tuple(e.value for e in vibration),
-                                     f"{at}: the gyro against the rotors' angles from the ESC rpm "
-                                     f"({'; '.join(parts)})")
+                                     f"{at}: " + ("the gyro against the rotors' angles from the ESC rpm"
+                                                  if ident.gyro.from_angles else
+                                                  "the gyro's power above the rates' band against the "
+                                                  "modelled rotor speeds' fourth power (no ESC rpm)")
+                                     + f" ({'; '.join(parts)})")
     airframe = ident.base.scaled(**{k: v for k, (v, _) in effects.items()})
     base_sources = dict(ident.base.effect_sources)
     effect_sources = tuple((attr, effects[attr][1] if attr in effects else

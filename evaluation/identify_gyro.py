@@ -6,6 +6,7 @@ unknown starting angle, so the vibration is linear in ω_i²·sin φ_i and ω_i�
 the gyro above the rates' band (the complement of `identify.smooth`), each rotor's amplitude is
 the length of its two coefficients and a_axis their mean. The noise is then the level of what
 is left, from its spectrum above the rotors' frequencies where the band is free of them.
+Without rpm the vibration's amplitude comes from its power (`vibration_from_power`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ class GyroFit:
     vibration: tuple[Estimate, Estimate, Estimate] | None  # rad/s per (rad/s)², per axis; None: not fitted
     noise_std: float  # rad/s
     noise_how: str
+    from_angles: bool  # the vibration fitted against the rotor angles (else from its power)
 
 
 def _high(x: np.ndarray, dt: float) -> np.ndarray:
@@ -80,14 +82,31 @@ def noise_level(gyro: np.ndarray, dt: float, top_rotor_hz: float) -> tuple[float
     return float(spread), f"the gyro's spread above {SMOOTH_HZ:.0f} Hz"
 
 
-def fit_gyro(log: FlightLog, top_rotor_speed: float) -> GyroFit:
-    """`top_rotor_speed` (rad/s): the fastest the rotors may turn, where the log has no rpm."""
+def vibration_from_power(log: FlightLog, speed: np.ndarray, noise: float,
+                         blocks: int = 20) -> tuple[Estimate, Estimate, Estimate] | None:
+    """Without rpm the rotors' angles are unknown, but not their power: with the rotors out of
+    step, the vibration's mean square is a²·Σ_i ω_i⁴/2 (ω the modelled speeds), on top of the
+    noise's share above the rates' band. Per axis, its interval from `blocks` stretches."""
+    dt = log.dt
+    power = _high(log.gyro, dt) ** 2 - noise**2 * (1 - 2 * SMOOTH_HZ * dt)
+    drive = (speed**4).sum(axis=1) / 2
+    parts = [np.sqrt(np.maximum(p.mean(axis=0), 0.0) / d.mean())
+             for p, d in zip(np.array_split(power, blocks), np.array_split(drive, blocks), strict=True)]
+    whole = np.sqrt(np.maximum(power.mean(axis=0), 0.0) / drive.mean())
+    spread = np.std(parts, axis=0, ddof=1) / np.sqrt(blocks)
+    out = [Estimate.normal(float(whole[axis]), float(spread[axis])) for axis in range(3)]
+    return None if all(e.low <= 0 for e in out) else (out[0], out[1], out[2])
+
+
+def fit_gyro(log: FlightLog, top_rotor_speed: float, speed: np.ndarray) -> GyroFit:
+    """`top_rotor_speed` (rad/s): the fastest the rotors may turn, where the log has no rpm;
+    `speed` (T, 4): the rotor speeds the rate fit used (modelled ones without rpm)."""
+    if log.rotor_speed is None:
+        noise, how = noise_level(log.gyro, log.dt, top_rotor_speed / (2 * np.pi))
+        return GyroFit(vibration_from_power(log, speed, noise), noise, how, from_angles=False)
     vibration = fit_vibration(log)
     gyro = log.gyro if vibration is None else log.gyro - vibration[1]
-    if log.rotor_speed is not None:
-        top_rotor_speed = float(log.rotor_speed.max())
-    noise, how = noise_level(gyro, log.dt, top_rotor_speed / (2 * np.pi))
+    noise, how = noise_level(gyro, log.dt, float(log.rotor_speed.max()) / (2 * np.pi))
     if vibration is not None:
         how += ", the fitted vibration taken out"
-    return GyroFit(None if vibration is None else vibration[0], noise, how)
-
+    return GyroFit(None if vibration is None else vibration[0], noise, how, from_angles=True)
