@@ -59,6 +59,9 @@ HORIZON = 400  # steps: the error left after 0.4 s is a few % of an episode's
 OTHERS_HORIZON = 150  # steps of the programmes that bound two axes' Error for the rate boxes
 TANGENTS = np.linspace(0.1, 1.0, 10)  # fractions of ω_max where k_F·ω² is cut from below
 BOX_MARGIN = 1e-6  # rad/s added to each box edge: the twin's rounding, the solver's tolerance
+# HiGHS's simplex stalls on a few degenerate programmes (minutes on one where its interior-point
+# method takes a second); past this it is stopped and the interior-point method solves the programme.
+SIMPLEX_TIME_LIMIT_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -251,8 +254,11 @@ class ErrorBound:
         cost = np.zeros(self.n)
         for j in range(3):  # Σ of the slacks from sample 2 on (samples 0 and 1 are at rest)
             cost[self.s(j, 2):self.s(j, K - 1) + 1] = weights[j]
-        res = linprog(cost, A_ub=A_ub, b_ub=b_ub, A_eq=self.A_eq, b_eq=self.b_eq, bounds=bounds,
-                      method="highs")
+        problem = {"c": cost, "A_ub": A_ub, "b_ub": b_ub, "A_eq": self.A_eq, "b_eq": self.b_eq,
+                   "bounds": bounds}
+        res = linprog(**problem, method="highs", options={"time_limit": SIMPLEX_TIME_LIMIT_S})
+        if res.status == 1:  # the time limit
+            res = linprog(**problem, method="highs-ipm")
         if res.status == 2:
             return None
         if res.status != 0:
