@@ -14,6 +14,8 @@ Packet layouts are Betaflight 4.6's (`src/platform/SIMULATOR/target/SITL/target.
   ESC telemetry; or its reading is not finite) is sent as NaN, which that SITL counts as an
   invalid frame, keeping the motor's last valid rpm (`telemetry_frames`). A delayed sample goes
   out when it arrives, as a valid frame: the firmware sees it late, as it would on a board.
+  That SITL takes a lost gyro sample the same way (`gyro_sample`: NaN, and its gyro driver reads
+  nothing new); stock Betaflight gets the twin's gyro as it is.
 - RC, us → SITL on UDP 9004: `rc_packet`, timestamp (s) and 16 uint16 channels (µs), AETR1234.
 - Motors, SITL → us on UDP 9002: `servo_packet`, 4 floats, (µs − mincommand) / 1000.
 
@@ -95,6 +97,15 @@ def telemetry_frames(frame: SensorFrame, last_sampled_us: np.ndarray | None) -> 
     if frame.rotor_speed_t_us is not None and last_sampled_us is not None:
         speed[np.asarray(frame.rotor_speed_t_us) <= last_sampled_us] = np.nan
     return speed
+
+
+def gyro_sample(frame: SensorFrame, last_sampled_us: int | None) -> np.ndarray:
+    """The gyro (FRD rad/s) to send for `frame`: NaN if its sample is not newer than the one sent
+    before (`last_sampled_us`, None: no earlier time known)."""
+    sampled = frame.gyro_t_us
+    if sampled is not None and last_sampled_us is not None and sampled <= last_sampled_us:
+        return np.full(3, np.nan)
+    return np.asarray(frame.gyro, dtype=float)
 
 
 def unpack_fdm(data: bytes) -> dict[str, object]:
@@ -179,6 +190,7 @@ class BetaflightBridge:
         self.pwm = motor_pwm(self.outputs)
         self.frame: SensorFrame = twin.reset()
         self._rotor_sampled_us: np.ndarray | None = None  # the sample times of the rotor speeds sent last
+        self._gyro_sampled_us: int | None = None  # and of the gyro
         self.silent_steps = 0  # consecutive steps without an answer
         self._k = 0  # twin steps since the bridge started: the FDM clock, never reset
         self._t0 = time.perf_counter()
@@ -201,7 +213,7 @@ class BetaflightBridge:
         """Put the twin back at its initial state; the FDM clock keeps running (the SITL drops
         packets whose timestamp goes backwards)."""
         self.frame = self.twin.reset(seed, state)
-        self._rotor_sampled_us = None  # the twin's clock starts again
+        self._rotor_sampled_us = self._gyro_sampled_us = None  # the twin's clock starts again
         return self.frame
 
     def step(self, rc: Sequence[int],
@@ -228,12 +240,14 @@ class BetaflightBridge:
         t = k * self.dt
         truth = self.twin.truth()
         sent_at = time.perf_counter()
-        rotor = None
+        rotor, gyro = None, frame.gyro
         if self.send_rotor_speed:
             rotor = telemetry_frames(frame, self._rotor_sampled_us)
             sampled = frame.rotor_speed_t_us
             self._rotor_sampled_us = None if sampled is None else np.array(sampled)
-        self._out.sendto(pack_fdm(t, frame.gyro, frame.accel, truth.attitude, truth.velocity,
+            gyro = gyro_sample(frame, self._gyro_sampled_us)
+            self._gyro_sampled_us = frame.gyro_t_us
+        self._out.sendto(pack_fdm(t, gyro, frame.accel, truth.attitude, truth.velocity,
                                   truth.position, rotor_speed=rotor), self._fdm_addr)
         self.stats.sent += 1
         if k % self.rc_every == 0:

@@ -1,9 +1,9 @@
-"""Betaflight's NEURAL mode meets the twin's ESC-telemetry faults: does it hold lost frames and drop
-the policy only when a motor's telemetry is too old or too often lost?
+"""Betaflight's NEURAL mode meets the twin's ESC-telemetry and gyro faults: does it hold lost frames
+and drop the policy only when a motor's telemetry is too old or too often lost, or the gyro too old?
 
 `python -m fcemu.sitl.betaflight_health --firmware DIR` flies the rig's roll step `--episodes`
 times per scenario in `SCENARIOS` (fault-free, frames lost at random and in bursts, delayed, one
-motor's telemetry stopped mid-episode), each fault injected into the twin (sim_bridge/faults.py)
+motor's telemetry or the gyro stopped mid-episode), each fault injected into the twin (sim_bridge/faults.py)
 and carried to the SITL as DShot would (sim_bridge/betaflight_link.py: a lost frame arrives as an
 invalid one), and prints, per episode, what the mode's health rules made of it
 (`BetaflightFlight.neural_health`) and how well the roll step was tracked, and per scenario a
@@ -46,6 +46,7 @@ SCENARIOS = (
     Scenario("esc-telemetry:burst:20ms@1%", Fault("esc-telemetry", "burst", 0, 0.01, 0.02)),
     Scenario("esc-telemetry:delayed:5ms", Fault("esc-telemetry", "delayed", 0, 0.005)),
     Scenario("esc-telemetry:1:off at 100 ms", Fault("esc-telemetry", "off", 1), at_tick=100),
+    Scenario("gyro:off at 100 ms", Fault("gyro", "off"), at_tick=100),
 )
 
 
@@ -67,9 +68,11 @@ def fly_scenario(flight: BetaflightFlight, scenario: Scenario, seed: int = 0,
         health = flight.neural_health()
     finally:
         twin.faults = None
-    error = float(np.abs(rate[SETTLED:, 0] - step[0]).mean())
+    tracked = rate[SETTLED:, 0]
+    # None where the twin's gyro read NaN (gyro off): the rate flown is not recorded
+    error = round(float(np.abs(tracked - step[0]).mean()), 4) if np.isfinite(tracked).all() else None
     return {"scenario": scenario.name, "fault_at_tick": scenario.at_tick if scenario.fault else None,
-            **health, "roll_error_rad_s": round(error, 4)}
+            **health, "roll_error_rad_s": error}
 
 
 def fly_scenarios(firmware_dir: str | Path, run_dir: str | Path, scenarios: tuple[Scenario, ...] = SCENARIOS,
@@ -91,11 +94,11 @@ def summarise(rows: list[dict]) -> list[dict[str, object]]:
     for row in rows:
         by_name.setdefault(str(row["scenario"]), []).append(row)
     clean = by_name.get("fault-free")
-    clean_error = statistics.median(r["roll_error_rad_s"] for r in clean) if clean else None
+    clean_error = _median_error(clean) if clean else None
     summary = []
     for name, group in by_name.items():
         dropped = [r for r in group if r["dropped"]]
-        error = statistics.median(r["roll_error_rad_s"] for r in group)
+        error = _median_error(group)
         after = sorted(r["dropped_after_ticks"] - r["fault_at_tick"] for r in dropped)
         summary.append({"scenario": name, "episodes": len(group),
                         "flew_to_the_end": len(group) - len(dropped),
@@ -104,8 +107,13 @@ def summarise(rows: list[dict]) -> list[dict[str, object]]:
                         "max_rpm_age_ticks": max(r["max_rpm_age_ticks"] for r in group),
                         "max_loss_rate": max(r["max_loss_rate"] for r in group),
                         "roll_error_rad_s_median": error,
-                        "error_ratio": round(error / clean_error, 2) if clean_error else None})
+                        "error_ratio": round(error / clean_error, 2) if clean_error and error else None})
     return summary
+
+
+def _median_error(rows: list[dict]) -> float | None:
+    errors = [r["roll_error_rad_s"] for r in rows if r["roll_error_rad_s"] is not None]
+    return statistics.median(errors) if errors else None
 
 
 def main(argv: list[str] | None = None) -> int:

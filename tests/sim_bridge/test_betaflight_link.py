@@ -11,6 +11,7 @@ from fcemu.sim_bridge.betaflight_link import (
     FDM_PACKET,
     MOTOR_PACKET,
     RC_PACKET,
+    gyro_sample,
     motor_pwm,
     pack_fdm,
     pack_rc,
@@ -93,3 +94,19 @@ def test_without_sample_times_every_frame_is_new():
     frame = Twin(rig="rig").reset()
     assert frame.rotor_speed_t_us is None
     assert np.array_equal(telemetry_frames(frame, np.zeros(4, dtype=np.int64)), frame.rotor_speed)
+
+
+def test_a_lost_gyro_sample_goes_out_as_nan_and_a_new_one_as_read():
+    twin = Twin(rig="rig")
+    twin.reset()
+    twin.faults = FaultInjector(twin.dt, twin.airframe.motor.max_rotor_speed, seed=3)
+    twin.faults.inject(Fault("gyro", "intermittent", 0, 0.2))
+    last, lost = None, 0
+    for _ in range(200):
+        frame = twin.step(np.full(4, 1500.0))
+        sent = gyro_sample(frame, last)
+        new = last is None or frame.gyro_t_us > last
+        assert np.isnan(sent).all() if not new else np.array_equal(sent, frame.gyro)
+        lost += not new
+        last = frame.gyro_t_us
+    assert 20 < lost < 60  # a fifth of 200

@@ -1,7 +1,8 @@
 """Betaflight 4.6 built with the shipped policy (`fcemu export --target betaflight`) on the rig:
 NEURAL on, the policy flies (its first answers are fcemu's C policy's); off, Betaflight's PID.
 With the twin's ESC telemetry losing frames NEURAL flies on; with a motor's telemetry stopped it
-hands over to the PID at the first tick past neural_esc_max_age_ms."""
+hands over to the PID at the first tick past neural_esc_max_age_ms, with the gyro stopped at the
+first tick past neural_gyro_max_age_ms."""
 
 from __future__ import annotations
 
@@ -85,11 +86,11 @@ def test_neural_on_the_policy_tracks_a_roll_step_and_off_the_pid_does(firmware, 
 
 @pytest.fixture(scope="module")
 def telemetry_faults(firmware, tmp_path_factory):
-    """Fault-free, 1 % and 5 % of the rpm frames lost, motor 1's telemetry stopped at tick 100."""
+    """Fault-free, 1 % and 5 % of the rpm frames lost, motor 1's telemetry or the gyro stopped at tick 100."""
     if port_in_use(5761):
         pytest.fail("another Betaflight SITL holds TCP 5761; its UDP ports would take our packets")
     names = ("fault-free", "esc-telemetry:intermittent:1%", "esc-telemetry:intermittent:5%",
-             "esc-telemetry:1:off at 100 ms")
+             "esc-telemetry:1:off at 100 ms", "gyro:off at 100 ms")
     scenarios = tuple(s for s in SCENARIOS if s.name in names)
     rows = fly_scenarios(firmware.directory, tmp_path_factory.mktemp("telemetry_faults"), scenarios)
     return {row["scenario"]: row for row in rows}
@@ -141,3 +142,10 @@ def test_fcemu_betaflight_rejects_a_directory_that_is_not_an_export(tmp_path, ca
     assert main(["betaflight", "--firmware", str(tmp_path), "--episodes", "1"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("fcemu: error: ") and "not a Betaflight export" in err
+
+
+@pytest.mark.slow
+def test_a_gyro_that_stops_drops_neural_past_its_age_limit(telemetry_faults):
+    row = telemetry_faults["gyro:off at 100 ms"]
+    assert row["dropped"] == "gyro too old" and row["max_rpm_age_ticks"] == 0, row
+    assert 10 <= row["dropped_after_ticks"] - row["fault_at_tick"] <= 12, row  # 11: past 10 ms
