@@ -20,6 +20,7 @@ from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
 from fcemu.evaluation.identify_log import IDLE, FlightLog
+from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 from fcemu.sim_bridge.airframe import Airframe
 
 MAX_DELAY_TICKS = 6
@@ -202,7 +203,7 @@ def fit_without_rpm(log: FlightLog, base: Airframe, lever: np.ndarray) -> tuple[
     and the command-to-gyro delay are those whose modelled speeds fit the rates best: a coarse
     search over scales of the base's time constants and the delays, then a fine one around the best."""
     m = base.motor
-    pwm = 1000.0 + 1000.0 * log.command
+    pwm = PWM_MIN + PWM_SPAN * log.command
     target = np.clip(pwm, m.pwm_min, m.pwm_max) - m.pwm_min
     target *= m.max_rotor_speed / (m.pwm_max - m.pwm_min)
     dt = log.dt
@@ -239,8 +240,8 @@ def fit_without_rpm(log: FlightLog, base: Airframe, lever: np.ndarray) -> tuple[
     fine_step = fine[1] / fine[0]
     lo, hi = min(within.min(), fine[best] / fine_step), max(within.max(), fine[best] * fine_step)
     rate = fit_rates(log, speeds[best], lever)
-    b = m.max_rotor_speed * 1000.0 / (m.pwm_max - m.pwm_min)
-    a = -b * (m.pwm_min - 1000.0) / 1000.0
+    b = m.max_rotor_speed * PWM_SPAN / (m.pwm_max - m.pwm_min)
+    a = -b * (m.pwm_min - PWM_MIN) / PWM_SPAN
     motors = MotorFit(0, Estimate(a, a, a), Estimate(b, b, b),
                       Estimate(m.tau_up * fine[best], m.tau_up * lo, m.tau_up * hi),
                       Estimate(m.tau_down * fine[best], m.tau_down * lo, m.tau_down * hi), from_rpm=False)

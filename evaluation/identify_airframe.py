@@ -30,6 +30,7 @@ from fcemu.evaluation.identify import (
 )
 from fcemu.evaluation.identify_gyro import GyroFit, fit_gyro
 from fcemu.evaluation.identify_log import FlightLog, LogError
+from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 from fcemu.sim_bridge.airframe import EFFECT_KEYS, Airframe
 from fcemu.sim_bridge.airframe_file import GRAVITY
 
@@ -129,7 +130,7 @@ def identified_document(ident: Identification, name: str) -> dict:
     b = mf.speed_per_command.value
     if mf.from_rpm:
         max_speed = mf.speed_at_zero.value + b
-        pwm_min = 1000.0 - 1000.0 * mf.speed_at_zero.value / b
+        pwm_min = PWM_MIN - PWM_SPAN * mf.speed_at_zero.value / b
         line = (f"{at}: ESC rpm against the motor command, ω = a + b·u with a "
                 f"{mf.speed_at_zero.text(' rad/s')}, b {mf.speed_per_command.text(' rad/s')}")
         sources["motor.max_rotor_speed_rad_s"] = f"{line}; a + b"
@@ -145,7 +146,7 @@ def identified_document(ident: Identification, name: str) -> dict:
         m = base.motor
         pwm_min, kf = m.pwm_min, m.kf
         omega_h = Estimate.normal(base.hover_rotor_speed(), 0.0)
-        hover_pwm = 1000.0 + 1000.0 * ident.hover.value
+        hover_pwm = PWM_MIN + PWM_SPAN * ident.hover.value
         max_speed = omega_h.value * (m.pwm_max - m.pwm_min) / (hover_pwm - m.pwm_min)
         sources["motor.thrust_coefficient_N_per_rad_s2"] = f"{kept}; no ESC rpm in {log.name}"
         sources["motor.pwm_min_us"] = f"{kept}; no ESC rpm in {log.name}"
@@ -191,22 +192,19 @@ def identified_document(ident: Identification, name: str) -> dict:
     effects["gyro_delay_ticks"] = (delay_gyro, f"{at}: {rf.gyro_delay_ticks} ticks from rotor speed to gyro, "
                                                f"less the twin's own {TWIN_GYRO_LAG_TICKS}")
     effects["gyro_noise_std"] = (ident.gyro.noise_std, f"{at}: {ident.gyro.noise_how}")
-    vibration = ident.gyro.vibration
-    if vibration is not None:
-        parts = [f"{a} {e.text()}" for a, e in zip(AXES, vibration, strict=True)]
-        effects["gyro_vibration"] = (tuple(e.value for e in vibration),
-                                     f"{at}: " + ("the gyro against the rotors' angles from the ESC rpm"
-                                                  if ident.gyro.from_angles else
-                                                  "the gyro's power above the rates' band against the "
-                                                  "modelled rotor speeds' fourth power (no ESC rpm)")
-                                     + f" ({'; '.join(parts)})")
+    vibration = [_nonnegative(e, log.name, "") for e in ident.gyro.vibration]
+    how = ("the gyro against the rotors' angles from the ESC rpm" if ident.gyro.from_angles else
+           "the gyro's power above the rates' band against the rotor speeds' fourth power")
+    effects["gyro_vibration"] = (tuple(v for v, _ in vibration),
+                                 f"{how}: " + "; ".join(f"{a} {text}" for a, (_, text) in zip(AXES, vibration,
+                                                                                              strict=True)))
     airframe = ident.base.scaled(**{k: v for k, (v, _) in effects.items()})
     base_sources = dict(ident.base.effect_sources)
     effect_sources = tuple((attr, effects[attr][1] if attr in effects else
                             f"{kept}: {base_sources.get(attr, '')}".rstrip(": "))
                            for attr in ATTRIBUTE_OF_EFFECT)
     motor = replace(base.motor, max_rotor_speed=float(max_speed), kf=float(kf), tau_up=mf.tau_up.value,
-                    tau_down=mf.tau_down.value, pwm_min=float(pwm_min), pwm_max=1000.0 + 1000.0)
+                    tau_down=mf.tau_down.value, pwm_min=float(pwm_min), pwm_max=PWM_MIN + PWM_SPAN)
     airframe = replace(airframe, name=name, base_inertia=tuple(float(v) for v in inertia), motor=motor,
                        effect_sources=effect_sources)
     source = (f"Identified by fcemu identify from {log.name} ({len(log.t)} samples at {1 / log.dt:.0f} Hz, "

@@ -24,7 +24,7 @@ NOISE_BAND_HZ = (250.0, 450.0)  # above an Iris-sized rotor's frequency, below N
 
 @dataclass(frozen=True)
 class GyroFit:
-    vibration: tuple[Estimate, Estimate, Estimate] | None  # rad/s per (rad/s)², per axis; None: not fitted
+    vibration: tuple[Estimate, Estimate, Estimate]  # rad/s per (rad/s)², per axis
     noise_std: float  # rad/s
     noise_how: str
     from_angles: bool  # the vibration fitted against the rotor angles (else from its power)
@@ -35,8 +35,7 @@ def _high(x: np.ndarray, dt: float) -> np.ndarray:
 
 
 def fit_vibration(log: FlightLog) -> tuple[tuple[Estimate, Estimate, Estimate], np.ndarray] | None:
-    """Per axis the amplitude and (T, 3) the fitted vibration; None without rpm or where no
-    amplitude stands out of its interval."""
+    """Per axis the amplitude and (T, 3) the fitted vibration; None without rpm."""
     if log.rotor_speed is None:
         return None
     dt, w = log.dt, log.rotor_speed
@@ -61,8 +60,6 @@ def fit_vibration(log: FlightLog) -> tuple[tuple[Estimate, Estimate, Estimate], 
         amplitude = np.hypot(s, c)
         var_amplitude = (s**2 * variance[:4] + c**2 * variance[4:]) / np.maximum(amplitude**2, 1e-300)
         out.append(Estimate.normal(float(amplitude.mean()), float(np.sqrt(var_amplitude.sum()) / 4)))
-    if all(e.low <= 0 for e in out) or any(e.value > 5 * max(o.value for o in out) for e in out):
-        return None
     fitted = np.zeros_like(y)
     fitted[shift:] = columns[:len(y) - shift] @ beta
     return (out[0], out[1], out[2]), fitted
@@ -83,7 +80,7 @@ def noise_level(gyro: np.ndarray, dt: float, top_rotor_hz: float) -> tuple[float
 
 
 def vibration_from_power(log: FlightLog, speed: np.ndarray, noise: float,
-                         blocks: int = 20) -> tuple[Estimate, Estimate, Estimate] | None:
+                         blocks: int = 20) -> tuple[Estimate, Estimate, Estimate]:
     """Without rpm the rotors' angles are unknown, but not their power: with the rotors out of
     step, the vibration's mean square is a²·Σ_i ω_i⁴/2 (ω the modelled speeds), on top of the
     noise's share above the rates' band. Per axis, its interval from `blocks` stretches."""
@@ -94,8 +91,8 @@ def vibration_from_power(log: FlightLog, speed: np.ndarray, noise: float,
              for p, d in zip(np.array_split(power, blocks), np.array_split(drive, blocks), strict=True)]
     whole = np.sqrt(np.maximum(power.mean(axis=0), 0.0) / drive.mean())
     spread = np.std(parts, axis=0, ddof=1) / np.sqrt(blocks)
-    out = [Estimate.normal(float(whole[axis]), float(spread[axis])) for axis in range(3)]
-    return None if all(e.low <= 0 for e in out) else (out[0], out[1], out[2])
+    x, y, z = (Estimate.normal(float(whole[axis]), float(spread[axis])) for axis in range(3))
+    return x, y, z
 
 
 def fit_gyro(log: FlightLog, top_rotor_speed: float, speed: np.ndarray) -> GyroFit:
@@ -109,4 +106,6 @@ def fit_gyro(log: FlightLog, top_rotor_speed: float, speed: np.ndarray) -> GyroF
     noise, how = noise_level(gyro, log.dt, float(log.rotor_speed.max()) / (2 * np.pi))
     if vibration is not None:
         how += ", the fitted vibration taken out"
-    return GyroFit(None if vibration is None else vibration[0], noise, how, from_angles=True)
+    if vibration is None:
+        return GyroFit(vibration_from_power(log, log.rotor_speed, noise), noise, how, from_angles=False)
+    return GyroFit(vibration[0], noise, how, from_angles=True)
