@@ -135,3 +135,23 @@ def test_perturb_seed_draws_the_flown_airframe_from_the_ranges_and_keeps_it(tmp_
     assert (kept.esc_delay_ticks, kept.gyro_noise_std) == (drawn.esc_delay_ticks, drawn.gyro_noise_std)
     assert kept.motor.tau_up != load_airframe("iris").motor.tau_up
     assert _flown_airframe("iris", 201, tmp_path / "again").motor == drawn.motor  # the seed decides
+
+
+def test_identify_log_writes_the_airframe_fly_wrote_and_its_report_beside_it(flown, tmp_path, capsys) -> None:
+    out = tmp_path / "mine" / "quad.json"
+    assert main(["identify", str(flown / "flight.ulg"), "--out", str(out)]) == 0
+    assert "tau up" in capsys.readouterr().out
+    mine, flown_doc = json.loads(out.read_text()), json.loads((flown / "airframe.json").read_text())
+    assert mine["name"] == "quad" and mine["motor"] == flown_doc["motor"]
+    assert mine["effects"] == flown_doc["effects"]
+    assert (out.parent / "report.md").exists() and (out.parent / "rates.png").exists()
+    assert load_airframe(out).inertia() == pytest.approx(load_airframe(flown / "airframe.json").inertia())
+
+
+def test_pwm_outputs_stand_in_for_the_normalised_motor_commands(tmp_path) -> None:
+    recorder = fly_identification(load_airframe("iris"), "pid", axis_s=0.6)
+    both = read_flight_log(recorder.write(tmp_path / "both.ulg"))
+    pwm_only = read_flight_log(recorder.write(tmp_path / "pwm.ulg", topics=[t for t in TOPICS
+                                                                          if t != "actuator_motors"]))
+    assert both.command_source == "actuator_motors" and pwm_only.command_source.startswith("actuator_outputs")
+    assert np.allclose(both.command, pwm_only.command, atol=1e-6)
