@@ -37,6 +37,7 @@ from fcemu.sim_bridge.airframe_file import GRAVITY
 # MuJoCo computes the gyro before it integrates a step, so the twin's gyro reads the rate one
 # tick late with no delay configured: that tick of the measured delay is the twin's own.
 TWIN_GYRO_LAG_TICKS = 1
+TWIN_DT = 0.001  # s: the physics step the file's *_ticks count (the twin at 1 kHz)
 ATTRIBUTE_OF_EFFECT = {attribute: key for key, attribute in EFFECT_KEYS.items()}
 
 
@@ -173,8 +174,9 @@ def identified_document(ident: Identification, name: str) -> dict:
     parts = [f"{a} {ci.text(' rad/s² per (N·m/k_F)')}" for a, ci in zip(AXES, c, strict=True)]
     sources["base_inertia_kg_m2"] = (f"derived: k_F (k_F·k_M on yaw) over the effectiveness {at} "
                                      f"({'; '.join(parts)}), less the rotors' share by the base's geometry")
-    delay_esc = mf.delay_ticks
-    delay_gyro = max(0, rf.gyro_delay_ticks - TWIN_GYRO_LAG_TICKS)
+    per_tick = log.dt / TWIN_DT  # the log's samples in the twin's physics steps
+    delay_esc = round(mf.delay_ticks * per_tick)
+    delay_gyro = max(0, round(rf.gyro_delay_ticks * per_tick) - TWIN_GYRO_LAG_TICKS)
     effects = {}
     damping, damping_text = [], []
     for i in range(3):
@@ -189,8 +191,9 @@ def identified_document(ident: Identification, name: str) -> dict:
     esc_text = (f"{at}: ESC rpm against the command, the delay that fits best" if mf.from_rpm else
                 f"no ESC rpm in {log.name}: the whole command-to-gyro delay is given to the gyro")
     effects["esc_delay_ticks"] = (delay_esc, esc_text)
-    effects["gyro_delay_ticks"] = (delay_gyro, f"{at}: {rf.gyro_delay_ticks} ticks from rotor speed to gyro, "
-                                               f"less the twin's own {TWIN_GYRO_LAG_TICKS}")
+    gyro_text = (f"{at}: {rf.gyro_delay_ticks * log.dt * 1e3:.0f} ms from rotor speed to gyro, less the "
+                 f"twin's own {TWIN_GYRO_LAG_TICKS} tick")
+    effects["gyro_delay_ticks"] = (delay_gyro, gyro_text)
     effects["gyro_noise_std"] = (ident.gyro.noise_std, f"{at}: {ident.gyro.noise_how}")
     vibration = [_nonnegative(e, log.name, "") for e in ident.gyro.vibration]
     how = ("the gyro against the rotors' angles from the ESC rpm" if ident.gyro.from_angles else
@@ -209,7 +212,7 @@ def identified_document(ident: Identification, name: str) -> dict:
                        effect_sources=effect_sources)
     source = (f"Identified by fcemu identify from {log.name} ({len(log.t)} samples at {1 / log.dt:.0f} Hz, "
               f"motor commands from {log.command_source}{', ESC rpm' if mf.from_rpm else ', no ESC rpm'}) "
-              f"on the base airframe {ident.base_label}.")
+              f"on the base airframe {ident.base_label}." + "".join(f" {note}." for note in log.notes))
     return airframe_document(airframe, source, sources)
 
 

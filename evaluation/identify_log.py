@@ -24,6 +24,7 @@ GYRO = "vehicle_angular_velocity"
 MIN_FLIGHT_S = 1.0  # of armed flight with the motors above idle
 MIN_RATE = 0.3  # rad/s: a log whose rates never reach it was not flown (or never excited)
 IDLE = 0.02  # motor command 0..1 below which a motor is at rest
+MIN_ESC_SHARE = 0.5  # ESC telemetry slower than this share of the gyro's rate cannot show the motor lag
 
 
 class LogError(UserError):
@@ -39,6 +40,7 @@ class FlightLog:
     rotor_speed: np.ndarray | None  # (T, 4) rad/s from the ESC telemetry; None where none was logged
     throttle: np.ndarray | None  # (T,) the collective setpoint, 0..1
     command_source: str  # which topic the motor commands came from
+    notes: tuple[str, ...] = ()  # what of the log was left unused, and why
 
     @property
     def dt(self) -> float:
@@ -127,7 +129,13 @@ def read_flight_log(path: str | Path) -> FlightLog:
         if not np.any(a["armed"]):
             raise LogError(f"{path}: the vehicle was never armed (actuator_armed): a ground-only log")
         keep &= was.astype(bool)
-    rotor = _rotor_speed(log, t_us)
+    rotor, esc_hz = _rotor_speed(log, t_us)
+    gyro_hz = 1e6 / float(np.median(np.diff(t_us)))
+    notes = ()
+    if rotor is not None and esc_hz < MIN_ESC_SHARE * gyro_hz:
+        rotor = None
+        notes = (f"esc_status at {esc_hz:.0f} Hz against the gyro's {gyro_hz:.0f} Hz is too slow for the "
+                 "motor lag: its rpm is left out (log esc_status at the loop rate: docs/identify.md)",)
     throttle = None
     setpoint_set = _dataset(log, "vehicle_rates_setpoint")
     if setpoint_set is not None and "thrust_body[2]" in setpoint_set.data:
@@ -150,14 +158,15 @@ def read_flight_log(path: str | Path) -> FlightLog:
                        "doublet or chirp on every axis (docs/identify.md)")
     return FlightLog(path, (t_us[window] - t_us[first]) * 1e-6, gyro[window], command[window],
                      None if rotor is None else rotor[window],
-                     None if throttle is None else np.asarray(throttle[window], dtype=np.float64), source)
+                     None if throttle is None else np.asarray(throttle[window], dtype=np.float64), source,
+                     notes)
 
 
-def _rotor_speed(log, t_us: np.ndarray) -> np.ndarray | None:
-    """(T, 4) rad/s from esc_status, None where it is not logged or reports no rpm."""
+def _rotor_speed(log, t_us: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """(T, 4) rad/s from esc_status (None where it is not logged or reports no rpm) and its rate, Hz."""
     esc = _dataset(log, "esc_status")
-    if esc is None or "esc[3].esc_rpm" not in esc.data:
-        return None
+    if esc is None or "esc[3].esc_rpm" not in esc.data or len(esc.data["timestamp"]) < 2:
+        return None, 0.0
     speeds = []
     for i in range(4):
         key = f"esc[{i}].timestamp"
@@ -167,4 +176,5 @@ def _rotor_speed(log, t_us: np.ndarray) -> np.ndarray | None:
         order = np.argsort(et, kind="stable")
         speeds.append(np.interp(t_us, et[order], rpm[order]) * (2 * math.pi / 60))
     out = np.stack(speeds, axis=1)
-    return out if np.abs(out).max() > 0 else None
+    rate = 1e6 / max(float(np.median(np.diff(esc.data["timestamp"].astype(np.int64)))), 1.0)
+    return (out if np.abs(out).max() > 0 else None), rate

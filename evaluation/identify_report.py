@@ -111,6 +111,7 @@ def write_report(ident: Identification, airframe: Airframe, airframe_path: Path,
         f"{ident.base_label}. Mass, geometry, k_M, rotor sizes and the battery are the base's "
         "(a rate log cannot give them); k_F follows from the base's mass and the hover rotor speed, the "
         "inertia from k_F over the effectiveness. Every number's source is in the airframe file.", "",
+        *(f"Left out: {note}." for note in log.notes), *([""] if log.notes else []),
         *rows, "",
         f"## Body rates predicted {horizon * log.dt * 1000:.0f} ms ahead", "",
         "Fit (100 % = the measured rate; 0 % = no better than its mean):", "",

@@ -155,3 +155,17 @@ def test_pwm_outputs_stand_in_for_the_normalised_motor_commands(tmp_path) -> Non
                                                                           if t != "actuator_motors"]))
     assert both.command_source == "actuator_motors" and pwm_only.command_source.startswith("actuator_outputs")
     assert np.allclose(both.command, pwm_only.command, atol=1e-6)
+
+
+def test_esc_rpm_slower_than_the_gyro_is_left_out_and_said(tmp_path) -> None:
+    from pyulog import ULog
+
+    full = fly_identification(load_airframe("iris"), "pid", axis_s=0.6).write(tmp_path / "full.ulg")
+    log = ULog(str(full))
+    esc = log.get_dataset("esc_status")
+    esc.data = {key: value[::10] for key, value in esc.data.items()}  # ESC telemetry at 100 Hz
+    log.write_ulog(str(tmp_path / "slow_esc.ulg"))
+    read = read_flight_log(tmp_path / "slow_esc.ulg")
+    assert read.rotor_speed is None
+    assert read.notes == ("esc_status at 100 Hz against the gyro's 1000 Hz is too slow for the motor lag: "
+                          "its rpm is left out (log esc_status at the loop rate: docs/identify.md)",)
