@@ -30,6 +30,8 @@ RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
 ESC_MAX = 8  # esc_status.CONNECTED_ESC_MAX
 ESC_CONNECTION_TYPE_DSHOT = 5
 ACTUATOR_FUNCTION_MOTOR1 = 101
+COLUMNS = 19  # per tick: 3 times, gyro, rate setpoint, throttle, 4 PWM, 4 rotor speeds, armed
+CHUNK = 60_000  # ticks per block of memory: a minute at 1 kHz, 9 MB
 
 # PX4's message definitions (msg/*.msg), as the logger writes their formats (padding left out).
 FORMATS = {
@@ -77,23 +79,28 @@ class ULogRecorder:
 
     def __init__(self, boot_us: int = BOOT_US) -> None:
         self.boot_us = boot_us
-        self._rows: list[tuple] = []
+        self._chunks: list[np.ndarray] = []  # float64 rows of COLUMNS values, CHUNK ticks each
+        self._n = 0
 
     def publish(self, sample: TickSample) -> None:
+        k = self._n % CHUNK
+        if k == 0:
+            self._chunks.append(np.empty((CHUNK, COLUMNS)))
         frame = sample.frame
         setpoint = sample.command.setpoint
-        self._rows.append((sample.t_us, frame.gyro_t_us if frame.gyro_t_us is not None else frame.t_us,
-                           frame.t_us, *frame.gyro, *setpoint.rates, setpoint.throttle,
-                           *sample.pwm, *frame.rotor_speed, sample.command.armed))
+        self._chunks[-1][k] = (sample.t_us, frame.gyro_t_us if frame.gyro_t_us is not None else frame.t_us,
+                               frame.t_us, *frame.gyro, *setpoint.rates, setpoint.throttle,
+                               *sample.pwm, *frame.rotor_speed, sample.command.armed)
+        self._n += 1
 
     def __len__(self) -> int:
-        return len(self._rows)
+        return self._n
 
     def topics(self) -> dict[str, dict[str, np.ndarray]]:
         """Each topic's fields as PX4 names them (nested ones flattened, `esc[0].esc_rpm`)."""
-        if not self._rows:
+        if not self._n:
             raise ValueError("nothing was recorded: the loop never ticked")
-        a = np.array(self._rows, dtype=np.float64)
+        a = np.concatenate(self._chunks)[:self._n]
         n = len(a)
         t = (a[:, 0] + self.boot_us).astype(np.uint64)
         sampled = (a[:, 2] + self.boot_us).astype(np.uint64)  # when the frame the tick read was taken
