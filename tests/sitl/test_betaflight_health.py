@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
+from fcemu.export.betaflight.build import PATCH
 from fcemu.sitl.betaflight_health import SCENARIOS, main, summarise
+from fcemu.sitl.betaflight_process import NEURAL_STATES
 
 
 def _row(scenario: str, error: float | None, dropped: str = "", after: int | None = None,
@@ -41,3 +45,8 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path, capsys):
         main(["--firmware", str(tmp_path)])
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and err.startswith("fcemu: error: ") and "not a Betaflight export" in err
+
+
+def test_the_neural_states_read_over_msp_are_the_patch_s_enum_in_order():
+    enum = re.findall(r"^\+    NEURAL_(\w+)(?: = 0)?,", PATCH.read_text(), re.MULTILINE)
+    assert [name.lower().replace("_", " ") for name in enum] == list(NEURAL_STATES)
