@@ -25,6 +25,7 @@ SMOOTHNESS_BAR = 1.5  # smoothness (mean |Δpwm| per step) ≤ this × the PID's
 PERTURBED_SUCCESS_BAR_PCT = 99.0  # on perturbed airframes: Success ≥ this, every axis (Error ≤ the PID's)
 MCU_BUDGET_PCT = 25.0  # inference ≤ this % of the 1 kHz period on an STM32F405 at 168 MHz
 HOST_MEDIAN_US = 10.0  # inference median on the host, onnxruntime
+TIMES_BOUND_BAR = 1.2  # per airframe: Error sum ≤ this × `fcemu bound`'s on the same commands
 
 
 def bar_verdict(policy: EvalMetrics, pids: dict[str, EvalMetrics], error_ratio: float = ERROR_RATIO_BAR,
@@ -87,3 +88,39 @@ def format_verdict(verdict: dict) -> str:
             f"smoothness {v['smoothness']:.2f} vs {v['pid_smoothness']:.2f} "
             f"(×{v['smoothness_ratio']:.2f} ≤ {v['smoothness_bar']}) "
             f"→ {'MET' if v['meets_bar'] else 'not met: ' + ', '.join(failed)}")
+
+
+def airframe_bar_verdict(policy: EvalMetrics, pid: EvalMetrics, bound_sum: float | None,
+                         mcu_us: float | None = None) -> dict:
+    """The bar for an airframe of one's own, against its tuned PID on the same commands (`fcemu fit`):
+    Error ≤ 0.95 × the PID's and ≤ 1.2 × the bound; Success ≥ 99.8 % on every axis, or the PID's
+    own where it is lower (an axis physics keeps from settling: `fcemu tune`'s settle limits);
+    Peak ≤ the PID's + 3 points; motors ≤ 1.5 × as rough; Rise no slower than the PID's beyond
+    the 95 % interval of the difference (yaw Rise is saturation-limited, so both tie there); and,
+    when measured, inference ≤ 25 % of the period on an F405. A line that cannot be judged (no
+    bound, no MCU figure) is None and does not fail the verdict; it is reported as such."""
+    pol_sum, pid_sum = error_sum(policy), error_sum(pid)
+    success = {a: [policy.stat("success_pct", a).mean, pid.stat("success_pct", a).mean] for a in AXES}
+    peak = {a: [policy.stat("peak_pct", a).mean, pid.stat("peak_pct", a).mean] for a in AXES}
+    rise = {}
+    for a in AXES:
+        p, r = policy.stat("rise_ms", a), pid.stat("rise_ms", a)
+        rise[a] = [p.mean, r.mean, float((p.ci95**2 + r.ci95**2) ** 0.5)]
+    smooth, smooth_pid = policy.stat("smoothness", "roll").mean, pid.stat("smoothness", "roll").mean
+    times_bound = pol_sum / bound_sum if bound_sum else None
+    checks: dict[str, bool | None] = {
+        "error_ratio": pol_sum / pid_sum <= ERROR_RATIO_BAR,
+        "times_bound": None if times_bound is None else times_bound <= TIMES_BOUND_BAR,
+        "success": all(p >= min(SUCCESS_BAR_PCT, r) for p, r in success.values()),
+        "peak": all(p <= r + PEAK_MARGIN_PCT for p, r in peak.values()),
+        "smoothness": smooth <= SMOOTHNESS_BAR * smooth_pid,
+        "rise": all(p <= r + ci for p, r, ci in rise.values()),
+        "mcu": None if mcu_us is None else mcu_us <= MCU_BUDGET_PCT * 10.0,
+    }
+    return {"policy_error_sum": pol_sum, "pid_error_sum": pid_sum, "error_ratio": pol_sum / pid_sum,
+            "error_ratio_bar": ERROR_RATIO_BAR, "bound_sum": bound_sum, "times_bound": times_bound,
+            "times_bound_bar": TIMES_BOUND_BAR, "success_pct_policy_vs_pid": success,
+            "peak_pct_policy_vs_pid": peak, "rise_ms_policy_pid_ci95": rise, "smoothness": smooth,
+            "pid_smoothness": smooth_pid, "smoothness_ratio": smooth / smooth_pid, "mcu_us": mcu_us,
+            "checks": checks, "meets_bar": all(v is not False for v in checks.values()),
+            "unjudged": [k for k, v in checks.items() if v is None]}

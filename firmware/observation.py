@@ -10,7 +10,9 @@ error, R_k = √P_k with P_k = μ·P_{k−1} + (1 − μ)·e_k², over about one
 limit cycles a fast policy can fall into on a slow airframe (17–60 Hz): a 16 ms history
 sees less than a period, and the integral averages an oscillation to zero. (Trained with
 it, a policy softens its steps instead: docs/training_notes.md, 2026-11-24, an oscillation
-feature.) Optional field `motor_output` (4): the motor outputs u = (PWM − 1000) / 1000 the
+feature.) Optional field `rate` (3): the gyro's body rates Ω themselves, scaled as the error;
+the error alone hides where the rates are, and so the body's gyroscopic torque Ω × IΩ.
+Optional field `motor_output` (4): the motor outputs u = (PWM − 1000) / 1000 the
 controller commanded on the previous tick. A penalty on |Δu| in the reward depends on them,
 and the rotor speeds show them only through the motors' lag; at a start there is no previous tick, and u is
 taken as the steady-state command of the rotors' speeds, clip(ω · rotor_speed_scale, 0, 1)
@@ -41,10 +43,12 @@ FIELDS = ("rate_error", "rotor_speed")  # the default; the shipped policy's spec
 INTEGRAL = "rate_error_integral"
 RMS = "rate_error_rms"
 MOTOR_OUTPUT = "motor_output"
+RATE = "rate"
 # The signals a field can read, as columns of one source vector: the rate error
-# setpoint − gyro (rad/s, FRD), the rotor speeds (rad/s, motor order), the previous
-# tick's motor outputs (0..1, motor order).
-SOURCE_COLUMNS = {"rate_error": (0, 1, 2), "rotor_speed": (3, 4, 5, 6), "motor_output": (7, 8, 9, 10)}
+# setpoint − gyro (rad/s, FRD), the rotor speeds (rad/s, motor order), the gyro (rad/s,
+# FRD), the previous tick's motor outputs (0..1, motor order).
+SOURCE_COLUMNS = {"rate_error": (0, 1, 2), "rotor_speed": (3, 4, 5, 6), "gyro": (7, 8, 9),
+                  "motor_output": (10, 11, 12, 13)}
 
 _FLOAT64 = np.dtype(np.float64)
 
@@ -77,6 +81,7 @@ FIELD_DEFS: dict[str, FieldDef] = {
     INTEGRAL: FieldDef("rate_error", "rate_scale", leak="integral_leak"),
     RMS: FieldDef("rate_error", "rate_scale", leak="rms_leak", rms=True),
     MOTOR_OUTPUT: FieldDef("motor_output", None),
+    RATE: FieldDef("gyro", "rate_scale"),
 }
 LEAKS = frozenset(d.leak for d in FIELD_DEFS.values() if d.leak)  # the spec's λ attributes
 
@@ -194,7 +199,7 @@ def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
     # `is`: numpy's float64 descriptor is one object; an equal one that is not takes the array path.
     if setpoint.dtype is gyro.dtype is rotor_speed.dtype is _FLOAT64 and setpoint.ndim == gyro.ndim == 1:
         s, g = setpoint.tolist(), gyro.tolist()
-        sources = [s[0] - g[0], s[1] - g[1], s[2] - g[2], *rotor_speed.tolist()]
+        sources = [s[0] - g[0], s[1] - g[1], s[2] - g[2], *rotor_speed.tolist(), *g]
         if motor_output is not None:
             sources += np.asarray(motor_output, dtype=np.float64).tolist()
         values = list(map(mul, spec._pick_sources(sources), spec.column_scales))  # loops in C
@@ -202,7 +207,7 @@ def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
             return np.array(values, dtype=np.float32)
         out[...] = values  # rounds each float64 to float32, as astype does
         return out
-    sources = {"rate_error": np.subtract(setpoint, gyro), "rotor_speed": rotor_speed,
+    sources = {"rate_error": np.subtract(setpoint, gyro), "rotor_speed": rotor_speed, "gyro": gyro,
                "motor_output": motor_output}
     values = np.concatenate([sources[d.source] * scale for _, d, scale in spec.layout], axis=-1)
     if out is None:

@@ -60,6 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="fcemu.training.sweep:sweep_command")
     distill_config.register_distill(sub)
     register_tune(sub)
+    from fcemu.training import fit
+
+    fit.register(sub)
 
 
 def register_tune(sub: argparse._SubParsersAction) -> None:

@@ -134,6 +134,8 @@ class TrainConfig:
                                     "(rate_error_rms): what lets a policy see that it oscillates")
     motor_output: bool = option(False, "add the previous tick's motor outputs to the observation "
                                        "(motor_output): what --action-rate-penalty's |Δu| depends on")
+    rate: bool = option(False, "add the gyro's body rates to the observation (rate): what the body's "
+                               "gyroscopic torque depends on")
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")
     envs: int | None = option(None, "parallel twins (default: per algorithm)")
@@ -251,10 +253,10 @@ class TrainConfig:
 
     @property
     def obs_fields(self) -> tuple[str, ...]:
-        from fcemu.firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS
+        from fcemu.firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, RATE, RMS
 
         return (*FIELDS, *((INTEGRAL,) if self.integral else ()), *((RMS,) if self.error_rms else ()),
-                *((MOTOR_OUTPUT,) if self.motor_output else ()))
+                *((MOTOR_OUTPUT,) if self.motor_output else ()), *((RATE,) if self.rate else ()))
 
     @property
     def obs_leaks(self) -> dict[str, float]:

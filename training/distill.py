@@ -1,5 +1,8 @@
 """`fcemu distill`: a compact student policy fitted to a teacher policy (.onnx) by DAgger.
 
+The teacher may also be `inversion`: the airframe's model inverted tick by tick
+(`training.inversion_teacher`), which needs no training; `fcemu fit` distils it.
+
 The student flies the randomised twins (`sim_bridge.vec_env.BatchedRateEnv`); the teacher,
 in onnxruntime, labels every state the student visits with its own action, from its own
 observation. Both observations come from one firmware observation (`firmware.observation`)
@@ -34,7 +37,7 @@ import onnxruntime as ort
 import torch
 
 from fcemu.firmware.neural import META_PREFIX
-from fcemu.firmware.observation import FIELD_DEFS, FIELDS, INTEGRAL, MOTOR_OUTPUT, RMS, ObservationSpec
+from fcemu.firmware.observation import FIELD_DEFS, FIELDS, INTEGRAL, MOTOR_OUTPUT, RATE, RMS, ObservationSpec
 from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.training.distill_config import DistillConfig, from_args
 
@@ -42,7 +45,7 @@ __all__ = ["DistillConfig", "DistillError", "Teacher", "columns", "distill", "nu
            "union_spec"]
 
 COLLECTIVE_WEIGHT = 0.1
-OPTIONAL_FIELDS = {INTEGRAL: "integral", RMS: "error_rms", MOTOR_OUTPUT: "motor_output"}
+OPTIONAL_FIELDS = {INTEGRAL: "integral", RMS: "error_rms", MOTOR_OUTPUT: "motor_output", RATE: "rate"}
 
 
 class DistillError(ValueError):
@@ -70,6 +73,23 @@ class Teacher:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         return self.session.run(None, {self.input: obs})[0]
+
+
+INVERSION = "inversion"  # the teacher that inverts the airframe's model (`training.inversion_teacher`)
+
+
+def make_teacher(name: str, airframe: str) -> Any:
+    """`inversion` (or `inversion:K`, its time constant in motor lags) for the model-based teacher
+    of `airframe`, else an exported policy's path."""
+    if name == INVERSION or name.startswith(INVERSION + ":"):
+        from fcemu.training.inversion_teacher import LAG_MULTIPLE, InversionTeacher
+
+        multiple = name.partition(":")[2]
+        try:
+            return InversionTeacher(airframe, float(multiple) if multiple else LAG_MULTIPLE)
+        except ValueError as exc:
+            raise DistillError(f"teacher {name!r}: {exc}") from None
+    return Teacher(name)
 
 
 def union_spec(teacher: ObservationSpec, student: ObservationSpec) -> ObservationSpec:
@@ -294,7 +314,7 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
             raise DistillError(f"--{name.replace('_', '-')} must be finite and >= 0, got {value}")
     if cfg.gain_weight and not cfg.gain_step:
         raise DistillError("--gain-weight needs a --gain-step above 0")
-    teacher = Teacher(cfg.teacher)
+    teacher = make_teacher(cfg.teacher, cfg.airframe)
     train_cfg, spec = student_train_config(cfg, teacher)
     torch.set_num_threads(train_cfg.threads)
     torch.manual_seed(cfg.seed)

@@ -33,9 +33,9 @@ NEURAL_SRC_DIR = Path("src/main/flight/neural")
 VERSION = "4.6.0"
 LOOP_RATE_HZ = 1000.0  # Betaflight's PID loop with an 8 kHz gyro and pid_process_denom 8
 GYRO_RATE_HZ = 8000.0
-# The signals the patch reads from the firmware: setpoint and filtered gyro (rate error),
+# The signals the patch reads from the firmware: setpoint and filtered gyro (rate error, rates),
 # DShot telemetry (rotor speeds), its own last output (motor outputs).
-FIRMWARE_SOURCES = frozenset({"rate_error", "rotor_speed", "motor_output"})
+FIRMWARE_SOURCES = frozenset({"rate_error", "rotor_speed", "gyro", "motor_output"})
 NEURAL_BOX_ID = 56  # the NEURAL box's permanent id (`aux` in the CLI, MSP)
 GCC_ARM_VERSION = "12.2.1"
 MANIFEST = "export.json"

@@ -48,7 +48,7 @@ def sample_observations(spec, n: int, seed: int = 0) -> np.ndarray:
     clip sits inside these)."""
     rng = np.random.default_rng(seed)
     ranges = {"rate_error": (-3.0, 3.0), "rotor_speed": (0.0, 1.2), "rate_error_integral": (-3.0, 3.0),
-              "rate_error_rms": (0.0, 3.0), "motor_output": (0.0, 1.0)}
+              "rate_error_rms": (0.0, 3.0), "motor_output": (0.0, 1.0), "rate": (-3.0, 3.0)}
     cols = [rng.uniform(*ranges[f], size=(n, spec.memory, FIELD_DEFS[f].size)) for f in spec.fields]
     return np.concatenate(cols, axis=-1).reshape(n, spec.size).astype(np.float32)
 

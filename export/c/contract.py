@@ -37,7 +37,7 @@ def c_float(x: float) -> str:
 
 # C for each source signal and scale named in firmware.observation.FIELD_DEFS: the field
 # table is the one definition; a new field there needs only these two maps to cover it.
-_SOURCE_C = {"rate_error": "(setpoint[i] - gyro[i])", "rotor_speed": "rotor_speed[i]",
+_SOURCE_C = {"rate_error": "(setpoint[i] - gyro[i])", "rotor_speed": "rotor_speed[i]", "gyro": "gyro[i]",
              "motor_output": "(s->fresh ? clampf(rotor_speed[i] * FCEMU_ROTOR_SPEED_SCALE, 0.0f, 1.0f)"
                              " : s->motor_output[i])"}
 _SCALE_C = {"rate_scale": "FCEMU_RATE_SCALE", "rotor_speed_scale": "FCEMU_ROTOR_SPEED_SCALE"}

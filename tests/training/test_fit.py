@@ -1,0 +1,60 @@
+import json
+
+import numpy as np
+
+from fcemu.cli import main
+from fcemu.evaluation.bar import airframe_bar_verdict
+from fcemu.evaluation.metrics import compute_metrics
+from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.firmware.neural import NeuralRateController
+from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+
+def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    out = tmp_path / "fit"
+    code = main(["fit", "--airframe", "racer5", "--out", str(out), "--episodes", "2", "--tune-budget-s", "10",
+                 "--rounds", "1", "--steps", "40", "--envs", "4", "--fit-steps", "20", "--net-arch", "8",
+                 "--jobs", "1", "--no-mcu", "--seed", "5", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    summary = json.loads(captured.out)
+    assert "fitting the policy to the model-based teacher" in captured.err
+    for name in ("pid.json", "tune.json", "policy.onnx", "fit.json", "report.md"):
+        assert (out / name).is_file(), name
+    assert json.loads((out / "fit.json").read_text()) == summary
+    assert summary["student"]["teacher"] == "inversion" and summary["student"]["inputs"] == 10
+    assert set(summary["time_s"]) == {"tune", "policy", "check", "total"}
+    check = summary["check"]
+    assert check["seed"] == 6 and check["bound_sum"] > 0.0 and check["mcu_us_f405"] is None
+    episodic = check["tasks"]["episodic"]["bar"]
+    assert set(episodic["checks"]) == {"error_ratio", "times_bound", "success", "peak", "smoothness", "rise",
+                                       "mcu"}
+    assert episodic["unjudged"] == ["mcu"] and check["tasks"]["inflight"]["bar"]["times_bound"] is None
+    assert summary["meets_bar"] == all(t["bar"]["meets_bar"] for t in check["tasks"].values())
+    report = (out / "report.md").read_text()
+    assert "fcemu fit --airframe racer5" in report and "Success %" in report
+    assert "fcemu bench mcu" in report and "not measured" in report
+    # the policy carries its airframe: flown on it by the firmware, refused on another's envelope
+    policy = NeuralRateController(out / "policy.onnx", airframe=airframe_spec("racer5"))
+    assert policy.spec.fields == ("rate_error", "rotor_speed", "rate")
+
+
+def test_the_airframe_bar_takes_the_pids_own_success_and_the_bound():
+    cfg = EvalConfig(episodes=3, seed=4, airframe="racer5")
+    pid = compute_metrics(run_controller("pid", cfg, progress=False))
+    same = airframe_bar_verdict(pid, pid, bound_sum=None)
+    assert same["checks"]["error_ratio"] is False and same["checks"]["success"] and same["checks"]["rise"]
+    assert same["checks"]["times_bound"] is None and same["unjudged"] == ["times_bound", "mcu"]
+    error = same["pid_error_sum"]
+    assert airframe_bar_verdict(pid, pid, bound_sum=error / 1.25)["checks"]["times_bound"] is False
+    assert airframe_bar_verdict(pid, pid, bound_sum=error / 1.15)["checks"]["times_bound"] is True
+    assert airframe_bar_verdict(pid, pid, None, mcu_us=260.0)["checks"]["mcu"] is False
+    assert np.isclose(same["error_ratio"], 1.0)
+
+
+def test_fit_refuses_a_bad_airframe_and_a_bad_budget_in_one_line(tmp_path, capsys):
+    assert main(["fit", "--airframe", "no_such_quad", "--out", str(tmp_path / "x")]) == 2
+    assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--tune-budget-s", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("fcemu: error: fit:") for line in err)

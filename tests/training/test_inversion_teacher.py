@@ -1,0 +1,66 @@
+import numpy as np
+import pytest
+
+import fcemu.evaluation.runner as runner
+from fcemu.evaluation.metrics import AXES, compute_metrics
+from fcemu.firmware.action import action_to_pwm
+from fcemu.firmware.observation import observe_step
+from fcemu.training.inversion_teacher import InversionController, InversionTeacher, max_scale
+
+
+def test_max_scale_is_the_largest_share_some_collective_keeps_inside_every_motors_reach():
+    rng = np.random.default_rng(3)
+    lo, hi = -rng.uniform(0, 1, (200, 4)), rng.uniform(0, 1, (200, 4))
+    delta = rng.normal(0, 2, (200, 4))
+    s = max_scale(lo, hi, delta)
+
+    def fits(scale: np.ndarray) -> np.ndarray:  # is there a c with lo ≤ s·δ + c ≤ hi on every motor?
+        moved = scale[:, None] * delta
+        return (lo - moved).max(-1) <= (hi - moved).min(-1) + 1e-9
+
+    assert np.all((s >= 0.0) & (s <= 1.0)) and np.all(fits(s))
+    short = s < 1.0
+    assert short.any() and not np.any(fits(np.minimum(s + 1e-3, 1.0))[short])
+
+
+def test_the_teacher_acts_on_its_observation_as_on_the_signals_and_keeps_the_collective_at_the_throttle():
+    teacher = InversionTeacher("iris")
+    rng = np.random.default_rng(1)
+    hover = teacher.throttle * teacher.model.w_max
+    setpoint, gyro = rng.uniform(-3, 3, (64, 3)), rng.uniform(-3, 3, (64, 3))
+    rotor = hover + rng.uniform(-20, 20, (64, 4))
+    action = teacher.act(observe_step(teacher.spec, setpoint, gyro, rotor))
+    assert teacher.spec.fields == ("rate_error", "rotor_speed", "rate") and action.shape == (64, 4)
+    assert np.all(np.abs(action) <= 1.0)
+    # Small errors near hover: a mix the action mapping gives (inside the range, within its half
+    # range of the mean, the collective at the throttle), so the action gives back the teacher's PWM.
+    setpoint, gyro, rotor = setpoint * 0.002, gyro * 0.002, hover + rng.uniform(-0.5, 0.5, (64, 4))
+    pwm = teacher.pwm(setpoint - gyro, gyro, rotor, teacher.throttle)
+    action = teacher.act(observe_step(teacher.spec, setpoint, gyro, rotor))
+    u = (pwm - 1000.0) / 1000.0
+    fits = ((u > 0.0) & (u < 1.0)).all(-1) & (np.abs(u - u.mean(-1, keepdims=True)) <= 0.5).all(-1)
+    fits &= np.abs(u.mean(-1) - teacher.throttle) < 1e-3
+    assert fits.sum() >= 32
+    given = action_to_pwm("throttle", action, teacher.throttle)
+    np.testing.assert_allclose(given[fits], pwm[fits], atol=0.05)
+    quiet = teacher.pwm(np.zeros((1, 3)), np.zeros((1, 3)), np.full((1, 4), hover), teacher.throttle)
+    np.testing.assert_allclose(quiet, 1000.0 + 1000.0 * teacher.throttle, atol=1e-6)
+
+
+@pytest.mark.parametrize("airframe", ["iris", "racer5"])
+def test_the_teacher_flies_the_commands_with_less_error_than_the_airframes_tuned_pid(airframe, monkeypatch):
+    original = runner.load_controller
+    monkeypatch.setattr(runner, "load_controller", lambda spec, *a, **k: InversionController(
+        InversionTeacher(airframe)) if spec == "inversion" else original(spec, *a, **k))
+    cfg = runner.EvalConfig(episodes=6, seed=11, airframe=airframe)
+    teacher, pid = (compute_metrics(runner.run_controller(spec, cfg, progress=False))
+                    for spec in ("inversion", "pid"))
+    error = {name: sum(m.stat("error", a).mean for a in AXES)
+             for name, m in (("teacher", teacher), ("pid", pid))}
+    assert error["teacher"] < 0.97 * error["pid"], error
+    assert all(teacher.stat("success_pct", a).mean == 100.0 for a in AXES)
+
+
+def test_a_time_constant_that_is_not_positive_is_refused():
+    with pytest.raises(ValueError, match="lag multiple"):
+        InversionTeacher("iris", 0.0)

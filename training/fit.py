@@ -1,0 +1,257 @@
+"""`fcemu fit`: from an airframe to its tuned PID, a policy that beats it, and the report.
+
+    fcemu fit --airframe racer5 --out runs/fit_racer5 --json
+
+Top to bottom, one stage each:
+
+1. **The PID**: `fcemu tune` (`training.pid_tune`) on the tuning commands (seed S), with the
+   `--tune-budget-s` share of the time: DIR/pid.json and DIR/tune.json. It also solves, or reads
+   from its cache, `fcemu bound`'s lower bound on the held-out commands (seed S + 1).
+2. **The teacher**: the airframe's model inverted tick by tick (`training.inversion_teacher`);
+   nothing to train.
+3. **The policy**: a student fitted to the teacher by DAgger on the airframe's twins
+   (`fcemu distill inversion`), nominal and drawn from the airframe's ranges; exported as
+   DIR/policy.onnx with the airframe and its envelope in its metadata.
+4. **The check**: the policy and the tuned PID on the same held-out commands, against the bar
+   for an airframe of one's own (`evaluation.bar.airframe_bar_verdict`), the bound, and the
+   policy's time on an STM32F405 (`fcemu bench mcu`, when the Cortex-M tools are installed).
+
+DIR/report.md is the page to read; DIR/fit.json (and stdout with `--json`) has every figure.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from fcemu.evaluation.metrics import AXES, EvalMetrics
+from fcemu.firmware.errors import UserError
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    airframe: str
+    out: str
+    seed: int = 2018
+    episodes: int = 50  # tuning commands (seed) and held-out commands (seed + 1)
+    tune_budget_s: float = 540.0
+    lag_multiple: float | None = None  # the teacher's time constant in motor lags (None: its default)
+    rounds: int = 6
+    steps: int = 1000  # per twin and DAgger round
+    envs: int = 64
+    fit_steps: int = 1500  # Adam steps after each round
+    net_arch: tuple[int, ...] = (48, 48)  # the largest two layers of 10 inputs well inside an F405's budget
+    jobs: int = 2
+    mcu: bool = True
+    progress: bool = True
+    pid: str | None = None  # a preset already tuned for the airframe: no tune
+
+
+def _stage(log: Any, t0: float, text: str) -> None:
+    log(f"[{time.monotonic() - t0:5.0f} s] {text}")
+
+
+def tune_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
+    from fcemu.training.pid_tune import TuneOptions
+    from fcemu.training.pid_tune_cli import dumps, tune
+
+    tune_opts = TuneOptions(opts.airframe, opts.seed, opts.episodes, opts.episodes, opts.tune_budget_s,
+                            opts.jobs)
+    preset, summary = tune(tune_opts, log=lambda line: log("  tune " + line))
+    (out / "pid.json").write_text(dumps(preset))
+    summary["preset"] = str(out / "pid.json")
+    (out / "tune.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def given_pid_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
+    """A PID already tuned for the airframe (`--pid`): copied to DIR/pid.json; the held-out bound is
+    solved (or read from the tune's cache) as the tune would."""
+    from fcemu.evaluation.bound import HORIZON, error_bounds, rig_constants
+    from fcemu.firmware.pid_controller import load_preset
+    from fcemu.sim_bridge.airframe import load_airframe
+    from fcemu.sim_bridge.tasks import episodic_commands
+    from fcemu.training.pid_tune import bound_cache_path
+    from fcemu.training.pid_tune_cli import dumps
+
+    try:
+        preset = load_preset(opts.pid)
+    except (ValueError, KeyError, TypeError, OSError) as exc:
+        raise UserError(f"fit: --pid {opts.pid}: {exc}") from None
+    (out / "pid.json").write_text(dumps(preset))
+    commands = episodic_commands(opts.seed + 1, opts.episodes)
+    bound = None
+    try:
+        rig = rig_constants(load_airframe(opts.airframe))
+    except UserError as exc:
+        log(f"  no bound: {exc}")
+    else:
+        cache = bound_cache_path(rig, commands, HORIZON)
+        if cache.exists():
+            per_command = json.loads(cache.read_text())
+        else:
+            log(f"  bound: solving {len(commands)} linear programmes")
+            found = error_bounds(commands, jobs=opts.jobs, airframe=opts.airframe)
+            per_command = [[b.bound, *b.split] for b in found]
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            cache.write_text(json.dumps(per_command))
+        bound = {"sum": round(sum(row[0] for row in per_command) / len(per_command), 2)}
+    return {"held_out": {"bound": bound}, "meets_lines": None, "fails": [], "time_s": None,
+            "given": opts.pid}
+
+
+def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
+    from fcemu.training.distill import INVERSION, distill
+    from fcemu.training.distill_config import DistillConfig
+
+    teacher = INVERSION if opts.lag_multiple is None else f"{INVERSION}:{opts.lag_multiple:g}"
+    cfg = DistillConfig(teacher=teacher, out=str(out / "student"), airframe=opts.airframe,
+                        net_arch=opts.net_arch, rounds=opts.rounds, steps=opts.steps, envs=opts.envs,
+                        fit_steps=opts.fit_steps, seed=opts.seed,
+                        threads=opts.jobs, progress=opts.progress)
+    summary = distill(cfg)
+    policy = out / "policy.onnx"
+    policy.write_bytes(Path(summary["export"]["out"]).read_bytes())
+    return {"teacher": teacher, "rounds": opts.rounds, "net_arch": list(opts.net_arch),
+            "inputs": summary["inputs"], "env_steps": summary["env_steps"],
+            "imitation_mse": summary["history"][-1]["imitation_mse"], "policy": str(policy)}
+
+
+def metrics_json(m: EvalMetrics) -> dict[str, Any]:
+    out = {k: {a: round(m.stat(k, a).mean, 2) for a in AXES} for k in ("error", "rise_ms", "peak_pct",
+                                                                     "success_pct")}
+    out["error_sum"] = round(sum(out["error"].values()), 2)
+    out["smoothness"] = round(m.stat("smoothness", "roll").mean, 3)
+    return out
+
+
+def check_stage(opts: FitOptions, policy: Path, pid: Path, bound_sum: float | None,
+                out: Path) -> dict[str, Any]:
+    from fcemu.evaluation.bar import airframe_bar_verdict
+    from fcemu.evaluation.metrics import compute_metrics
+    from fcemu.evaluation.runner import EvalConfig, run_controller
+
+    mcu_us, mcu_note = None, "not measured (--no-mcu)"
+    if opts.mcu:
+        from fcemu.export.c.build import CExportError
+        from fcemu.export.c.target import bench_mcu, missing_tools
+
+        missing = missing_tools()
+        if missing:
+            mcu_note = f"not measured: {', '.join(missing)} not installed (make mcu-tools)"
+        else:
+            try:
+                mcu_us = float(bench_mcu(str(policy), str(out / "mcu"))["est_us_at_168mhz"])
+            except CExportError as exc:
+                mcu_note = f"not measured: {exc}"
+    tasks = {}
+    for task in ("episodic", "inflight"):
+        cfg = EvalConfig(task=task, episodes=opts.episodes, seed=opts.seed + 1, airframe=opts.airframe)
+        pol = compute_metrics(run_controller(str(policy), cfg, progress=False))
+        ref = compute_metrics(run_controller(f"pid:{pid}", cfg, progress=False))
+        verdict = airframe_bar_verdict(pol, ref, bound_sum if task == "episodic" else None, mcu_us)
+        tasks[task] = {"policy": metrics_json(pol), "pid": metrics_json(ref), "bar": verdict}
+    return {"seed": opts.seed + 1, "episodes": opts.episodes, "bound_sum": bound_sum, "mcu_us_f405": mcu_us,
+            "mcu_note": mcu_note, "tasks": tasks,
+            "meets_bar": all(t["bar"]["meets_bar"] for t in tasks.values())}
+
+
+def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
+    """The three stages and the check; the summary written as DIR/fit.json and DIR/report.md."""
+    from fcemu.training.fit_report import write_report
+
+    log = log or (lambda line: None)
+    out = Path(opts.out)
+    t0 = time.monotonic()
+    times: dict[str, float] = {}
+    if opts.pid is None:
+        _stage(log, t0, f"tuning the PID for {opts.airframe} (at most {opts.tune_budget_s:.0f} s)")
+        tuned = tune_stage(opts, out, log)
+        _stage(log, t0, f"PID: {tuned['held_out']['tuned']['error_sum']:.1f} on the held-out commands")
+    else:
+        _stage(log, t0, f"the PID given: {opts.pid}")
+        tuned = given_pid_stage(opts, out, log)
+    times["tune"] = round(time.monotonic() - t0, 1)
+    _stage(log, t0, "fitting the policy to the model-based teacher")
+    t = time.monotonic()
+    student = distill_stage(opts, out)
+    times["policy"] = round(time.monotonic() - t, 1)
+    _stage(log, t0, f"policy written ({student['inputs']} inputs); checking it against the PID")
+    t = time.monotonic()
+    bound = tuned["held_out"].get("bound")
+    check = check_stage(opts, Path(student["policy"]), out / "pid.json", bound and bound["sum"], out)
+    times["check"] = round(time.monotonic() - t, 1)
+    times["total"] = round(time.monotonic() - t0, 1)
+    summary = {"airframe": opts.airframe, "command": command_line(opts), "pid": str(out / "pid.json"),
+               "policy": student["policy"], "tune": {"meets_lines": tuned["meets_lines"], "given": opts.pid,
+                                                      "fails": tuned["fails"], "time_s": tuned["time_s"]},
+               "student": student, "check": check, "meets_bar": check["meets_bar"], "time_s": times}
+    (out / "fit.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_report(summary, out / "report.md")
+    return summary
+
+
+def command_line(opts: FitOptions) -> str:
+    teacher = "" if opts.lag_multiple is None else f" --lag-multiple {opts.lag_multiple:g}"
+    teacher += "" if opts.pid is None else f" --pid {opts.pid}"
+    return (f"fcemu fit --airframe {opts.airframe} --out {opts.out} --seed {opts.seed} --episodes "
+            f"{opts.episodes} --tune-budget-s {opts.tune_budget_s:g} --rounds {opts.rounds} "
+            f"--steps {opts.steps} --envs {opts.envs} --fit-steps {opts.fit_steps} --net-arch "
+            f"{' '.join(map(str, opts.net_arch))}{teacher}")
+
+
+def fit_command(args: Any) -> int:
+    from fcemu.firmware.timing import available_cpus
+    from fcemu.sim_bridge.airframe import load_airframe
+
+    if args.tune_budget_s <= 0 or min(args.episodes, args.rounds, args.steps, args.envs, args.fit_steps,
+                                      *args.net_arch) < 1:
+        raise UserError("fit: --tune-budget-s must be > 0; --episodes, --rounds, --steps, --envs, "
+                        "--fit-steps and --net-arch ≥ 1")
+    try:
+        load_airframe(args.airframe)
+    except (FileNotFoundError, ValueError, KeyError, json.JSONDecodeError) as exc:
+        raise UserError(f"fit: cannot load airframe {args.airframe!r}: {exc}") from None
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"fit: --out {out} is not a writable directory: {exc.strerror or exc}") from None
+    opts = FitOptions(args.airframe, str(out), args.seed, args.episodes, args.tune_budget_s,
+                      args.lag_multiple, args.rounds, args.steps, args.envs, args.fit_steps,
+                      tuple(args.net_arch), args.jobs or available_cpus(), not args.no_mcu,
+                      progress=sys.stderr.isatty(), pid=args.pid)
+    summary = fit(opts, log=lambda line: print(line, file=sys.stderr, flush=True))
+    verdict = "meets the bar" if summary["meets_bar"] else "does not meet the bar (see report.md)"
+    print(f"wrote {summary['pid']}, {summary['policy']} and {out / 'report.md'} in "
+          f"{summary['time_s']['total']:.0f} s; the policy {verdict}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(summary))
+    return 0
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser("fit", help="from an airframe to its tuned PID, a policy that beats it, and a report")
+    p.add_argument("--airframe", required=True, help="a shipped airframe's name or an airframe file")
+    p.add_argument("--out", required=True, help="directory for pid.json, policy.onnx, report.md, fit.json")
+    p.add_argument("--seed", type=int, default=2018, help="tuning commands' seed; held out: seed + 1")
+    p.add_argument("--episodes", type=int, default=50, help="commands tuned on, and held out")
+    p.add_argument("--tune-budget-s", type=float, default=540.0, help="the PID tune's time, bound included")
+    p.add_argument("--lag-multiple", type=float, default=None,
+                   help="the teacher's time constant in motor lags (default: the teacher's)")
+    p.add_argument("--rounds", type=int, default=6, help="DAgger rounds of the policy's fit")
+    p.add_argument("--steps", type=int, default=1000, help="steps per twin and DAgger round")
+    p.add_argument("--envs", type=int, default=64, help="twins flown together in the policy's fit")
+    p.add_argument("--fit-steps", type=int, default=1500, help="Adam steps after each DAgger round")
+    p.add_argument("--net-arch", type=int, nargs="+", default=[48, 48], metavar="H",
+                   help="the policy's hidden layers, tanh")
+    p.add_argument("--jobs", type=int, default=0, help="worker processes and torch threads (0: the CPUs)")
+    p.add_argument("--pid", metavar="PRESET", help="a PID already tuned for this airframe (a preset name or "
+                                                   "file): no tune")
+    p.add_argument("--no-mcu", action="store_true", help="skip the STM32F405 time (fcemu bench mcu)")
+    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.set_defaults(handler="fcemu.training.fit:fit_command")

@@ -1,0 +1,69 @@
+"""DIR/report.md of `fcemu fit`: the bar's lines for the policy against the tuned PID, and the times."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from fcemu.evaluation.metrics import AXES
+
+
+def _axes(values: dict[str, float], fmt: str = ".1f") -> str:
+    return " / ".join(format(values[a], fmt) for a in AXES)
+
+
+def _mark(ok: bool | None) -> str:
+    return "not judged" if ok is None else ("met" if ok else "**not met**")
+
+
+def task_table(name: str, task: dict[str, Any]) -> list[str]:
+    pol, pid, bar = task["policy"], task["pid"], task["bar"]
+    checks = bar["checks"]
+    bound = "" if bar["times_bound"] is None else f", {bar['times_bound']:.3f} × the bound"
+    error_marks = _mark(checks["error_ratio"]) + ("" if checks["times_bound"] is None
+                                                  else ", " + _mark(checks["times_bound"]))
+    rise = bar["rise_ms_policy_pid_ci95"]
+    return [
+        f"### {name}", "",
+        "| line | policy | tuned PID | verdict |", "|---|---|---|---|",
+        f"| Error sum (≤ 0.95 × PID{', ≤ 1.2 × bound' if bar['bound_sum'] else ''}) | {pol['error_sum']:.1f} "
+        f"({bar['error_ratio']:.3f} ×{bound}) | {pid['error_sum']:.1f} | "
+        f"{error_marks} |",
+        f"| Error r / p / y | {_axes(pol['error'])} | {_axes(pid['error'])} | |",
+        f"| Rise ms r / p / y (≤ PID + the 95 % interval) | {_axes(pol['rise_ms'])} | "
+        f"{_axes(pid['rise_ms'])} "
+        f"(± {' / '.join(f'{rise[a][2]:.1f}' for a in AXES)}) | {_mark(checks['rise'])} |",
+        f"| Peak % (≤ PID + 3) | {_axes(pol['peak_pct'])} | {_axes(pid['peak_pct'])} | "
+        f"{_mark(checks['peak'])} |",
+        f"| Success % (≥ 99.8, or the PID's) | {_axes(pol['success_pct'])} | {_axes(pid['success_pct'])} | "
+        f"{_mark(checks['success'])} |",
+        f"| motors µs/step (≤ 1.5 × PID) | {pol['smoothness']:.2f} ({bar['smoothness_ratio']:.2f} ×) | "
+        f"{pid['smoothness']:.2f} | {_mark(checks['smoothness'])} |", ""]
+
+
+def write_report(summary: dict[str, Any], path: Path) -> None:
+    check, times, student = summary["check"], summary["time_s"], summary["student"]
+    verdict = "meets the bar" if summary["meets_bar"] else "does not meet the bar"
+    tune = summary["tune"]
+    lines = [
+        f"# `fcemu fit` for {summary['airframe']}", "",
+        "```", summary["command"], "```", "",
+        f"The policy ({student['inputs']} inputs, {'-'.join(map(str, student['net_arch']))} tanh, fitted by "
+        f"DAgger to the model-based teacher `{student['teacher']}`) **{verdict}** against the PID tuned "
+        f"here, on {check['episodes']} held-out commands (seed {check['seed']}).", "",
+        f"- PID: `{summary['pid']}` — "
+        + (f"given (`--pid {tune['given']}`), not tuned here." if tune["given"] else
+           f"the tune's lines {'met' if tune['meets_lines'] else 'not met: ' + '; '.join(tune['fails'])}."),
+        f"- Policy: `{summary['policy']}`.",
+        f"- Lower bound on the Error (`fcemu bound`, from rest): "
+        f"{'not available' if check['bound_sum'] is None else format(check['bound_sum'], '.1f')}.",
+        "- STM32F405 at 168 MHz (`fcemu bench mcu`, ≤ 250 µs): "
+        + (f"{check['mcu_us_f405']:.1f} µs." if check["mcu_us_f405"] is not None
+           else f"{check['mcu_note']}."),
+        ""]
+    for name, title in (("episodic", "From rest (episodic)"), ("inflight", "In flight, from hover")):
+        lines += task_table(title, check["tasks"][name])
+    lines += ["## Time", "", "| tune (bound included) | policy | check | total |", "|---:|---:|---:|---:|",
+              f"| {times['tune']:.0f} s | {times['policy']:.0f} s | {times['check']:.0f} s | "
+              f"{times['total']:.0f} s |", ""]
+    path.write_text("\n".join(lines))

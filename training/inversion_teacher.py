@@ -1,0 +1,186 @@
+"""A teacher that needs no training: the airframe's rate dynamics inverted, one tick at a time.
+
+`fcemu fit` distils it into a policy (`fcemu distill inversion --airframe A`). It knows the
+twin's model, read from the MuJoCo rig as `fcemu bound` reads it (`evaluation.bound.rig_constants`):
+B, the angular acceleration per newton of each motor's thrust, the inertia, the thrust
+coefficient, the top rotor speed and the motors' first-order lags. From what the policy
+observes (rate error, rates, rotor speeds) it asks, per tick:
+
+1. an angular acceleration α* = (e − dt·α_now)/T_c that closes the rate error e with the time
+   constant T_c = `lag_multiple` × the motors' mean lag, e predicted one tick ahead (the gyro's
+   sample is a tick old), less the gyroscopic term −I⁻¹(Ω × IΩ) the body adds by itself;
+2. the thrusts that give it, within what each rotor can reach by the next tick (its lag from
+   its present speed). Two allocations are tried, and the one whose torque lands nearer α*
+   (roll and pitch weighted 10 to yaw's 1) is taken: the change of torque with roll and pitch
+   served first and yaw from what is left, and a step toward the thrusts that give α* at rest
+   (roll and pitch first, yaw scaled into what is left of the output range), the torque's
+   direction kept. Both keep the mix's collective at the outer loop's throttle, as the
+   `throttle` action mapping does, so the teacher's outputs are ones a policy can give;
+3. each rotor's command that reaches its thrust in one tick through its lag (the lag's inverse).
+
+On the shipped airframes, flown by itself on 50 held-out commands, it has 0.9–0.75 × the
+tuned PID's Error (docs/results/fit.md); a student fitted to it by DAgger is the policy.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fcemu.firmware.action import pwm_to_action
+from fcemu.firmware.observation import FIELDS, RATE, ObservationSpec
+from fcemu.sim_bridge.airframe import Airframe, load_airframe
+
+ROLL_PITCH_WEIGHT = 10.0  # the torque error's weight on roll and pitch against yaw's 1
+LAG_MULTIPLE = 0.8  # T_c in motor lags: 0.5 is faster and about twice as rough (docs/results/fit.md)
+BISECTIONS = 30
+SPEC_FIELDS = (*FIELDS, RATE)
+
+
+@dataclass(frozen=True)
+class InversionModel:
+    """What the teacher knows of the twin (`evaluation.bound.RigConstants` and the PWM range)."""
+
+    B: np.ndarray  # (3, 4) FRD rad/s² per newton of each motor's thrust
+    inertia: np.ndarray  # (3,)
+    kf: float
+    w_max: float
+    a_up: float
+    a_down: float
+    pwm_min: float
+    pwm_max: float
+    lag_s: float
+
+    @classmethod
+    def of(cls, airframe: Airframe, dt: float = 0.001) -> InversionModel:
+        from fcemu.evaluation.bound import rig_constants
+        from fcemu.training.pid_tune import nominal
+
+        rig = rig_constants(nominal(airframe), dt)
+        m = airframe.motor
+        return cls(rig.B, rig.inertia, rig.kf, rig.w_max, rig.a_up, rig.a_down, float(m.pwm_min),
+                   float(m.pwm_max), 0.5 * (m.tau_up + m.tau_down))
+
+
+def max_scale(lo: np.ndarray, hi: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """Per row, the largest s in [0, 1] for which some collective c keeps lo ≤ s·delta + c ≤ hi on
+    every motor (lo ≤ 0 ≤ hi, so s = 0 always holds): the pairs i, j bound s·(δ_j − δ_i) ≤ hi_j − lo_i."""
+    dd = delta[..., None, :] - delta[..., :, None]
+    room = hi[..., None, :] - lo[..., :, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        limit = np.where(dd > 1e-12, room / np.where(dd > 1e-12, dd, 1.0), np.inf)
+    return np.clip(limit.min(axis=(-2, -1)), 0.0, 1.0)
+
+
+class InversionTeacher:
+    """The teacher for `fcemu distill`: `act(obs)` on its own observation (`spec`), batched."""
+
+    action_mapping = "throttle"
+
+    def __init__(self, airframe: str | Airframe, lag_multiple: float = LAG_MULTIPLE,
+                 throttle: float | None = None, dt: float = 0.001) -> None:
+        af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
+        if not lag_multiple > 0.0:
+            raise ValueError(f"the inversion teacher's lag multiple must be > 0, got {lag_multiple}")
+        self.airframe = af.name
+        self.model = m = InversionModel.of(af, dt)
+        self.lag_multiple, self.dt = float(lag_multiple), dt
+        self.time_constant = lag_multiple * m.lag_s
+        self.throttle = float(af.hover_throttle() if throttle is None else throttle)
+        self.spec = ObservationSpec(memory=1, fields=SPEC_FIELDS, max_rotor_speed=m.w_max)
+        # [B; 1 1 1 1]⁻¹'s first three columns: a torque's thrusts with no change of the collective
+        self._alloc = np.linalg.inv(np.vstack([m.B, np.ones(4)]))[:, :3]
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        obs = np.asarray(obs, dtype=np.float64)
+        error = obs[:, 0:3] / self.spec.rate_scale
+        rotor = obs[:, 3:7] / self.spec.rotor_speed_scale
+        rates = obs[:, 7:10] / self.spec.rate_scale
+        return pwm_to_action(self.action_mapping, self.pwm(error, rates, rotor, self.throttle))
+
+    def pwm(self, error: np.ndarray, rates: np.ndarray, rotor: np.ndarray, throttle: float) -> np.ndarray:
+        """PWM (n, 4) for rate errors and rates (n, 3, FRD rad/s) and rotor speeds (n, 4, rad/s)."""
+        m = self.model
+        w = np.clip(rotor, 0.0, m.w_max)
+        thrust = m.kf * w * w
+        t_max = m.kf * m.w_max**2
+        gyroscopic = -np.cross(rates, m.inertia * rates) / m.inertia
+        now = thrust @ m.B.T + gyroscopic
+        wanted = (error - self.dt * now) / self.time_constant - gyroscopic  # from the thrusts, rad/s²
+        lo = m.kf * (w * (1.0 - m.a_down)) ** 2 - thrust  # each rotor's reach by the next tick
+        hi = m.kf * (w + m.a_up * (m.w_max - w)) ** 2 - thrust
+        hover = m.kf * (throttle * m.w_max) ** 2 / 4.0
+        candidates = [self._by_change(wanted - thrust @ m.B.T, lo, hi, hover - thrust.mean(-1)),
+                      self._toward_rest_target(wanted, thrust, lo, hi, hover, t_max)]
+        weights = np.array([ROLL_PITCH_WEIGHT, ROLL_PITCH_WEIGHT, 1.0])
+        misses = [((thrust + c) @ m.B.T - wanted) ** 2 @ weights for c in candidates]
+        change = np.where((misses[0] <= misses[1])[:, None], candidates[0], candidates[1])
+        change -= change.mean(-1, keepdims=True)
+        command = self._at_throttle(w, thrust, change, lo, hi, throttle * m.w_max, t_max)
+        return m.pwm_min + command / m.w_max * (m.pwm_max - m.pwm_min)
+
+    def _by_change(self, needed: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                   collective: np.ndarray) -> np.ndarray:
+        """Thrust changes: roll and pitch's share of `needed` first, then yaw's, then the collective."""
+        rp = needed[:, :2] @ self._alloc[:, :2].T
+        change = max_scale(lo, hi, rp)[:, None] * rp
+        yaw = needed[:, 2:3] * self._alloc[:, 2]
+        change = change + max_scale(lo - change, hi - change, yaw)[:, None] * yaw
+        c = np.clip(collective, (lo - change).max(-1), (hi - change).min(-1))
+        return change + c[:, None]
+
+    def _toward_rest_target(self, wanted: np.ndarray, thrust: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                            hover: float, t_max: float) -> np.ndarray:
+        """Thrust changes toward the thrusts that give `wanted` (roll and pitch first, yaw into what
+        is left of the range), as far as the reach allows with the torque's direction kept."""
+        rp = wanted[:, :2] @ self._alloc[:, :2].T
+        spread = np.ptp(rp, axis=-1)
+        rp = rp * np.minimum(1.0, t_max / np.maximum(spread, 1e-12))[:, None]
+        yaw = wanted[:, 2:3] * self._alloc[:, 2]
+        mix = rp + max_scale(-rp, t_max - rp, yaw)[:, None] * yaw
+        c = np.clip(hover, -mix.min(-1), t_max - mix.max(-1))
+        target = np.clip(c[:, None] + mix, 0.0, t_max)
+        delta = target - thrust
+        change = delta - delta.mean(-1, keepdims=True)
+        change = max_scale(lo, hi, change)[:, None] * change
+        c = np.clip(delta.mean(-1), (lo - change).max(-1), (hi - change).min(-1))
+        return change + c[:, None]
+
+    def _at_throttle(self, w: np.ndarray, thrust: np.ndarray, change: np.ndarray, lo: np.ndarray,
+                     hi: np.ndarray, goal: float, t_max: float) -> np.ndarray:
+        """Rotor commands for the thrust change plus the collective (within reach) whose commands
+        average the throttle's speed: the outer loop's collective, as the action mapping keeps it."""
+        m = self.model
+
+        def commands(c: np.ndarray) -> np.ndarray:
+            target = np.sqrt(np.clip(thrust + change + c[:, None], 0.0, t_max) / m.kf)
+            gain = np.where(target > w, m.a_up, m.a_down)
+            return np.clip(w + (target - w) / gain, 0.0, m.w_max)
+
+        low, high = (lo - change).max(-1), (hi - change).min(-1)
+        high = np.maximum(high, low)
+        for _ in range(BISECTIONS):  # the mean command rises with c
+            mid = 0.5 * (low + high)
+            below = commands(mid).mean(-1) < goal
+            low, high = np.where(below, mid, low), np.where(below, high, mid)
+        return commands(0.5 * (low + high))
+
+
+class InversionController:
+    """The teacher flying one vehicle in the firmware's loop (`RateController`): what `fcemu fit`
+    reports it at beside its student."""
+
+    name = "inversion"
+
+    def __init__(self, teacher: InversionTeacher) -> None:
+        self.teacher = teacher
+
+    def reset(self) -> None:
+        pass
+
+    def update(self, setpoint, frame, dt: float) -> np.ndarray:
+        rates = np.asarray(frame.gyro, dtype=np.float64)[None]
+        error = np.asarray(setpoint.rates, dtype=np.float64)[None] - rates
+        rotor = np.asarray(frame.rotor_speed, dtype=np.float64)[None]
+        return self.teacher.pwm(error, rates, rotor, setpoint.throttle)[0]
