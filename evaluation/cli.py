@@ -21,6 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="episode length (default 1 s episodic and inflight, 10 s continuous)")
     p.add_argument("--throttle", type=float, default=None, help="collective 0..1 (default: hover)")
     add_env_arguments(p, ("airframe",))
+    p.add_argument("--fallback", default="pid", metavar="PID",
+                   help="the PID a policy hands over to when its input is unhealthy (default pid: the "
+                        "airframe's own tune; pid:DIR/pid.json for one `fcemu tune` wrote)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--report", metavar="DIR", help="write a Markdown report with figures into DIR")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save the traces (one file per controller)")

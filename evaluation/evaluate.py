@@ -65,7 +65,7 @@ def eval_command(args) -> int:
     specs = args.controller or ["pid"]
     try:
         cfg = EvalConfig(task=args.task, episodes=args.episodes, seed=args.seed, episode_s=args.episode_s,
-                         throttle=args.throttle, airframe=args.airframe)
+                         throttle=args.throttle, airframe=args.airframe, fallback=args.fallback)
         if args.perturb < 0:
             raise ValueError(f"--perturb must be >= 0, got {args.perturb}")
         airframes, ranges = _airframes(args)

@@ -52,6 +52,7 @@ class EvalConfig:
     throttle: float | None = None  # None: the airframe's hover throttle
     rate_hz: float = 1000.0
     airframe: str = DEFAULT_AIRFRAME  # sim_bridge/airframes/<name>.json or a path, e.g. iris_realistic
+    fallback: str = FALLBACK  # the PID a policy hands over to: by default the airframe's own tune
 
     def __post_init__(self) -> None:
         if self.task not in TASKS:
@@ -163,7 +164,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     controllers = {"main": load_controller(spec, cfg.rate_hz, configured)}
     neural = not spec.startswith("pid")
     if neural:
-        controllers[FALLBACK] = load_controller(FALLBACK, airframe=configured)
+        controllers[FALLBACK] = load_controller(cfg.fallback, airframe=configured)
     setpoints = setpoint_schedules(cfg)
     n, ticks = cfg.episodes, cfg.warmup_ticks + cfg.n_ticks
     rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))

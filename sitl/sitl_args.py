@@ -69,21 +69,9 @@ def check_signing_key(path: str) -> None:
                         "passphrase)") from None
 
 
-def check_tlog(path: str) -> None:
-    """The tlog (and its folder) can be created; the flight opens it for the MAVLink process
-    (bridge.open_for_mavlink), so a new one is not left behind should something else fail first."""
-    existed = os.path.lexists(path)
-    try:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o644))
-        if not existed:
-            os.unlink(path)
-    except OSError as exc:
-        raise UserError(f"--tlog {path}: cannot write it ({_reason(exc)})") from None
-
-
-def check_ulog(path: str) -> None:
-    """The ULog can be written where asked: it is written when the flight ends, too late to say so."""
+def check_writable(option: str, path: str) -> None:
+    """The file (and its folder) can be created where asked; one made only to find out is removed
+    again, so nothing is left behind should something else fail before the flight writes it."""
     existed = os.path.lexists(path)
     try:
         if Path(path).is_dir():
@@ -93,7 +81,17 @@ def check_ulog(path: str) -> None:
         if not existed:
             os.unlink(path)
     except OSError as exc:
-        raise UserError(f"--ulog {path}: cannot write it ({_reason(exc)})") from None
+        raise UserError(f"{option} {path}: cannot write it ({_reason(exc)})") from None
+
+
+def check_tlog(path: str) -> None:
+    """The tlog: the flight opens it for the MAVLink process (bridge.open_for_mavlink)."""
+    check_writable("--tlog", path)
+
+
+def check_ulog(path: str) -> None:
+    """The ULog: written when the flight ends, too late to say it cannot be."""
+    check_writable("--ulog", path)
 
 
 def check_params_file(path: str) -> None:

@@ -150,7 +150,8 @@ def check_stage(opts: FitOptions, policy: Path, pid: Path, bound_sum: float | No
                 mcu_note = f"not measured: {exc}"
     tasks = {}
     for task in ("episodic", "inflight"):
-        cfg = EvalConfig(task=task, episodes=opts.episodes, seed=opts.seed + 1, airframe=opts.airframe)
+        cfg = EvalConfig(task=task, episodes=opts.episodes, seed=opts.seed + 1, airframe=opts.airframe,
+                         fallback=f"pid:{pid}")
         pol = compute_metrics(run_controller(str(policy), cfg, progress=False))
         ref = compute_metrics(run_controller(f"pid:{pid}", cfg, progress=False))
         verdict = airframe_bar_verdict(pol, ref, bound_sum if task == "episodic" else None, mcu_us)
@@ -206,21 +207,13 @@ def command_line(opts: FitOptions) -> str:
 
 def fit_command(args: Any) -> int:
     from fcemu.firmware.timing import available_cpus
-    from fcemu.sim_bridge.airframe import load_airframe
+    from fcemu.training.pid_tune_cli import checked_airframe_and_out
 
     if args.tune_budget_s <= 0 or min(args.episodes, args.rounds, args.steps, args.envs, args.fit_steps,
                                       *args.net_arch) < 1:
         raise UserError("fit: --tune-budget-s must be > 0; --episodes, --rounds, --steps, --envs, "
                         "--fit-steps and --net-arch ≥ 1")
-    try:
-        load_airframe(args.airframe)
-    except (FileNotFoundError, ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise UserError(f"fit: cannot load airframe {args.airframe!r}: {exc}") from None
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"fit: --out {out} is not a writable directory: {exc.strerror or exc}") from None
+    out = checked_airframe_and_out("fit", args.airframe, args.out)
     opts = FitOptions(args.airframe, str(out), args.seed, args.episodes, args.tune_budget_s,
                       args.lag_multiple, args.rounds, args.steps, args.envs, args.fit_steps,
                       tuple(args.net_arch), args.jobs or available_cpus(), not args.no_mcu,

@@ -99,23 +99,30 @@ def _exit_on_sigterm(signum: int, frame: Any) -> None:
     raise SystemExit(128 + signum)
 
 
-def tune_command(args: Any) -> int:
-    """`fcemu tune`: tune, write DIR/pid.json, report on stderr (and one JSON object on stdout)."""
-    if args.budget_s <= 0 or min(args.episodes, args.check_episodes, args.rounds) < 1 or args.jobs < 0:
-        raise UserError("tune: --budget-s must be > 0, --episodes, --check-episodes and --rounds ≥ 1, "
-                        "--jobs ≥ 0")
+def checked_airframe_and_out(command: str, airframe: str, out_dir: str) -> Path:
+    """The airframe loads and the output directory is writable (made if missing), or one line."""
     try:
-        load_airframe(args.airframe)
+        load_airframe(airframe)
     except (FileNotFoundError, ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise UserError(f"tune: cannot load airframe {args.airframe!r}: {exc}") from None
-    out = Path(args.out)
+        raise UserError(f"{command}: cannot load airframe {airframe!r}: {exc}") from None
+    out = Path(out_dir)
     try:
         out.mkdir(parents=True, exist_ok=True)
         probe = out / ".write-test"
         probe.write_text("")
         probe.unlink()
     except OSError as exc:
-        raise UserError(f"tune: --out {out} is not a writable directory: {exc.strerror or exc}") from None
+        reason = exc.strerror or exc
+        raise UserError(f"{command}: --out {out} is not a writable directory: {reason}") from None
+    return out
+
+
+def tune_command(args: Any) -> int:
+    """`fcemu tune`: tune, write DIR/pid.json, report on stderr (and one JSON object on stdout)."""
+    if args.budget_s <= 0 or min(args.episodes, args.check_episodes, args.rounds) < 1 or args.jobs < 0:
+        raise UserError("tune: --budget-s must be > 0, --episodes, --check-episodes and --rounds ≥ 1, "
+                        "--jobs ≥ 0")
+    out = checked_airframe_and_out("tune", args.airframe, args.out)
     jobs = args.jobs or available_cpus()
     opts = TuneOptions(args.airframe, args.seed, args.episodes, args.check_episodes, args.budget_s, jobs,
                        args.rounds)
