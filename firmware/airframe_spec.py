@@ -41,6 +41,7 @@ class AirframeSpec:
     max_angular_acceleration: tuple[float, float, float]  # rad/s², roll, pitch, yaw
     motor_tau_up: float  # s
     motor_tau_down: float  # s
+    tune_of: str | None = None  # whose PID tune it flies (a variant of the same physics: its base's)
 
     def scale(self, key: str) -> float | tuple[float, ...]:
         return getattr(self, key)

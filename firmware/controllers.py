@@ -32,13 +32,12 @@ def is_policy(spec: str) -> bool:
 
 
 def airframe_preset(airframe: AirframeSpec) -> Path:
-    """`firmware/presets/pid_<name>.json` of the airframe; a variant named `<base>_<what>` (iris_realistic)
-    flies its base's tune when it has none of its own."""
-    parts = airframe.name.split("_")
-    for n in range(len(parts), 0, -1):
-        path = PRESET_DIR / f"pid_{'_'.join(parts[:n])}.json"
-        if path.exists():
-            return path
+    """`firmware/presets/pid_<name>.json` of the airframe, or of the airframe a variant of the same
+    nominal physics varies (its file's `base`: iris_realistic flies pid_iris)."""
+    name = airframe.tune_of or airframe.name
+    path = PRESET_DIR / f"pid_{name}.json"
+    if path.exists():
+        return path
     raise ControllerSpecError(
         f"no PID tuned for {airframe.name}: `fcemu tune --airframe {airframe.name} --out DIR`, "
         "then --controller pid:DIR/pid.json")

@@ -79,6 +79,8 @@ class Airframe:
     battery_current_per_thrust: float = 0.0  # A per N^1.5 of each rotor (momentum theory)
     battery_drawn_at_start: float = 0.0  # A·s already drawn when a flight starts (state of charge)
     effect_sources: tuple[tuple[str, str], ...] = ()  # (field, citation) as the file gives them
+    # whose PID tune it flies: its own, or a variant's base's when the variant changes only effects
+    tune_of: str = ""
 
     @property
     def battery_sags(self) -> bool:
@@ -183,6 +185,10 @@ def airframe_names() -> list[str]:
     return sorted(p.stem for p in AIRFRAME_DIR.glob("*.json") if "." not in p.stem)
 
 
+# A variant with no other keys than these has its base's nominal physics, so flies its base's PID tune.
+VARIANT_ONLY_KEYS = frozenset({"name", "source", "sources", "frame", "base", "effects"})
+
+
 def _read(name_or_path: str | Path, variants: tuple[Path, ...] = ()) -> tuple[Path, dict]:
     path = Path(name_or_path)
     if not path.suffix:
@@ -199,7 +205,8 @@ def _read(name_or_path: str | Path, variants: tuple[Path, ...] = ()) -> tuple[Pa
         beside = path.parent / f"{raw['base']}.json"
         _, base = _read(beside if beside.exists() else raw["base"], (*variants, path))
         effects = {**base.get("effects", {}), **raw.get("effects", {})}
-        raw = {**base, **raw, "effects": effects}
+        tune_of = base.get("_tune_of", base["name"]) if not set(raw) - VARIANT_ONLY_KEYS else None
+        raw = {**base, **raw, "effects": effects, "_tune_of": tune_of or raw.get("name") or path.stem}
     return path, raw
 
 
@@ -238,6 +245,7 @@ def effect_fields() -> tuple[str, ...]:
 def load_airframe(name_or_path: str | Path = DEFAULT_AIRFRAME) -> Airframe:
     """The airframe of a shipped name or a file; an `AirframeError` names the field of any problem."""
     path, raw = _read(name_or_path)
+    tune_of = raw.pop("_tune_of", None)
     check_airframe_file(path, raw)
     motors = raw["motors"]
     m = raw["motor"]
@@ -264,6 +272,7 @@ def load_airframe(name_or_path: str | Path = DEFAULT_AIRFRAME) -> Airframe:
         rotor_body_inertia=tuple(float(v) for v in raw.get("rotor_body_inertia_kg_m2",  # type: ignore[arg-type]
                                                            ROTOR_BODY_INERTIA)),
         **_effects(path, raw),
+        tune_of=tune_of or raw["name"],
     )
 
 

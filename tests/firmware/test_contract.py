@@ -159,3 +159,20 @@ def test_pid_is_the_airframe_s_own_tune() -> None:
         load_controller("pid", airframe=_airframe("crazyflie"))
     for named in ("pid:iris", "pid:paper"):
         load_controller(named, airframe=_airframe("crazyflie"))
+
+
+def test_a_variant_flies_its_bases_tune_only_when_it_changes_no_physics(tmp_path) -> None:
+    from fcemu.firmware.controllers import ControllerSpecError
+    from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    base = json.loads((AIRFRAME_DIR / "racer5.json").read_text())
+    noisy = tmp_path / "racer5_noisy.json"
+    noisy.write_text(json.dumps({"name": "racer5_noisy", "base": str(AIRFRAME_DIR / "racer5.json"),
+                                 "effects": {"gyro_noise_std_rad_s": {"value": 0.01, "source": "test"}}}))
+    assert load_controller("pid", airframe=airframe_spec(load_airframe(noisy))).name == "pid_racer5"
+    heavy = tmp_path / "racer5_heavy.json"
+    heavy.write_text(json.dumps({"name": "racer5_heavy", "base": str(AIRFRAME_DIR / "racer5.json"),
+                                 "base_mass_kg": base["base_mass_kg"] * 1.5}))
+    with pytest.raises(ControllerSpecError, match=r"^no PID tuned for racer5_heavy"):
+        load_controller("pid", airframe=airframe_spec(load_airframe(heavy)))
