@@ -253,7 +253,8 @@ class UdpTwinServer:
     def _set_owner(self, addr: tuple[str, int] | None) -> None:
         """Give the session to `addr` (None: to nobody), with a receive queue of its own."""
         if self._owner_sock is not None:
-            self._poll.unregister(self._owner_sock)
+            with contextlib.suppress(ValueError, KeyError):  # closed, or never registered, as it stopped
+                self._poll.unregister(self._owner_sock)
             self._owner_sock.close()
             self._owner_sock = None
         self._owner = addr
