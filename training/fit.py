@@ -71,11 +71,11 @@ def tune_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
 def given_pid_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
     """A PID already tuned for the airframe (`--pid`): copied to DIR/pid.json; the held-out bound is
     solved (or read from the tune's cache) as the tune would."""
-    from fcemu.evaluation.bound import HORIZON, error_bounds, rig_constants
+    from fcemu.evaluation.bound import error_bounds, rig_constants
     from fcemu.firmware.pid_controller import load_preset
     from fcemu.sim_bridge.airframe import load_airframe
     from fcemu.sim_bridge.tasks import episodic_commands
-    from fcemu.training.pid_tune import bound_cache_path
+    from fcemu.training.pid_tune import cached_bounds
     from fcemu.training.pid_tune_cli import dumps
 
     try:
@@ -90,16 +90,11 @@ def given_pid_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
     except UserError as exc:
         log(f"  no bound: {exc}")
     else:
-        cache = bound_cache_path(rig, commands, HORIZON)
-        if cache.exists():
-            per_command = json.loads(cache.read_text())
-        else:
+        def solve() -> list[Any]:
             log(f"  bound: solving {len(commands)} linear programmes")
-            found = error_bounds(commands, jobs=opts.jobs, airframe=opts.airframe)
-            per_command = [[b.bound, *b.split] for b in found]
-            cache.parent.mkdir(parents=True, exist_ok=True)
-            cache.write_text(json.dumps(per_command))
-        bound = {"sum": round(sum(row[0] for row in per_command) / len(per_command), 2)}
+            return error_bounds(commands, jobs=opts.jobs, airframe=opts.airframe)
+
+        bound = {"sum": round(float(cached_bounds(rig, commands, solve)[:, 0].mean()), 2)}
     return {"held_out": {"bound": bound}, "meets_lines": None, "fails": [], "time_s": None,
             "given": opts.pid}
 

@@ -168,8 +168,8 @@ class InversionTeacher:
 
 
 class InversionController:
-    """The teacher flying one vehicle in the firmware's loop (`RateController`): what `fcemu fit`
-    reports it at beside its student."""
+    """The teacher flying one vehicle in the firmware's loop (`RateController`), as its own figures in
+    docs/results/fit.md were flown."""
 
     name = "inversion"
 

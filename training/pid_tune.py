@@ -204,6 +204,23 @@ def bound_cache_path(rig: Any, commands: np.ndarray, horizon: int) -> Path:
     return root / "fcemu" / "bound" / f"{key.hexdigest()[:32]}.json"
 
 
+def cached_bounds(rig: Any, commands: np.ndarray, solve: Any) -> np.ndarray:
+    """Per command [bound, its split over roll, pitch, yaw]: from the cache (`bound_cache_path`), or
+    `solve()`'s `evaluation.bound.CommandBound`s, then kept there."""
+    from fcemu.evaluation.bound import HORIZON
+
+    cache = bound_cache_path(rig, commands, HORIZON)
+    if cache.exists():
+        return np.array(json.loads(cache.read_text()))
+    per_command = np.array([[b.bound, *b.split] for b in solve()])
+    try:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        cache.write_text(json.dumps(per_command.tolist()))
+    except OSError:
+        pass  # a cache that cannot be written costs the next tune the programmes, nothing else
+    return per_command
+
+
 class Tuner:
     """One tune: the physics start, the bound on the held-out commands, two search stages, the check."""
 
@@ -244,22 +261,15 @@ class Tuner:
             rig = rig_constants(self.airframe)
         except UserError as exc:
             return {"bound": None, "bound_refused": str(exc), "wall_s": 0.0}
-        cache = bound_cache_path(rig, self.held_out, HORIZON)
-        if cache.exists():
-            per_command = np.array(json.loads(cache.read_text()))
-            self.say("bound", f"read from {cache}")
-        else:
-            n = len(self.held_out)
-            every = max(1, n // 5)
+        n = len(self.held_out)
+        every = max(1, n // 5)
+
+        def solve() -> list[Any]:
             self.say("bound", f"solving {n} linear programmes: the floor under the held-out Error")
-            found = pool.bounds(self.held_out, lambda done: done % every == 0 and done < n and self.say(
+            return pool.bounds(self.held_out, lambda done: done % every == 0 and done < n and self.say(
                 "bound", f"{done}/{n} held-out commands"))
-            per_command = np.array([[b.bound, *b.split] for b in found])
-            try:
-                cache.parent.mkdir(parents=True, exist_ok=True)
-                cache.write_text(json.dumps(per_command.tolist()))
-            except OSError:
-                pass  # a cache that cannot be written costs the next tune the programmes, nothing else
+
+        per_command = cached_bounds(rig, self.held_out, solve)
         total, split = float(per_command[:, 0].mean()), per_command[:, 1:].mean(axis=0)
         self.say("bound", f"{total:.1f} on {len(per_command)} held-out commands (seed {self.opts.seed + 1})")
         return {"bound": {"sum": round(total, 2), "horizon": HORIZON, "split_at_optimum": per_axis(split)},
