@@ -8,10 +8,10 @@ from pathlib import Path
 from fcemu.firmware.airframe_spec import AirframeSpec
 from fcemu.firmware.controller import RateController
 from fcemu.firmware.errors import UserError
+from fcemu.firmware.pid_controller import PRESET_DIR
 
 # Package data, so an installed wheel flies it as a checkout does.
 DEFAULT_POLICY = Path(str(files("fcemu.firmware") / "policies" / "iris_rate_ppo.onnx"))
-PRESET_DIR = Path(str(files("fcemu.firmware") / "presets"))
 FALLBACK_CONTROLLER = "pid"  # what flies when a policy faults, and in LAND and HOLD
 
 

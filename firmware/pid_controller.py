@@ -21,7 +21,8 @@ from fcemu.firmware.mixer import QuadXMixer
 from fcemu.firmware.pid import PIDGains, RatePID
 from fcemu.firmware.sensors import SensorFrame
 
-PRESETS = ("pid_iris", "pid_paper", "pid_betaflight", "pid_iris_robust")
+PRESET_DIR = Path(str(resources.files("fcemu.firmware") / "presets"))
+PRESETS = tuple(sorted(p.stem for p in PRESET_DIR.glob("pid_*.json")))  # the shipped ones
 DEFAULT_PRESET = "pid_iris"
 _RATE_CHANGE_TICKS = 8  # consecutive off-period ticks that mean a new loop rate, not jitter
 
@@ -36,7 +37,7 @@ def preset_path(name: str) -> Path:
     stem = name if name.startswith("pid_") else f"pid_{name}"
     if stem not in PRESETS:
         raise ValueError(f"unknown PID preset {name!r}; shipped presets: {', '.join(PRESETS)}")
-    return Path(str(resources.files("fcemu.firmware") / "presets" / f"{stem}.json"))
+    return PRESET_DIR / f"{stem}.json"
 
 
 def load_preset(name: str) -> dict[str, Any]:
