@@ -18,8 +18,9 @@ observes (rate error, rates, rotor speeds) it asks, per tick:
    `throttle` action mapping does, so the teacher's outputs are ones a policy can give;
 3. each rotor's command that reaches its thrust in one tick through its lag (the lag's inverse).
 
-On the shipped airframes, flown by itself on 50 held-out commands, it has 0.9–0.75 × the
-tuned PID's Error (docs/results/fit.md); a student fitted to it by DAgger is the policy.
+On the shipped airframes, flown by itself through the action mapping on 50 held-out commands,
+it has 0.77–0.99 × the tuned PID's Error (docs/results/fit.md); a student fitted to it by DAgger
+is the policy.
 """
 
 from __future__ import annotations
