@@ -115,7 +115,7 @@ def airframe_bar_verdict(policy: EvalMetrics, pid: EvalMetrics, bound_sum: float
         "peak": all(p <= r + PEAK_MARGIN_PCT for p, r in peak.values()),
         "smoothness": smooth <= SMOOTHNESS_BAR * smooth_pid,
         "rise": all(p <= r + ci for p, r, ci in rise.values()),
-        "mcu": None if mcu_us is None else mcu_us <= MCU_BUDGET_PCT * 10.0,
+        "mcu": None if mcu_us is None else mcu_us <= MCU_BUDGET_PCT / 100.0 * 1000.0,  # of 1000 µs
     }
     return {"policy_error_sum": pol_sum, "pid_error_sum": pid_sum, "error_ratio": pol_sum / pid_sum,
             "error_ratio_bar": ERROR_RATIO_BAR, "bound_sum": bound_sum, "times_bound": times_bound,

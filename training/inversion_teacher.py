@@ -86,7 +86,7 @@ class InversionTeacher:
             raise ValueError(f"the inversion teacher's lag multiple must be > 0, got {lag_multiple}")
         self.airframe = af.name
         self.model = m = InversionModel.of(af, dt)
-        self.lag_multiple, self.dt = float(lag_multiple), dt
+        self.dt = dt
         self.time_constant = lag_multiple * m.lag_s
         self.throttle = float(af.hover_throttle() if throttle is None else throttle)
         self.spec = ObservationSpec(memory=1, fields=SPEC_FIELDS, max_rotor_speed=m.w_max)
