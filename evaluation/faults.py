@@ -25,59 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from fcemu.firmware.health import HealthMonitor
+from fcemu.sim_bridge.fault_spec import parse_fault
 from fcemu.sim_bridge.faults import Fault, FaultInjector, FaultSpecError
 from fcemu.sitl.traces import Traces
 
 FAULT_STREAM = 0x6661756C  # "faul": the fault times' and draws' seeds, a stream of their own
 FAULT_WINDOW = (0.2, 0.5)  # the fault comes at a uniform fraction of the episode in this range
 UPRIGHT_DEG = 90.0
-_VALUE = re.compile(r"^([-+]?[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)(ms|s|hz|%)?$", re.IGNORECASE)
-
-
-def parse_value(text: str) -> float:
-    m = _VALUE.match(text.strip())
-    if m is None:
-        raise FaultSpecError(f"{text!r} is not a number (units: ms, s, Hz, %)")
-    value, unit = float(m.group(1)), (m.group(2) or "").lower()
-    if unit == "hz":
-        if value <= 0:
-            raise FaultSpecError(f"{text!r}: a rate must be positive")
-        return 1.0 / value
-    return value * {"ms": 1e-3, "%": 1e-2}.get(unit, 1.0)
-
-
-def parse_fault(spec: str) -> Fault:
-    """A --fault SPEC as a `Fault`; FaultSpecError (a ValueError) says what is wrong with it."""
-    parts = spec.split(":")
-    target, instance, kind, raw = parts[0], 0, None, None
-    try:
-        for part in parts[1:]:
-            if part.isdigit() and not instance:
-                instance = int(part)
-            elif "=" in part and kind is None:
-                kind, _, raw = part.partition("=")
-            elif kind is None and part:
-                kind = part
-            elif raw is None and part:
-                raw = part
-            else:
-                raise FaultSpecError(f"unexpected {part!r}")
-        if kind is None:
-            raise FaultSpecError("no fault kind: use TARGET:KIND[:VALUE], e.g. gyro:stuck")
-        if kind == "burst" and raw is not None:
-            return Fault(target, kind, instance, *_burst_values(raw))
-        return Fault(target, kind, instance, None if raw is None else parse_value(raw))
-    except FaultSpecError as exc:
-        raise FaultSpecError(f"--fault {spec!r}: {exc}") from None
-
-
-def _burst_values(raw: str) -> tuple[float | None, float | None]:
-    """`LENGTH@FRACTION`, `LENGTH` (with a time unit) or `FRACTION` as (fraction, length in s)."""
-    length, at, fraction = raw.partition("@")
-    if not at:
-        timed = raw.strip().lower().endswith(("ms", "s", "hz"))
-        length, fraction = (raw, "") if timed else ("", raw)
-    return (parse_value(fraction) if fraction else None, parse_value(length) if length else None)
 
 
 def fault_ticks(seed: int, episodes: int, ticks: int, warmup: int) -> np.ndarray:

@@ -7,6 +7,17 @@ import argparse
 from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
 
 
+def fault_spec(text: str):
+    """--fault SPEC as a Fault; argparse names a bad one on one line."""
+    from fcemu.sim_bridge.fault_spec import parse_fault
+    from fcemu.sim_bridge.faults import FaultSpecError
+
+    try:
+        return parse_fault(text)
+    except FaultSpecError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     twin = sub.add_parser("twin", help="the digital twin on its own")
     twin_sub = twin.add_subparsers(dest="twin_command", required=True, metavar="WHAT")
@@ -17,6 +28,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument("--rig", choices=("rig", "free"), default="rig")
     serve.add_argument("--airframe", default=DEFAULT_AIRFRAME, help="airframe name or JSON file")
     serve.add_argument("--quiet", action="store_true", help="no periodic status line")
+    serve.add_argument("--fault", type=fault_spec, action="append", default=None, metavar="SPEC",
+                       help="inject this fault from the first frame of every session (repeatable), as "
+                            "fcemu eval --fault: TARGET:KIND[:VALUE], e.g. esc-telemetry:1:off, "
+                            "gyro:delayed:5ms, esc-telemetry:burst:20ms@1%%")
     serve.set_defaults(handler="fcemu.sim_bridge.twin_server:serve_command")
 
     demo = twin_sub.add_parser("demo", help="open-loop showcase: hover, then roll/pitch/yaw")

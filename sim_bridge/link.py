@@ -19,7 +19,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Protocol, TypeVar
 
 import numpy as np
@@ -220,7 +220,12 @@ class UdpTwinClient:
                     self._seq = seq
                     if shortened:
                         self._set_wait(self.timeout)
-                    return frame_from_buffer(rx)
+                    try:
+                        return frame_from_buffer(rx)
+                    except ProtocolError as exc:  # applied, yet unreadable: lockstep is lost
+                        self._in_session = False
+                        raise LinkError(f"the twin server at {self._server} answered request {seq} "
+                                        f"with a frame this client cannot read: {exc}") from None
                 self._check_other_reply(memoryview(rx)[:n], seq)
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
@@ -248,6 +253,10 @@ class UdpTwinClient:
         try:
             msg = decode(data)
         except ProtocolError as exc:
+            if exc.code == ErrorCode.BAD_VERSION and exc.msg_type == MsgType.ERROR and exc.seq == seq:
+                self._in_session = False  # a server of another version refused this request
+                raise LinkError(f"the twin server at {self._server} speaks protocol version {data[4]}, "
+                                f"this client {VERSION}: run the same fcemu version on both ends") from None
             self.counters["discarded"] += 1
             log.debug("twin client: dropped a bad reply: %s", exc)
             return
@@ -263,11 +272,13 @@ class UdpTwinClient:
 
 
 def spawn_server(rig: str = "rig", airframe: str = DEFAULT_AIRFRAME, host: str = "127.0.0.1",
-                 startup_timeout: float = 30.0) -> tuple[subprocess.Popen, tuple[str, int]]:
-    """Start `fcemu twin serve` on a free port in another process; returns it and its address."""
+                 startup_timeout: float = 30.0,
+                 faults: Sequence[str] = ()) -> tuple[subprocess.Popen, tuple[str, int]]:
+    """Start `fcemu twin serve` on a free port in another process, with `faults` (--fault SPECs);
+    returns it and its address."""
     proc = subprocess.Popen(
         [sys.executable, "-m", "fcemu", "twin", "serve", "--host", host, "--port", "0", "--rig", rig,
-         "--airframe", airframe, "--quiet"],
+         "--airframe", airframe, "--quiet", *(f"--fault={spec}" for spec in faults)],
         stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
     timer = threading.Timer(startup_timeout, proc.kill)  # a server that never prints must not hang us
     timer.start()

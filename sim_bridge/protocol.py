@@ -10,6 +10,14 @@ message type has a fixed length except ERROR (a short UTF-8 text at the end). Al
 floats are float64, so a frame that crossed the link is bit-identical to the one the
 twin returned in-process.
 
+A FRAME carries each input's sample time (version 2): after the frame's time and its ten
+floats, a flags byte (bit 0: the gyro's time follows, bit 1: each motor's) and five int64
+times, zero where their flag is clear. A flag, not a sentinel time, says "no time" (the
+SensorFrame's None: sampled at the frame's time), so every int64 stays a valid time.
+
+ERROR has the same layout in every version, so a request of another version is refused with
+BAD_VERSION in the requester's own version: each end can read why the other refused it.
+
 Every path packs and unpacks through the functions here: `pack_pwm_into` and
 `pack_frame_into` write a message into a reused buffer (the link's hot paths),
 `encode_*` return new bytes, `frame_from_buffer` and `decode` read.
@@ -28,7 +36,7 @@ from fcemu.firmware.sensors import SensorFrame
 from fcemu.sim_bridge.twin import TwinState
 
 MAGIC = b"FCTW"
-VERSION = 1
+VERSION = 2
 
 
 class MsgType(IntEnum):
@@ -57,7 +65,7 @@ class ErrorCode(IntEnum):
 HEADER = struct.Struct("<4sBBHQ")
 PWM_MSG = struct.Struct("<4sBBHQ4d")
 BYE_MSG = HEADER
-FRAME_MSG = struct.Struct("<4sBBHQq10d")
+FRAME_MSG = struct.Struct("<4sBBHQq10dB7xq4q")
 # flags: bit 0 a seed follows, bit 1 an initial state follows, bit 2 the state has a position
 RESET_MSG = struct.Struct("<4sBBHQB7xq17d")
 ERROR_HEAD = struct.Struct("<4sBBHQHB")
@@ -72,6 +80,10 @@ _FIXED_SIZE = {
     MsgType.FRAME: FRAME_MSG.size,
 }
 _HAS_SEED, _HAS_STATE, _HAS_POSITION = 1, 2, 4
+_HAS_GYRO_T, _HAS_ROTOR_T = 1, 2  # FRAME's flags
+_FLAGS_AT = HEADER.size + 88  # after t_us and the ten floats
+_GYRO_T_AT, _ROTOR_T_AT = _FLAGS_AT + 8, _FLAGS_AT + 16
+_NO_ROTOR_T = (0, 0, 0, 0)
 _PWM_TYPE, _FRAME_TYPE = int(MsgType.PWM), int(MsgType.FRAME)  # plain ints pack faster than enums
 _INT64 = (-(2**63), 2**63 - 1)
 
@@ -157,8 +169,11 @@ def encode_reset(seq: int, seed: int | None = None, state: TwinState | None = No
 
 def pack_frame_into(buffer: bytearray, seq: int, frame: SensorFrame) -> None:
     """The FRAME reply to request `seq` in `buffer` (at least FRAME_MSG.size bytes)."""
+    gyro_t, rotor_t = frame.gyro_t_us, frame.rotor_speed_t_us
+    flags = (gyro_t is not None) | (rotor_t is not None) << 1
     FRAME_MSG.pack_into(buffer, 0, MAGIC, VERSION, _FRAME_TYPE, 0, seq, frame.t_us, *frame.gyro.tolist(),
-                        *frame.accel.tolist(), *frame.rotor_speed.tolist())
+                        *frame.accel.tolist(), *frame.rotor_speed.tolist(), flags, gyro_t or 0,
+                        *(_NO_ROTOR_T if rotor_t is None else rotor_t.tolist()))
 
 
 def encode_frame(seq: int, frame: SensorFrame) -> bytes:
@@ -167,16 +182,26 @@ def encode_frame(seq: int, frame: SensorFrame) -> bytes:
     return bytes(buffer)
 
 
-def encode_error(seq: int, code: ErrorCode | int, text: str) -> bytes:
+def encode_error(seq: int, code: ErrorCode | int, text: str, version: int = VERSION) -> bytes:
+    """An ERROR; `version` other than ours only to refuse a request of that version (module docstring)."""
     raw = text.encode("utf-8", "replace")[:MAX_ERROR_TEXT]
-    return ERROR_HEAD.pack(MAGIC, VERSION, MsgType.ERROR, 0, seq, int(code), len(raw)) + raw
+    return ERROR_HEAD.pack(MAGIC, version, MsgType.ERROR, 0, seq, int(code), len(raw)) + raw
 
 
 def frame_from_buffer(buffer: bytes | bytearray | memoryview) -> SensorFrame:
-    """The SensorFrame in a FRAME message already checked to be one (header not re-validated)."""
+    """The SensorFrame in a FRAME message already checked to be one (header not re-validated);
+    ProtocolError for flags this version does not know."""
     t_us = _T_US.unpack_from(buffer, HEADER.size)[0]
     values = np.frombuffer(buffer, "<f8", 10, HEADER.size + 8).copy()
-    return SensorFrame(t_us, values[0:3], values[3:6], values[6:10])
+    flags = buffer[_FLAGS_AT]
+    if not flags:
+        return SensorFrame(t_us, values[0:3], values[3:6], values[6:10])
+    if flags & ~(_HAS_GYRO_T | _HAS_ROTOR_T):
+        raise ProtocolError(ErrorCode.MALFORMED, f"FRAME with unknown flags 0x{flags:02x}",
+                            HEADER.unpack_from(buffer)[4], MsgType.FRAME)
+    gyro_t = _T_US.unpack_from(buffer, _GYRO_T_AT)[0] if flags & _HAS_GYRO_T else None
+    rotor_t = np.frombuffer(buffer, "<i8", 4, _ROTOR_T_AT).astype(np.int64) if flags & _HAS_ROTOR_T else None
+    return SensorFrame(t_us, values[0:3], values[3:6], values[6:10], gyro_t, rotor_t)
 
 
 def peek_header(data: bytes | bytearray | memoryview) -> tuple[int, int]:

@@ -4,6 +4,9 @@ Each *new* PWM request advances the twin exactly one step and the reply carries 
 resulting frame; a repeat of the last applied request is answered from the cache and
 never steps twice. Every bad packet is counted, logged at most once a second per kind,
 and answered with an ERROR where an address is known.
+
+Faults (`--fault`, sim_bridge/faults.py) act from the first frame of every session: each RESET
+starts them over, so a session is the in-process twin with the same faults, ages included.
 """
 
 from __future__ import annotations
@@ -16,7 +19,10 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Sequence
 
+from fcemu.sim_bridge.fault_spec import session_faults
+from fcemu.sim_bridge.faults import Fault
 from fcemu.sim_bridge.link import _DONTWAIT, _PWM, _PWM_SIZE, SPIN_TRIES, AdaptiveSpin
 from fcemu.sim_bridge.protocol import (
     FRAME_MSG,
@@ -106,8 +112,9 @@ class UdpTwinServer:
     """One twin served over UDP; `serve_forever()` in the foreground or `start()`/`stop()` in a thread."""
 
     def __init__(self, twin: Twin | None = None, host: str = "127.0.0.1", port: int = 0,
-                 session_timeout: float = 2.0, spin: int = SPIN_TRIES) -> None:
+                 session_timeout: float = 2.0, spin: int = SPIN_TRIES, faults: Sequence[Fault] = ()) -> None:
         self.twin = twin or Twin()
+        self.faults = tuple(faults)  # injected afresh at every RESET (`session_faults`)
         self.session_timeout = session_timeout
         self._spin = AdaptiveSpin(spin)
         self.counters: dict[str, int] = dict.fromkeys(
@@ -277,8 +284,10 @@ class UdpTwinServer:
             msg = decode(data)
         except ProtocolError as exc:
             is_reply = exc.msg_type in (MsgType.FRAME, MsgType.ERROR)
+            # Refused in the requester's own version, whose ERROR layout is ours: it can read why.
+            version = data[4] if exc.code == ErrorCode.BAD_VERSION else VERSION
             self._bad("unexpected_reply" if is_reply else _KIND_OF_CODE[exc.code], addr, str(exc),
-                      exc.seq or 0, exc.code, answer=not is_reply)
+                      exc.seq or 0, exc.code, answer=not is_reply, version=version)
             return
         if isinstance(msg, Frame | Error):  # never answer a reply: two servers would ping-pong forever
             self._bad("unexpected_reply", addr, f"{type(msg).__name__} sent to the server", msg.seq,
@@ -322,6 +331,8 @@ class UdpTwinServer:
                 frame = self.twin.step(msg.pwm)  # type: ignore[arg-type]
                 self.counters["steps"] += 1
             else:
+                if self.faults:
+                    self.twin.faults = session_faults(self.twin, self.faults, msg.seed)
                 frame = self.twin.reset(msg.seed, msg.state)
                 self.counters["resets"] += 1
         except ValueError as exc:
@@ -334,11 +345,11 @@ class UdpTwinServer:
         self._sock.sendto(self._reply, addr)
 
     def _bad(self, kind: str, addr: tuple[str, int], detail: str, seq: int, code: ErrorCode,
-             answer: bool = True) -> None:
+             answer: bool = True, version: int = VERSION) -> None:
         self.counters[kind] += 1
         if answer:
             with contextlib.suppress(OSError):
-                self._sock.sendto(encode_error(seq, code, detail), addr)
+                self._sock.sendto(encode_error(seq, code, detail, version), addr)
                 self.counters["errors_sent"] += 1
         now = time.monotonic()
         if now >= self._next_log.get(kind, 0.0):  # at most one line per kind per second
@@ -360,7 +371,8 @@ def serve_command(args) -> int:
     """`fcemu twin serve`: the twin as a UDP lockstep simulator, in the foreground."""
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     twin = Twin(args.airframe, rig=args.rig)
-    server = UdpTwinServer(twin, args.host, args.port)
+    faults = args.fault or []
+    server = UdpTwinServer(twin, args.host, args.port, faults=faults)
     host, port = server.address
     done = threading.Event()
     if not args.quiet:
@@ -376,8 +388,9 @@ def serve_command(args) -> int:
         signal.signal(signal.SIGTERM, on_sigterm)
     try:
         # The line `spawn_server` waits for: printed only once SIGTERM stops us cleanly.
-        print(f"fcemu twin serve: {twin.airframe.name}, {_RIG_NAMES.get(args.rig, args.rig)}, lockstep on "
-              f"udp://{host}:{port}", flush=True)
+        injected = "".join(f"{f.describe()}, " for f in faults)
+        print(f"fcemu twin serve: {twin.airframe.name}, {_RIG_NAMES.get(args.rig, args.rig)}, {injected}"
+              f"lockstep on udp://{host}:{port}", flush=True)
         server.serve_forever()
     except KeyboardInterrupt:
         pass

@@ -60,6 +60,36 @@ def test_frame_round_trip_is_bit_identical() -> None:
         assert got.tobytes() == sent.tobytes()
 
 
+AGES = {
+    "none": (None, None),
+    "gyro only": (123_456_788_000, None),
+    "rotors only": (None, np.array([0, -1, 2**63 - 1, -(2**63)], dtype=np.int64)),
+    "both": (-5, np.array([123_456_789_000, 123_456_700_000, 0, 1], dtype=np.int64)),
+}
+
+
+@pytest.mark.parametrize("ages", list(AGES))
+def test_frame_round_trip_carries_the_ages(ages: str) -> None:
+    gyro_t, rotor_t = AGES[ages]
+    frame = awkward_frame()._replace(gyro_t_us=gyro_t, rotor_speed_t_us=rotor_t)
+    got = decode(encode_frame(42, frame)).frame
+    assert got.gyro_t_us == gyro_t and type(got.gyro_t_us) is type(gyro_t)
+    if rotor_t is None:
+        assert got.rotor_speed_t_us is None
+    else:
+        assert got.rotor_speed_t_us.dtype == np.int64 and got.rotor_speed_t_us.tobytes() == rotor_t.tobytes()
+    assert got.gyro_age_us() == frame.gyro_age_us()
+    assert got.rotor_speed_age_us().tobytes() == frame.rotor_speed_age_us().tobytes()
+
+
+def test_frame_with_unknown_flags_is_refused() -> None:
+    packet = bytearray(encode_frame(3, awkward_frame()))
+    packet[104] |= 0x04
+    with pytest.raises(ProtocolError, match="flags") as info:
+        decode(bytes(packet))
+    assert info.value.code == ErrorCode.MALFORMED and info.value.seq == 3
+
+
 @pytest.mark.parametrize("seed", [None, 0, 7, -1, 2**63 - 1, -(2**63)])
 def test_reset_round_trip_seed(seed: int | None) -> None:
     assert decode(encode_reset(9, seed)) == Reset(9, seed, None)
@@ -92,14 +122,28 @@ def test_error_text_is_capped_and_unknown_codes_survive() -> None:
 
 def test_layout_is_pinned() -> None:
     """Changing these bytes is a protocol change: bump VERSION."""
-    assert VERSION == 1 and HEADER.size == 16
+    assert VERSION == 2 and HEADER.size == 16
     packet = encode_pwm(0x0102030405060708, [1000, 1500, 2000, 1250])
-    assert packet[:16] == b"FCTW\x01\x01\x00\x00" + bytes.fromhex("0807060504030201")
+    assert packet[:16] == b"FCTW\x02\x01\x00\x00" + bytes.fromhex("0807060504030201")
     assert struct.unpack("<4d", packet[16:]) == (1000.0, 1500.0, 2000.0, 1250.0)
     sizes = {t: len(p) for t, p in [(MsgType.PWM, packet), (MsgType.RESET, encode_reset(1)),
                                     (MsgType.BYE, encode_bye(1)),
                                     (MsgType.FRAME, encode_frame(1, awkward_frame()))]}
-    assert sizes == {MsgType.PWM: 48, MsgType.RESET: 168, MsgType.BYE: 16, MsgType.FRAME: 104}
+    assert sizes == {MsgType.PWM: 48, MsgType.RESET: 168, MsgType.BYE: 16, MsgType.FRAME: 152}
+    aged = awkward_frame()._replace(gyro_t_us=7, rotor_speed_t_us=np.array([1, 2, 3, 4], dtype=np.int64))
+    frame = encode_frame(1, aged)  # t_us, 10 floats, then flags, padding and the five times
+    assert struct.unpack("<q", frame[16:24]) == (123_456_789_000,)
+    assert frame[104:112] == b"\x03" + bytes(7)
+    assert struct.unpack("<5q", frame[112:]) == (7, 1, 2, 3, 4)
+    assert encode_frame(1, awkward_frame())[104:] == bytes(48)
+
+
+def test_an_error_can_be_written_in_another_version() -> None:
+    """ERROR's layout is the same in every version: a request of another version is refused in it."""
+    packet = encode_error(3, ErrorCode.BAD_VERSION, "protocol version 1, this end speaks 2", version=1)
+    assert packet[4] == 1
+    assert decode(packet[:4] + bytes([VERSION]) + packet[5:]) == Error(
+        3, ErrorCode.BAD_VERSION, "protocol version 1, this end speaks 2")
 
 
 VALID = [encode_pwm(3, [1500] * 4), encode_reset(3, 1, TwinState()), encode_bye(3),

@@ -7,6 +7,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,10 +15,31 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fcemu.sim_bridge.link import LinkError, RemoteError, UdpTwinClient, spawn_server
-from fcemu.sim_bridge.protocol import encode_reset
+from fcemu.firmware.health import HealthMonitor, HealthRules
+from fcemu.firmware.sensors import SensorFrame
+from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.airframe_spec import airframe_spec
+from fcemu.sim_bridge.fault_spec import parse_fault, session_faults
+from fcemu.sim_bridge.link import (
+    InProcessLink,
+    LinkError,
+    RemoteError,
+    Transport,
+    UdpTwinClient,
+    spawn_server,
+)
+from fcemu.sim_bridge.protocol import (
+    VERSION,
+    Error,
+    ErrorCode,
+    decode,
+    encode_error,
+    encode_reset,
+    peek_header,
+)
 from fcemu.sim_bridge.twin import Twin
 from fcemu.sim_bridge.twin_server import SenderBudget, UdpTwinServer
+from tests.sim_bridge.test_link import assert_identical, pwm_sequence
 
 pytestmark = pytest.mark.timeout(90)
 ROOT = Path(__file__).resolve().parents[2]
@@ -161,3 +183,100 @@ def test_a_second_server_cannot_take_a_port_in_use() -> None:
         with UdpTwinClient(*srv.address, timeout=0.5) as client:
             client.reset(seed=1)
             client.pwm_write(np.full(4, 1500.0))
+
+
+# --- faults on the server's side: the frames' ages cross the link --------------------------------
+
+FAULTS = ("esc-telemetry:1:off", "gyro:intermittent:20%")
+
+
+def faulted_run(link: Transport, pwms: np.ndarray, seed: int) -> list[SensorFrame]:
+    return [link.reset(seed)] + [link.pwm_write(p) for p in pwms]
+
+
+def faulted_twin(specs: tuple[str, ...], seed: int) -> InProcessLink:
+    """The in-process twin with the faults a server's session starts with."""
+    twin = Twin(rig="rig")
+    twin.faults = session_faults(twin, [parse_fault(s) for s in specs], seed)
+    return InProcessLink(twin)
+
+
+def test_a_faulted_session_is_the_in_process_twin_ages_included() -> None:
+    pwms = pwm_sequence(200)
+    faults = [parse_fault(s) for s in FAULTS]
+    with UdpTwinServer(Twin(rig="rig"), faults=faults) as srv, \
+            UdpTwinClient(*srv.address, timeout=0.5) as client:
+        first = faulted_run(client, pwms, 7)
+        again = faulted_run(client, pwms[:50], 7)  # a RESET starts the faults over
+    expected = faulted_run(faulted_twin(FAULTS, 7), pwms, 7)
+    assert_identical(first, expected)
+    assert_identical(again, expected[:51])
+    rotor_ages = np.array([f.rotor_speed_age_us() for f in first])
+    assert rotor_ages[:, 0].tolist() == [1000 * k for k in range(201)]  # motor 1 off: its last time stays
+    assert not rotor_ages[:, 1:].any()
+    gyro_ages = [f.gyro_age_us() for f in first]
+    assert max(gyro_ages) >= 2000 and gyro_ages.count(0) > 100  # a lost gyro sample keeps its time
+
+
+def verdicts(link: Transport, pwms: np.ndarray) -> tuple[dict[str, int], str, list[tuple[int, str]]]:
+    """The firmware's health monitor on `link`'s frames: each tick's frame with the PWM written before it."""
+    monitor = HealthMonitor(HealthRules.for_airframe(airframe_spec(load_airframe("iris"))))
+    frame, written = link.reset(3), pwms[0]
+    for pwm in pwms:
+        monitor.check(frame, written)
+        frame, written = link.pwm_write(pwm), pwm
+    return monitor.detected, monitor.handover, monitor.outbox
+
+
+def test_fcemu_twin_serve_fault_reaches_the_health_monitor_across_the_link() -> None:
+    """`fcemu twin serve --fault esc-telemetry:2:delayed:25ms`: the client's health monitor sees motor 2's
+    telemetry arrive 25 ms old and hands the policy over on the tick it does in-process (a frame without
+    its age looks fresh: the same monitor would call the late reading implausible, 3 ticks earlier)."""
+    late = "esc-telemetry:2:delayed:25ms"
+    pwms = 1500.0 + 50.0 * np.sin(np.arange(120)[:, None] * 0.05 + np.arange(4))
+    proc, address = spawn_server(rig="rig", faults=[late])
+    try:
+        with UdpTwinClient(*address, timeout=0.5) as client:
+            remote = verdicts(client, pwms)
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    assert remote == verdicts(faulted_twin((late,), 3), pwms)
+    assert remote[:2] == ({"handover": 22}, "rotor speed 2 too old")
+
+
+# --- peers of another protocol version: one clear line, at once ----------------------------------
+
+
+def test_a_client_of_another_version_is_refused_in_its_own_version() -> None:
+    old_reset = bytearray(encode_reset(5, seed=1))
+    old_reset[4] = VERSION - 1
+    with UdpTwinServer(Twin(rig="rig")) as srv, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as old:
+        old.settimeout(2.0)
+        old.sendto(old_reset, srv.address)
+        reply = old.recv(2048)
+    assert reply[4] == VERSION - 1  # so a client of that version reads the refusal as an ERROR
+    assert decode(reply[:4] + bytes([VERSION]) + reply[5:]) == Error(
+        5, ErrorCode.BAD_VERSION, f"protocol version {VERSION - 1}, this end speaks {VERSION}")
+
+
+def test_a_server_of_another_version_is_named_at_once() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as old_server:
+        old_server.bind(("127.0.0.1", 0))
+        old_server.settimeout(2.0)
+        with UdpTwinClient(*old_server.getsockname(), timeout=1.0, retries=5) as client:
+            worker = threading.Thread(target=lambda: refuse(old_server))
+            worker.start()
+            start = time.monotonic()
+            expected = f"speaks protocol version {VERSION - 1}, this client {VERSION}"
+            with pytest.raises(LinkError, match=expected):
+                client.reset(seed=1)
+            worker.join(5)
+            assert time.monotonic() - start < 0.5 and client.counters["retries"] == 0
+
+
+def refuse(sock: socket.socket) -> None:
+    """Answer one request as a server of the previous version does."""
+    request, addr = sock.recvfrom(2048)
+    sock.sendto(encode_error(peek_header(request)[1], ErrorCode.BAD_VERSION,
+                             f"protocol version {VERSION}, this end speaks {VERSION - 1}", VERSION - 1), addr)
