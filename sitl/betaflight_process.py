@@ -183,7 +183,7 @@ MSP_RC_CHANNELS = 105
 MSP_DEBUG = 254
 # neuralState_e (export/betaflight/neural.patch, flight/neural.h), by value.
 NEURAL_STATES = ("off", "flying", "policy error", "no rpm", "wrong loop rate", "rpm too old",
-                 "rpm losing frames", "gyro too old")
+                 "rpm losing frames", "gyro too old", "rpm lagging")
 RTC_EPOCH_S = 1_000_000_000  # any date: only differences of the clock are read
 
 

@@ -20,10 +20,13 @@ from fcemu.export.betaflight.build import (
     betaflight_source,
     check_contract,
     export_betaflight,
+    health_header,
+    motor_model_of,
     motors_of,
     readme,
 )
 from fcemu.firmware.health import HealthRules
+from fcemu.sim_bridge.airframe_spec import airframe_spec
 from tests.export.mcu_tools import SHIPPED, _missing, require_codegen
 
 try:
@@ -104,11 +107,29 @@ def test_the_neural_mode_s_health_limits_default_to_the_firmware_s():
     assert defaults == {"esc_max_age_ms": round(rules["esc_max_age_s"] * 1000),
                         "esc_loss_window_ms": round(rules["esc_loss_window_s"] * 1000),
                         "esc_loss_max_percent": round(rules["esc_loss_max"] * 100),
-                        "gyro_max_age_ms": round(rules["gyro_max_age_s"] * 1000)}
+                        "gyro_max_age_ms": round(rules["gyro_max_age_s"] * 1000),
+                        "esc_max_lag_us": round(rules["esc_max_lag_s"] * 1e6)}
     setup = readme({"model": str(SHIPPED), "contract": check_contract(SHIPPED), "builds": {}})
     for setting in ("neural_esc_max_age_ms", "neural_esc_loss_win_ms", "neural_esc_loss_max",
-                    "neural_gyro_max_age_ms"):
+                    "neural_gyro_max_age_ms", "neural_esc_max_lag_us"):
         assert f'{{ "{setting}",' in patch and f"`{setting}`" in setup
+
+
+def test_the_lag_rule_s_motor_model_is_the_policy_airframe_s_and_none_without_one():
+    header = health_header(check_contract(SHIPPED))
+    defines = dict(re.findall(r"^#define (\w+) (\S+)", header, re.MULTILINE))
+    values = {k: float.fromhex(v.removesuffix("f")) if "0x" in v else int(v) for k, v in defines.items()}
+    iris = HealthRules.for_airframe(airframe_spec("iris"))
+    assert values["NEURAL_MOTOR_MODEL"] == 1
+    motor = [values[f"NEURAL_MOTOR_{k}"]
+             for k in ("MAX_SPEED", "PWM_MIN", "PWM_MAX", "TAU_UP_S", "TAU_DOWN_S")]
+    assert motor == pytest.approx([iris.rotor_speed_max, iris.pwm_min, iris.pwm_max, iris.motor_tau_up_s,
+                                   iris.motor_tau_down_s], rel=1e-7)  # float32 literals
+    assert (values["NEURAL_LAG_BASE_TICKS"], values["NEURAL_LAG_TICKS"]) == (6, iris.esc_lag_ticks)
+    assert values["NEURAL_LAG_MISFIT"] == pytest.approx(iris.esc_lag_misfit, rel=1e-7)
+    unknown = health_header({**check_contract(SHIPPED), "airframe": None,
+                             "motor_model": motor_model_of("an-airframe-not-shipped")})
+    assert "#define NEURAL_MOTOR_MODEL 0" in unknown and "NEURAL_MOTOR_TAU_UP_S" not in unknown
 
 
 @pytest.fixture(scope="module")
