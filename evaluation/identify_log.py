@@ -61,7 +61,7 @@ def _read(path: Path):
     except OSError as exc:
         raise LogError(f"{path}: cannot read it ({(exc.strerror or type(exc).__name__).lower()})") from None
     if head != bytes(ULog.HEADER_BYTES[:7]):
-        raise LogError(f"{path}: not a PX4 ULog (no ULog header; a Betaflight blackbox log is not read yet)")
+        raise LogError(f"{path}: not a PX4 ULog or a Betaflight blackbox log (no header of either)")
     _check_complete(path)
     try:
         log = ULog(str(path))
@@ -94,8 +94,14 @@ def _times(data: dict, key: str = "timestamp_sample") -> np.ndarray:
     return (data[key] if key in data else data["timestamp"]).astype(np.int64)
 
 
-def read_flight_log(path: str | Path) -> FlightLog:
+def read_flight_log(path: str | Path, motor_poles: int | None = None) -> FlightLog:
+    """The flight in a PX4 ULog or a Betaflight blackbox log (`identify_blackbox`; `motor_poles`
+    turns its eRPM into rotor speed where the log's header does not say)."""
     path = Path(path)
+    from fcemu.evaluation.identify_blackbox import is_blackbox, read_blackbox_log
+
+    if is_blackbox(path):
+        return read_blackbox_log(path, motor_poles)
     log = _read(path)
     gyro_set = _dataset(log, GYRO)
     motors_set = _dataset(log, "actuator_motors")
@@ -142,6 +148,14 @@ def read_flight_log(path: str | Path) -> FlightLog:
         s = setpoint_set.data
         st = _times(s, "timestamp")
         throttle = -s["thrust_body[2]"][np.clip(np.searchsorted(st, t_us, side="right") - 1, 0, len(st) - 1)]
+    return flown_stretch(path, t_us, gyro, command, keep, rotor, throttle, source, notes)
+
+
+def flown_stretch(path: Path, t_us: np.ndarray, gyro: np.ndarray, command: np.ndarray, keep: np.ndarray,
+                  rotor: np.ndarray | None, throttle: np.ndarray | None, source: str,
+                  notes: tuple[str, ...]) -> FlightLog:
+    """The log's samples from the first to the last `keep` (armed, motors above idle), or a
+    LogError where that is no flight: too short, never turning, an axis never excited."""
     dt = float(np.median(np.diff(t_us))) * 1e-6
     if keep.sum() * dt < MIN_FLIGHT_S:
         raise LogError(f"{path}: {keep.sum() * dt:.2f} s with the motors armed and above idle, at least "

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from fcemu.sim_bridge.betaflight_link import BetaflightBridge
+from fcemu.sitl.betaflight_blackbox import BLACKBOX_SETTINGS, await_logs, write_blackbox
 from fcemu.sitl.betaflight_process import (
     NEURAL_STATES,
     BetaflightError,
@@ -158,7 +159,8 @@ class BetaflightFlight:
     def __init__(self, run_dir: str | Path, twin, rc: RcMap | None = None,
                  settings: Sequence[str] = CROSSCHECK_SETTINGS, speed: float = 1.0,
                  ready_timeout_s: float = 20.0, retries: int = 3,
-                 firmware: NeuralFirmware | None = None, neural: bool = False) -> None:
+                 firmware: NeuralFirmware | None = None, neural: bool = False,
+                 blackbox: str | Path | None = None) -> None:
         if neural and firmware is None:
             raise BetaflightError("NEURAL needs a firmware exported with `fcemu export --target betaflight`")
         self.firmware = firmware
@@ -173,7 +175,10 @@ class BetaflightFlight:
         self.twin = twin
         self.rc = rc or RcMap()
         self.settings = [*BASE_SETTINGS, *self.rc.settings(), *settings,
-                         *(neural_settings(firmware) if firmware else [])]
+                         *(neural_settings(firmware) if firmware else []),
+                         *(BLACKBOX_SETTINGS if blackbox is not None else ())]
+        self.blackbox = None if blackbox is None else Path(blackbox)  # written on close (betaflight_blackbox)
+        self.blackbox_logs = 0
         self.ready_timeout_s = ready_timeout_s
         self.sitl = BetaflightSitl(self.run_dir, firmware.binary if firmware else None)
         self.bridge: BetaflightBridge | None = None
@@ -199,9 +204,14 @@ class BetaflightFlight:
 
     def close(self) -> None:
         if self.bridge is not None:
-            self.bridge.close()
+            bridge = self.bridge
+            if self.blackbox is not None:  # Betaflight closes a log a few loops after the disarm
+                await_logs(self.run_dir, lambda: bridge.step(self.centre))
+            bridge.close()
             self.bridge = None
         self.sitl.stop()
+        if self.blackbox is not None:
+            self.blackbox_logs = write_blackbox(self.run_dir, self.blackbox)[1]
 
     def _flags(self) -> list[str]:
         return self._msp(lambda msp: msp.arming_disable_flags())

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from fcemu.sim_bridge.betaflight_link import CLI_PORT
+from fcemu.sitl.betaflight_blackbox import shelve_logs
 
 SITL_NAME = "betaflight_4.6.0_SITL"
 PROMPT = b"\r\n# "
@@ -293,6 +294,7 @@ class BetaflightSitl:
             raise BetaflightError(f"TCP {CLI_PORT} is taken: another Betaflight SITL is running "
                                   "(its UDP ports would steal our packets); stop it first")
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        shelve_logs(self.run_dir)  # a new process numbers its blackbox logs from 1 again
         log = open(self.log_path, "ab")  # the child keeps its own descriptor
         self.proc = subprocess.Popen([str(self.binary), self.host], cwd=self.run_dir, stdout=log,
                                      stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,

@@ -146,6 +146,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                    "(default: a fresh temporary directory)")
     p.add_argument("--out", default=None, help="--crosscheck: write the report (Markdown, JSON, plot) here")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save Betaflight's traces (fcemu eval's format)")
+    p.add_argument("--blackbox", metavar="FILE.BFL",
+                   help="keep Betaflight's own blackbox (blackbox_device VIRTUAL, every PID loop): its logs, "
+                        "one per arming, joined in FILE (fcemu identify reads it)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     add_airframe_option(p, "the twin flies (Betaflight's motor_poles and fcemu's controllers are for it)")
     p.set_defaults(handler="fcemu.evaluation.betaflight_crosscheck:betaflight_command")
