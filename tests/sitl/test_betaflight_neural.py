@@ -2,7 +2,8 @@
 NEURAL on, the policy flies (its first answers are fcemu's C policy's); off, Betaflight's PID.
 With the twin's ESC telemetry losing frames NEURAL flies on; with a motor's telemetry stopped it
 hands over to the PID at the first tick past neural_esc_max_age_ms, with the gyro stopped at the
-first tick past neural_gyro_max_age_ms."""
+first tick past neural_gyro_max_age_ms, with the telemetry 5 ms late once its lag rule has fitted
+it past neural_esc_max_lag_us."""
 
 from __future__ import annotations
 
@@ -86,11 +87,12 @@ def test_neural_on_the_policy_tracks_a_roll_step_and_off_the_pid_does(firmware, 
 
 @pytest.fixture(scope="module")
 def telemetry_faults(firmware, tmp_path_factory):
-    """Fault-free, 1 % and 5 % of the rpm frames lost, motor 1's telemetry or the gyro stopped at tick 100."""
+    """Fault-free, 1 % and 5 % of the rpm frames lost, the rpm 5 ms late, motor 1's telemetry or the
+    gyro stopped at tick 100."""
     if port_in_use(5761):
         pytest.fail("another Betaflight SITL holds TCP 5761; its UDP ports would take our packets")
     names = ("fault-free", "esc-telemetry:intermittent:1%", "esc-telemetry:intermittent:5%",
-             "esc-telemetry:1:off at 100 ms", "gyro:off at 100 ms")
+             "esc-telemetry:delayed:5ms", "esc-telemetry:1:off at 100 ms", "gyro:off at 100 ms")
     scenarios = tuple(s for s in SCENARIOS if s.name in names)
     rows = fly_scenarios(firmware.directory, tmp_path_factory.mktemp("telemetry_faults"), scenarios)
     return {row["scenario"]: row for row in rows}
@@ -100,6 +102,7 @@ def telemetry_faults(firmware, tmp_path_factory):
 def test_lost_rpm_frames_are_held_and_neural_flies_on(telemetry_faults):
     clean = telemetry_faults["fault-free"]
     assert clean["dropped"] == "" and clean["max_loss_rate"] == 0.0
+    assert clean["max_lag_us"] < 3000  # the link's step (1.2 ms): never past neural_esc_max_lag_us
     for lost in ("esc-telemetry:intermittent:1%", "esc-telemetry:intermittent:5%"):
         row = telemetry_faults[lost]
         assert row["dropped"] == "" and row["state"] == "flying", row
@@ -108,6 +111,14 @@ def test_lost_rpm_frames_are_held_and_neural_flies_on(telemetry_faults):
         assert row["policy_ticks"] >= TICKS - 5, row
         assert 0.0 < row["max_loss_rate"] < 0.2  # frames were lost, below neural_esc_loss_max
         assert row["roll_error_rad_s"] <= 1.3 * clean["roll_error_rad_s"], row
+
+
+@pytest.mark.slow
+def test_rpm_telemetry_5_ms_late_drops_neural_within_100_ms(telemetry_faults):
+    row = telemetry_faults["esc-telemetry:delayed:5ms"]
+    assert row["dropped"] == "rpm lagging" and row["state"] == "rpm lagging", row
+    assert row["dropped_after_ticks"] <= 100 and row["max_lag_us"] > 4000, row  # 5 ms and the link's step
+    assert 5 <= row["max_rpm_age_ticks"] < 20  # every frame arrives, 5 ticks late: under the age limit
 
 
 @pytest.mark.slow
