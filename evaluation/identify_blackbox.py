@@ -8,10 +8,14 @@ Betaflight's axes (roll, pitch and yaw with pitch and yaw the other way round fr
 motor outputs `motor[0..3]` in the protocol's units (1000-2000 µs for PWM-like, 48-2047 for
 DShot: `motorOutput` and `motor_pwm_protocol` in the header), the mixer throttle `setpoint[3]`
 (‰ of the motor output range), `eRPM[0..3]` (eRPM / 100) with bidirectional DShot, and the
-arm switch in `flightModeFlags` (bit 0, BOXARM). Frames are put on a uniform grid by holding
-the latest frame at each grid time: the log's own interval, or the twin's 1 ms step for logs
-faster than that (a board logs at its loop rate; Betaflight's SITL, on its own clock, at about
-8 kHz with the gyro new once per simulator packet).
+arm switch in `flightModeFlags` (bit 0, BOXARM). A sample is a frame with a new gyro reading:
+Betaflight's SITL logs its 8 kHz loop while its gyro is new once per simulator packet (1 kHz),
+and holding frames onto a time grid there would pick readings a packet early or late on its
+jittering clock (seen as four times the gyro noise); its clock also runs on while it waits for
+a packet, so the readings, not its time stamps, count the twin's steps. (A gyro without noise,
+reading the same for several packets at rest, loses those steps; a real one never does.)
+Readings faster than the twin's 1 ms step (a board's 8 kHz gyro logged at 1/1) are held onto
+that step, the latest at each.
 """
 
 from __future__ import annotations
@@ -70,7 +74,7 @@ def _frames(parser, path: Path) -> tuple[list[str], np.ndarray, bool]:
     try:
         for frame in parser.frames():
             rows.append(frame.data[:len(names)])
-    except (RuntimeError, IndexError, ValueError, KeyError):
+    except (RuntimeError, IndexError, ValueError, KeyError, TypeError):  # orangebox on data cut mid-frame
         cut = True
     if len(rows) < 2:
         raise LogError(f"{path}: {len(rows)} data frames decoded: no flight in the log (truncated?)")
@@ -138,11 +142,10 @@ def read_blackbox_log(path: Path, motor_poles: int | None = None) -> FlightLog:
     rotor, rotor_note = _rotor_speed(names, table, headers, motor_poles)
     if rotor_note:
         notes.append(rotor_note)
-    grid_t, held = _uniform(t_us)
-    frame_hz = 1e6 / float(np.median(np.diff(t_us)))
-    if len(held) < len(t_us) * 0.9:
-        notes.append(f"frames at {frame_hz:.0f} Hz held onto the twin's {1 / GRID_S:.0f} Hz step")
-    return flown_stretch(path, grid_t, gyro[held], command[held], keep[held],
+    sample_t, held, note = _samples(t_us, gyro_deg)
+    if note:
+        notes.append(note)
+    return flown_stretch(path, sample_t, gyro[held], command[held], keep[held],
                          None if rotor is None else rotor[held], None if throttle is None else throttle[held],
                          source, tuple(notes))
 
@@ -169,8 +172,27 @@ def _rotor_speed(names: list[str], table: np.ndarray, headers: dict,
     return rpm * (2 * math.pi / 60), ""
 
 
-def _uniform(t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(grid times µs, the frame held at each): the frames' own interval, at least the twin's step."""
-    step_us = max(float(np.median(np.diff(t_us))), GRID_S * 1e6)
-    grid = t_us[0] + np.arange(int((t_us[-1] - t_us[0]) // step_us) + 1) * step_us
-    return grid, np.clip(np.searchsorted(t_us, grid, side="right") - 1, 0, len(t_us) - 1)
+def _samples(t_us: np.ndarray, raw_gyro: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """(times µs, frame index of each sample, what was done): one sample per new gyro reading (a
+    frame repeating the last reading carries none), then, for readings faster than the twin's
+    step, the latest at each step."""
+    new = np.ones(len(t_us), dtype=bool)
+    new[1:] = np.any(raw_gyro[1:] != raw_gyro[:-1], axis=1)
+    index = np.flatnonzero(new)
+    frame_hz = 1e6 / float(np.median(np.diff(t_us)))
+    note = ""
+    if len(index) < 0.9 * len(t_us) and len(index) > 2:
+        interval_us = float(np.median(np.diff(t_us[index])))
+        times = t_us[index[0]] + np.arange(len(index)) * interval_us  # each reading one step
+        note = (f"{frame_hz:.0f} Hz frames with the raw gyro new at {1e6 / interval_us:.0f} Hz: one sample "
+                "per reading")
+    else:
+        index = np.arange(len(t_us))
+        times = t_us
+    interval_s = float(np.median(np.diff(times))) * 1e-6
+    if interval_s < 0.75 * GRID_S:  # readings faster than the twin's step: hold the latest at each step
+        grid = times[0] + np.arange(int((times[-1] - times[0]) // (GRID_S * 1e6)) + 1) * GRID_S * 1e6
+        index = index[np.clip(np.searchsorted(times, grid, side="right") - 1, 0, len(times) - 1)]
+        times = grid
+        note = f"{1 / interval_s:.0f} Hz gyro readings held onto the twin's {1 / GRID_S:.0f} Hz step"
+    return times, index, note
