@@ -21,7 +21,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tqdm import tqdm
 
-from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from fcemu.firmware.controllers import load_controller
@@ -33,7 +32,7 @@ from fcemu.sim_bridge.airframe import Airframe, load_airframe
 from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.link import InProcessLink
 from fcemu.sim_bridge.tasks import EVAL_TASKS, INFLIGHT_WARMUP_S, continuous_schedule, episodic_commands
-from fcemu.sim_bridge.twin import Twin, TwinState
+from fcemu.sim_bridge.twin import Twin, TwinState, hover_state  # noqa: F401 (hover_state: importers)
 from fcemu.sitl.traces import Traces
 
 if TYPE_CHECKING:
@@ -139,14 +138,6 @@ class TraceRecorder:
             self.rate[k + 1] = self.clean()
         self.pwm[k] = sample.pwm
         self.k = k + 1
-
-
-def hover_state(airframe: Airframe, throttle: float) -> TwinState:
-    """Level, rates zero, every rotor at the speed `throttle` commands with zero demands."""
-    m = airframe.motor
-    pwm = min(max(PWM_MIN + PWM_SPAN * throttle, m.pwm_min), m.pwm_max)
-    speed = (pwm - m.pwm_min) * m.max_rotor_speed / (m.pwm_max - m.pwm_min)
-    return TwinState(rotor_speed=(speed,) * 4)
 
 
 def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,

@@ -39,7 +39,7 @@ from fcemu.sim_bridge.env_config import (
 )
 from fcemu.sim_bridge.randomization import Randomization
 from fcemu.sim_bridge.tasks import draw_throttle, episodic_setpoint, pulse_schedule
-from fcemu.sim_bridge.twin import Twin
+from fcemu.sim_bridge.twin import Twin, hover_state
 
 __all__ = ["DEFAULT_AIRFRAME", "DEFAULT_EPISODE_S", "RANDOMIZE_KEYS", "TASKS", "EnvConfig", "Episode",
            "RateControlEnv", "RateTask", "draw_episode", "with_options"]
@@ -65,6 +65,7 @@ class Episode:
     throttle: float
     factors: dict[str, float] = field(default_factory=dict)  # airframe scale factors
     noise_seed: int | None = None
+    in_flight: bool = False  # rotors at the throttle's speed, not at rest (`EnvConfig.inflight_share`)
 
 
 def draw_episode(rng: np.random.Generator, cfg: EnvConfig) -> Episode:
@@ -81,7 +82,8 @@ def draw_episode(rng: np.random.Generator, cfg: EnvConfig) -> Episode:
         frac = cfg.randomize or {}
         factors = {k: float(rng.uniform(1.0 - frac[k], 1.0 + frac[k])) for k in RANDOMIZE_KEYS if k in frac}
     noise_seed = int(rng.integers(2**63)) if cfg.noisy else None
-    return Episode(setpoints, throttle, factors, noise_seed)
+    in_flight = cfg.inflight_share > 0.0 and cfg.task == "episodic" and rng.random() < cfg.inflight_share
+    return Episode(setpoints, throttle, factors, noise_seed, bool(in_flight))
 
 
 class RateTask:
@@ -190,7 +192,8 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         if ep.factors != self._factors:  # a new airframe: a new model (cheap, once per episode)
             self._set_twin(self.config.base_airframe.scaled(**ep.factors))
             self._factors = ep.factors
-        frame = self._twin.reset(seed=ep.noise_seed)
+        start = hover_state(self.config.base_airframe, ep.throttle) if ep.in_flight else None
+        frame = self._twin.reset(seed=ep.noise_seed, state=start)
         self._t = 0
         setpoint = ep.setpoints[0]
         obs = self._task.reset(setpoint, frame.gyro, frame.rotor_speed)

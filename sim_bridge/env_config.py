@@ -114,6 +114,10 @@ class EnvConfig:
                                                     "steps); λ → 1 approaches a true integrator", cli=float)
     rms_leak: float = env_option(DEFAULT_RMS_LEAK, "the RMS's μ per step (time constant 1/(1 − μ) steps)",
                                  cli=float)
+    inflight_share: float = env_option(
+        0.0, "episodic task: the share of episodes that start in flight, every rotor at the speed the "
+             "episode's throttle commands (as `fcemu eval --task inflight`); the others start from rest",
+        cli=float)
     randomize_share: float = env_option(1.0, "with --randomize: the share of episodes drawn from the ranges; "
                                              "the others fly the nominal airframe", cli=float)
     # the action-rate penalty only once the setpoint has been held this long (s): a settled
@@ -138,6 +142,8 @@ class EnvConfig:
             if any(not 0.0 <= f < 1.0 for f in (self.randomize or {}).values()):
                 raise ValueError(
                     f"randomisation fractions must be in [0, 1), got {dict(self.randomize or {})}")
+        if not 0.0 <= self.inflight_share <= 1.0:
+            raise ValueError(f"inflight_share is a share of episodes in [0, 1], got {self.inflight_share}")
         if not 0.0 <= self.randomize_share <= 1.0:
             raise ValueError(f"the randomised share of episodes must be in [0, 1], "
                              f"got {self.randomize_share}")

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf, load_airframe
 from fcemu.sim_bridge.faults import FaultInjector
@@ -31,6 +32,14 @@ class TwinState:
     rotor_speed: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # rad/s
     position: tuple[float, float, float] | None = None  # NED m; free rig only, None = on ground
     velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)  # NED m/s; free rig only
+
+
+def hover_state(airframe: Airframe, throttle: float) -> TwinState:
+    """Level, rates zero, every rotor at the speed `throttle` commands with zero demands: in flight."""
+    m = airframe.motor
+    pwm = min(max(PWM_MIN + PWM_SPAN * throttle, m.pwm_min), m.pwm_max)
+    speed = (pwm - m.pwm_min) * m.max_rotor_speed / (m.pwm_max - m.pwm_min)
+    return TwinState(rotor_speed=(speed,) * 4)
 
 
 @dataclass(frozen=True)

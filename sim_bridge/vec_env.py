@@ -34,7 +34,7 @@ from mujoco import rollout
 from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf
 from fcemu.sim_bridge.env import EnvConfig, RateTask, draw_episode, with_options
 from fcemu.sim_bridge.plant import AirframeEffects, MotorModel, NoiseStreams, SensorModel
-from fcemu.sim_bridge.twin import Twin
+from fcemu.sim_bridge.twin import Twin, hover_state
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
 NOISE_BLOCK = 256  # steps of sensor noise drawn at a time per copy
@@ -170,7 +170,8 @@ class BatchedRateEnv(VectorEnv):
         self._sens[idx, 0] = self._sens0
         self._omega[idx] = 0.0
         self._t[idx] = 0
-        for i in idx:
+        start_pwm = np.full((idx.size, 4), self._motors.pwm_min)
+        for row, i in enumerate(idx):
             ep = draw_episode(self._rngs[i], self.config)
             self._sched[i] = ep.setpoints
             self._throttle[i] = ep.throttle
@@ -179,7 +180,11 @@ class BatchedRateEnv(VectorEnv):
                 self._set_airframe(i, self.config.base_airframe.scaled(**ep.factors))
             if self._noise is not None:
                 self._noise.reseed(i, ep.noise_seed)
-        self._fx.reset(np.full((idx.size, 4), self._motors.pwm_min), idx)
+            if ep.in_flight:  # as RateControlEnv's twin starts from `hover_state`
+                motor = self.config.base_airframe.motor
+                self._omega[i] = hover_state(self.config.base_airframe, ep.throttle).rotor_speed
+                start_pwm[row] = motor.pwm_for_rotor_speed(self._omega[i])
+        self._fx.reset(start_pwm, idx)
         gyro, rotor = self._measure(self._sens[idx, 0, self._gyro] * FLU_FROM_FRD, idx, True)
         return self._task.reset(self._sched[idx, 0], gyro, rotor, rows)
 

@@ -26,6 +26,10 @@ CONFIGS = {
     # each copy's previous output, from the rotors at its (auto-)reset
     "motor-output-m2": dict(memory=2, obs_fields=("rate_error", "rotor_speed", "motor_output"),
                             action_mapping="throttle", episode_s=0.05, action_rate_penalty=0.5),
+    # half the episodes start in flight: rotors at the throttle's speed, the ESC line holding its command
+    "inflight-half": dict(action_mapping="throttle", inflight_share=0.5, episode_s=0.05),
+    "inflight-realistic": dict(airframe="iris_realistic", action_mapping="throttle", inflight_share=0.5,
+                               episode_s=0.05),
 }
 
 
@@ -110,3 +114,19 @@ def test_bench_functions_measure_and_the_batch_is_faster():
     batched = vec_env_steps_per_s(64, seconds=0.3)
     assert single > 1000
     assert batched > 2 * single
+
+
+def test_an_episode_in_flight_starts_with_every_rotor_at_the_throttles_speed():
+    from fcemu.sim_bridge.twin import hover_state
+
+    env = RateControlEnv(action_mapping="throttle", throttle=0.6, inflight_share=0.5)
+    starts = []
+    for seed in range(12):
+        env.reset(seed=seed)
+        starts.append(env._episode.in_flight)
+        speed = env._twin.rotor_speed
+        expected = hover_state(env.config.base_airframe, 0.6).rotor_speed if starts[-1] else (0.0,) * 4
+        np.testing.assert_allclose(speed, expected)
+    assert 0 < sum(starts) < len(starts)
+    with pytest.raises(ValueError, match="inflight_share"):
+        RateControlEnv(inflight_share=1.5)
