@@ -30,6 +30,8 @@ CONFIGS = {
     "inflight-half": dict(action_mapping="throttle", inflight_share=0.5, episode_s=0.05),
     "inflight-realistic": dict(airframe="iris_realistic", action_mapping="throttle", inflight_share=0.5,
                                episode_s=0.05),
+    "inflight-randomised": dict(randomize="iris_esc2", action_mapping="throttle", inflight_share=0.5,
+                                episode_s=0.05),
 }
 
 
