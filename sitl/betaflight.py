@@ -318,11 +318,13 @@ class BetaflightFlight:
         """What the NEURAL mode's sensor-health rules made of the flight since it was last switched on
         (its DEBUG_NEURAL values; ticks are the policy's, 1 ms): the state now, why the policy was
         dropped ("" if it was not) and after how many ticks, the oldest rpm telemetry (ticks since a
-        motor's last valid frame) and the largest loss rate it flew on, the ticks it flew."""
+        motor's last valid frame) and the largest loss rate it flew on, the ticks it flew, and the
+        largest rpm delay its lag rule judged, µs (0: none judged)."""
         v = self._msp(lambda msp: msp.debug_values())
         return {"state": NEURAL_STATES[v[0]], "dropped": NEURAL_STATES[v[1]] if v[1] else "",
                 "dropped_after_ticks": v[2] if v[1] else None, "max_rpm_age_ticks": v[3],
-                "max_loss_rate": v[4] / 1000.0, "gyro_age_ticks": v[5], "policy_ticks": v[6]}
+                "max_loss_rate": v[4] / 1000.0, "gyro_age_ticks": v[5], "policy_ticks": v[6],
+                "max_lag_us": v[7]}
 
     def fly_episode(self, rates_frd: Sequence[float], throttle_ch: int, ticks: int,
                     rate: np.ndarray, pwm: np.ndarray, on_tick: Callable[[int], None] | None = None) -> int:

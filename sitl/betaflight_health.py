@@ -7,8 +7,8 @@ times per scenario in `SCENARIOS` (fault-free, frames lost at random and in burs
 motor's telemetry or the gyro stopped mid-episode), each fault injected into the twin (sim_bridge/faults.py)
 and carried to the SITL as DShot would (sim_bridge/betaflight_link.py: a lost frame arrives as an
 invalid one), and prints, per episode, what the mode's health rules made of it
-(`BetaflightFlight.neural_health`, and the largest rpm delay its lag rule judged, `judged_lag_us`)
-and how well the roll step was tracked, and per scenario a summary (`summarise`).
+(`BetaflightFlight.neural_health`, the largest rpm delay its lag rule judged among them) and how
+well the roll step was tracked, and per scenario a summary (`summarise`).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import numpy as np
 from fcemu.sim_bridge.faults import Fault, FaultInjector
 from fcemu.sim_bridge.twin import Twin
 from fcemu.sitl.betaflight import BetaflightFlight, RcMap
-from fcemu.sitl.betaflight_process import BetaflightError, BetaflightMsp, neural_firmware
+from fcemu.sitl.betaflight_process import BetaflightError, neural_firmware
 
 HOVER = 0.745  # the rig's throttle (tests/sitl/test_betaflight_neural.py)
 ROLL_STEP = 2.0  # rad/s
@@ -66,7 +66,7 @@ def fly_scenario(flight: BetaflightFlight, scenario: Scenario, seed: int = 0,
 
     try:
         flight.fly_episode(step, rc.throttle_channel(HOVER), ticks, rate, pwm, on_tick=inject)
-        health = {**flight.neural_health(), "max_lag_us": judged_lag_us()}
+        health = flight.neural_health()
     finally:
         twin.faults = None
     tracked = rate[SETTLED:, 0]
@@ -74,16 +74,6 @@ def fly_scenario(flight: BetaflightFlight, scenario: Scenario, seed: int = 0,
     error = round(float(np.abs(tracked - step[0]).mean()), 4) if np.isfinite(tracked).all() else None
     return {"scenario": scenario.name, "fault_at_tick": scenario.at_tick if scenario.fault else None,
             **health, "roll_error_rad_s": error}
-
-
-def judged_lag_us() -> int:
-    """The largest rpm delay NEURAL's lag rule judged since the policy was last switched on, µs
-    (DEBUG_NEURAL [7]; 0: none judged)."""
-    msp = BetaflightMsp()
-    try:
-        return msp.debug_values()[7]
-    finally:
-        msp.close()
 
 
 def fly_scenarios(firmware_dir: str | Path, run_dir: str | Path, scenarios: tuple[Scenario, ...] = SCENARIOS,
@@ -117,7 +107,7 @@ def summarise(rows: list[dict]) -> list[dict[str, object]]:
                         "dropped_ticks_after_fault": after,
                         "max_rpm_age_ticks": max(r["max_rpm_age_ticks"] for r in group),
                         "max_loss_rate": max(r["max_loss_rate"] for r in group),
-                        "max_lag_us": max((r.get("max_lag_us", 0) for r in group), default=0),
+                        "max_lag_us": max(r["max_lag_us"] for r in group),
                         "roll_error_rad_s_median": error,
                         "error_ratio": round(error / clean_error, 2) if clean_error and error else None})
     return summary
