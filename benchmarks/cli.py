@@ -8,21 +8,11 @@ from __future__ import annotations
 
 import argparse
 
+from fcemu.sim_bridge.cli import fault_spec
 from fcemu.sim_bridge.env_config import add_env_arguments
 from fcemu.sitl.cli import add_airframe_option, loop_rate, seconds
 from fcemu.training import config
 from fcemu.training.cli import BENCH_DEFAULTS
-
-
-def fault_spec(text: str):
-    """--fault SPEC as a sim_bridge Fault; argparse names a bad one on one line."""
-    from fcemu.evaluation.faults import parse_fault
-    from fcemu.sim_bridge.faults import FaultSpecError
-
-    try:
-        return parse_fault(text)
-    except FaultSpecError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:

@@ -8,7 +8,8 @@ from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
 
 
 def fault_spec(text: str):
-    """--fault SPEC as a Fault; argparse names a bad one on one line."""
+    """--fault SPEC as a Fault (`fcemu twin serve`, `fcemu bench loop`); argparse names a bad one on one
+    line."""
     from fcemu.sim_bridge.fault_spec import parse_fault
     from fcemu.sim_bridge.faults import FaultSpecError
 
