@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from fcemu.evaluation.runner import hover_state
 from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.controllers import load_controller
 from fcemu.firmware.health import HealthMonitor, HealthRules
@@ -23,7 +22,7 @@ from fcemu.firmware.timing import LockstepClock
 from fcemu.sim_bridge.airframe import Airframe
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sim_bridge.link import InProcessLink
-from fcemu.sim_bridge.twin import Twin
+from fcemu.sim_bridge.twin import Twin, hover_state
 from fcemu.sitl.ulog_writer import ULogRecorder
 
 CHIRP_HZ = (0.5, 12.0)  # the sweep of each axis's chirp

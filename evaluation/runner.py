@@ -32,7 +32,7 @@ from fcemu.sim_bridge.airframe import Airframe, load_airframe
 from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.link import InProcessLink
 from fcemu.sim_bridge.tasks import EVAL_TASKS, INFLIGHT_WARMUP_S, continuous_schedule, episodic_commands
-from fcemu.sim_bridge.twin import Twin, TwinState, hover_state  # noqa: F401 (hover_state: importers)
+from fcemu.sim_bridge.twin import Twin, hover_state
 from fcemu.sitl.traces import Traces
 
 if TYPE_CHECKING:

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from fcemu.evaluation.metrics import AXES, METRIC_KEYS, compute_metrics
-from fcemu.evaluation.runner import EvalConfig, hover_state, run_controller, setpoint_schedules
+from fcemu.evaluation.runner import EvalConfig, run_controller, setpoint_schedules
 from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
-from fcemu.sim_bridge.twin import Twin
+from fcemu.sim_bridge.twin import Twin, hover_state
 from fcemu.sitl.traces import load_traces
 
 
