@@ -107,7 +107,7 @@ def summarise(rows: list[dict]) -> list[dict[str, object]]:
                         "dropped_ticks_after_fault": after,
                         "max_rpm_age_ticks": max(r["max_rpm_age_ticks"] for r in group),
                         "max_loss_rate": max(r["max_loss_rate"] for r in group),
-                        "max_lag_us": max(r["max_lag_us"] for r in group),
+                        "max_lag_us": max((r.get("max_lag_us", 0) for r in group), default=0),
                         "roll_error_rad_s_median": error,
                         "error_ratio": round(error / clean_error, 2) if clean_error and error else None})
     return summary
