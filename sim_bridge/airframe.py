@@ -71,6 +71,10 @@ class Airframe:
     rotor_inertia: float = 0.0  # kg·m² about the spin axis: spin-up reaction and gyroscopic moment
     esc_delay_ticks: int = 0  # PWM command → motor, whole physics steps
     gyro_delay_ticks: int = 0  # rate → gyro reading, whole physics steps
+    # ESC telemetry as a real bus delivers it: late by whole steps, and each motor's frame lost
+    # (its last sample held, with its old time) with this probability per step
+    esc_telemetry_delay_ticks: int = 0
+    esc_telemetry_loss: float = 0.0
     gyro_noise_std: float = 0.0  # rad/s, white, per sample
     gyro_vibration: tuple[float, float, float] = (0.0, 0.0, 0.0)  # rad/s per (rad/s)² of each rotor
     battery_voltage_full: float = 12.6  # V
@@ -95,6 +99,10 @@ class Airframe:
     @property
     def gyro_effects(self) -> bool:
         return bool(self.gyro_noise_std or any(self.gyro_vibration) or self.gyro_delay_ticks)
+
+    @property
+    def telemetry_effects(self) -> bool:
+        return bool(self.esc_telemetry_delay_ticks or self.esc_telemetry_loss)
 
     @property
     def mass(self) -> float:
@@ -171,6 +179,8 @@ EFFECT_KEYS = {
     "rotor_inertia_kg_m2": "rotor_inertia",
     "esc_delay_ticks": "esc_delay_ticks",
     "gyro_delay_ticks": "gyro_delay_ticks",
+    "esc_telemetry_delay_ticks": "esc_telemetry_delay_ticks",
+    "esc_telemetry_loss_fraction": "esc_telemetry_loss",
     "gyro_noise_std_rad_s": "gyro_noise_std",
     "gyro_vibration_rad_s_per_rad_s2": "gyro_vibration",
     "battery_voltage_full_V": "battery_voltage_full",
@@ -231,6 +241,8 @@ def _effects(path: Path, raw: dict) -> dict:
             value = int(value)
         else:
             value = number(path, f"{where}.value", value, strict=name == "battery_voltage_full")
+            if name == "esc_telemetry_loss" and value >= 1.0:
+                raise AirframeError(path, f"{where}.value", f"a share of frames lost, below 1, got {value}")
         values[name] = value
         sources.append((name, str(entry.get("source", ""))))
     values["effect_sources"] = tuple(sources)

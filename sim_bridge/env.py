@@ -8,9 +8,11 @@ trained here flies unchanged in the firmware.
 Per episode, in this order, the env draws from `np_random` (see `draw_episode`): the
 setpoint (a command or a pulse schedule, `sim_bridge.tasks`), the throttle (throttle
 mapping with a range), the airframe scale factors (`randomize`; with a `randomize_share`
-below 1, first whether this episode draws them or flies the nominal airframe), and the
-twin's noise seed (when `noise` is enabled). The batched environment (`sim_bridge.vec_env`) makes the same
-draws with the same code, which is what makes the two bit-identical.
+below 1, first whether this episode draws them or flies the nominal airframe), the
+twin's noise seed (when `noise` is enabled), whether it starts in flight (`inflight_share`)
+and the seed of the ESC telemetry frames it loses (when some airframe loses any). The batched
+environment (`sim_bridge.vec_env`) makes the same draws with the same code, which is what makes
+the two bit-identical.
 
 Step k (1..T) returns the observation and reward for the setpoint of sample k; the
 reward (`sim_bridge.reward`, weights as constructor arguments, terms in `info`) uses the
@@ -66,6 +68,7 @@ class Episode:
     factors: dict[str, float] = field(default_factory=dict)  # airframe scale factors
     noise_seed: int | None = None
     in_flight: bool = False  # rotors at the throttle's speed, not at rest (`EnvConfig.inflight_share`)
+    telemetry_seed: int | None = None  # which ESC telemetry frames are lost (`EnvConfig.loses_telemetry`)
 
 
 def draw_episode(rng: np.random.Generator, cfg: EnvConfig) -> Episode:
@@ -83,7 +86,8 @@ def draw_episode(rng: np.random.Generator, cfg: EnvConfig) -> Episode:
         factors = {k: float(rng.uniform(1.0 - frac[k], 1.0 + frac[k])) for k in RANDOMIZE_KEYS if k in frac}
     noise_seed = int(rng.integers(2**63)) if cfg.noisy else None
     in_flight = cfg.inflight_share > 0.0 and cfg.task == "episodic" and rng.random() < cfg.inflight_share
-    return Episode(setpoints, throttle, factors, noise_seed, bool(in_flight))
+    telemetry_seed = int(rng.integers(2**63)) if cfg.loses_telemetry else None
+    return Episode(setpoints, throttle, factors, noise_seed, bool(in_flight), telemetry_seed)
 
 
 class RateTask:
@@ -97,6 +101,9 @@ class RateTask:
     def __init__(self, cfg: EnvConfig, batch_shape: tuple[int, ...] = ()) -> None:
         self.config, self.spec, self.reward = cfg, cfg.observation_spec, cfg.rate_reward
         self.history = ObservationHistory(self.spec, batch_shape)
+        # what the observation would be had the ESC telemetry bus delivered every frame on time: a
+        # distillation teacher's view (privileged: the student learns to fly the bus it sees)
+        self.on_time = ObservationHistory(self.spec, batch_shape) if cfg.late_or_lossy_telemetry else None
         self._previous_u = np.zeros((*batch_shape, 4))
         self._first = np.ones(batch_shape, dtype=bool)  # episode starts: no previous output
         self._any_first = True
@@ -109,21 +116,27 @@ class RateTask:
         return action_to_pwm(self.config.action_mapping, np.asarray(action, dtype=np.float32), throttle)
 
     def reset(self, setpoint: np.ndarray, gyro: np.ndarray, rotor_speed: np.ndarray,
-              rows: np.ndarray | None = None) -> np.ndarray:
+              rows: np.ndarray | None = None, on_time_rotor_speed: np.ndarray | None = None) -> np.ndarray:
         """The first observation of a new episode; with a mask `rows`, of those copies (given theirs)."""
-        step = observe_step(self.spec, setpoint, gyro, rotor_speed)
         self._any_first = True
+        at = ... if rows is None else rows
+        self._first[at] = True
+        self._held[at] = 0
+        self._held_setpoint[at] = setpoint
+        if self.on_time is not None:
+            self._start(self.on_time, observe_step(self.spec, setpoint, gyro, on_time_rotor_speed), rows)
+        return self._start(self.history, observe_step(self.spec, setpoint, gyro, rotor_speed), rows)
+
+    def _start(self, history: ObservationHistory, step: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
         if rows is None:
-            self._first[...] = True
-            self._held[...] = 0
-            self._held_setpoint[...] = setpoint
-            return self.history.reset(step)
-        self._first[rows] = True
-        self._held[rows] = 0
-        self._held_setpoint[rows] = setpoint
+            return history.reset(step)
         full = np.zeros((*self._first.shape, self.spec.step_size), dtype=np.float32)
         full[rows] = step
-        return self.history.reset(full, rows)
+        return history.reset(full, rows)
+
+    def on_time_observation(self) -> np.ndarray | None:
+        """The observation on-time ESC telemetry would give (None: the bus is never late or lossy)."""
+        return None if self.on_time is None else self.on_time.observation()
 
     def _settled(self, setpoint: np.ndarray) -> np.ndarray | None:
         """Where the setpoint has been held for `action_rate_after_s` (None: no gate)."""
@@ -135,7 +148,8 @@ class RateTask:
         return self._held >= self._gate_ticks
 
     def step(self, setpoint: np.ndarray, rate: np.ndarray, gyro: np.ndarray, rotor_speed: np.ndarray,
-             pwm: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+             pwm: np.ndarray, on_time_rotor_speed: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         """(observation, reward, info) after the physics step: `rate` is what the reward judges."""
         pwm = np.asarray(pwm, dtype=float)  # float32 actions give float32 PWM; Δu is float64
         u = motor_output(pwm)  # also the next observation's motor_output, as in flight
@@ -145,6 +159,8 @@ class RateTask:
         reward, terms = self.reward(setpoint, rate, u, self._previous_u, self._settled(setpoint))
         self._previous_u = u
         obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed, motor_output=u))
+        if self.on_time is not None:
+            self.on_time.push(observe_step(self.spec, setpoint, gyro, on_time_rotor_speed, motor_output=u))
         return obs, reward, {"setpoint": setpoint, "rate": rate, "gyro": gyro, "pwm": pwm, **terms}
 
 
@@ -185,6 +201,11 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
     def episode(self) -> Episode | None:
         return self._episode
 
+    @property
+    def on_time_observation(self) -> np.ndarray | None:
+        """The observation had the ESC telemetry bus been on time (`RateTask.on_time_observation`)."""
+        return self._task.on_time_observation()
+
     def reset(self, *, seed: int | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
@@ -193,10 +214,10 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
             self._set_twin(self.config.base_airframe.scaled(**ep.factors))
             self._factors = ep.factors
         start = hover_state(self.config.base_airframe, ep.throttle) if ep.in_flight else None
-        frame = self._twin.reset(seed=ep.noise_seed, state=start)
+        frame = self._twin.reset(seed=ep.noise_seed, state=start, telemetry_seed=ep.telemetry_seed)
         self._t = 0
         setpoint = ep.setpoints[0]
-        obs = self._task.reset(setpoint, frame.gyro, frame.rotor_speed)
+        obs = self._task.reset(setpoint, frame.gyro, frame.rotor_speed, None, self._twin.rotor_speed_sent)
         info = {"setpoint": setpoint.copy(), "rate": self._rate(frame.gyro), "gyro": frame.gyro,
                 "throttle": ep.throttle, "factors": dict(ep.factors)}
         return obs, info
@@ -209,7 +230,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         self._t += 1
         setpoint = self._episode.setpoints[self._t].copy()
         obs, reward, info = self._task.step(setpoint, self._rate(frame.gyro), frame.gyro, frame.rotor_speed,
-                                            pwm)
+                                            pwm, self._twin.rotor_speed_sent)
         return obs, float(reward), False, self._t >= self._n_steps, info
 
     def _set_twin(self, airframe: Airframe) -> None:

@@ -187,6 +187,20 @@ class EnvConfig:
         return (self.noise is not None and self.noise.enabled) or self.draws_gyro_noise
 
     @property
+    def late_or_lossy_telemetry(self) -> bool:
+        """Whether some episode's ESC telemetry bus delays or loses frames: the environments then also
+        keep the observation its on-time readings would give (`RateTask.on_time_observation`)."""
+        drawn = isinstance(self.randomize, Randomization) and any(
+            key in self.randomize for key in ("esc_telemetry_delay_ticks", "esc_telemetry_loss"))
+        return drawn or self.base_airframe.telemetry_effects
+
+    @property
+    def loses_telemetry(self) -> bool:
+        """Whether some episode's ESC telemetry may lose frames (each episode then draws a seed for it)."""
+        drawn = isinstance(self.randomize, Randomization) and "esc_telemetry_loss" in self.randomize
+        return drawn or bool(self.base_airframe.esc_telemetry_loss)
+
+    @property
     def draws_gyro_noise(self) -> bool:
         """The randomisation draws each episode's gyro noise (it replaces `noise.gyro_std`)."""
         return isinstance(self.randomize, Randomization) and self.randomize.draws_gyro_noise

@@ -244,6 +244,12 @@ class AirframeEffects:
         self.esc = DelayLine(np.full(batch_shape, esc), (*batch_shape, 4), delay_capacity or esc)
         self.gyro_line = DelayLine(np.full(batch_shape, gyro), (*batch_shape, 3), delay_capacity or gyro)
         self.esc_delays, self.gyro_delays = bool(esc), bool(gyro)
+        late = airframe.esc_telemetry_delay_ticks
+        self.telemetry_line = DelayLine(np.full(batch_shape, late), (*batch_shape, 4), delay_capacity or late)
+        self.telemetry_delays, self.loses = bool(late), False
+        self.loss = np.zeros((*batch_shape, 1))  # each motor's frame lost with this probability a step
+        self.delivered = np.zeros((*batch_shape, 4))  # the rotor speeds last delivered, held when lost
+        self.age = np.zeros((*batch_shape, 4), dtype=np.int64)  # their ages, ticks
         self.set_row(None, airframe)
 
     def set_row(self, row: int | None, airframe: Airframe) -> None:
@@ -257,12 +263,16 @@ class AirframeEffects:
         for params, value in zip(self.battery_params, battery, strict=True):
             params[at] = value
         self.charge_at_start[at] = airframe.battery_drawn_at_start
+        self.loss[at] = airframe.esc_telemetry_loss
+        self.loses |= bool(airframe.esc_telemetry_loss)
         self.torques |= airframe.body_torques
         self.sags |= airframe.battery_sags
         self.shakes |= any(airframe.gyro_vibration)
         if row is not None:
             self.esc.set_delay(row, airframe.esc_delay_ticks)
             self.gyro_line.set_delay(row, airframe.gyro_delay_ticks)
+            self.telemetry_line.set_delay(row, airframe.esc_telemetry_delay_ticks)
+            self.telemetry_delays |= bool(airframe.esc_telemetry_delay_ticks)
             self.esc_delays |= bool(airframe.esc_delay_ticks)
             self.gyro_delays |= bool(airframe.gyro_delay_ticks)
         if not self.shape:
@@ -339,6 +349,31 @@ class AirframeEffects:
             return reading
         return self.gyro_line.fill(reading, rows) if reset else self.gyro_line.push(reading)
 
+    @property
+    def telemetry_effects(self) -> bool:
+        return self.telemetry_delays or self.loses
+
+    def telemetry(self, reading: np.ndarray, lost_draw: np.ndarray | None, rows: np.ndarray | None = None,
+                  reset: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The rotor speeds the ESCs deliver of `reading` (of `rows`), and each one's age in ticks.
+
+        Through the bus's delay; then each motor's frame is lost where its uniform draw
+        (`lost_draw`, one per motor) falls below the loss, and the last one delivered stands,
+        growing older. `reset`: the bus starts over delivering `reading`, nothing lost.
+        """
+        at = ... if rows is None else rows
+        if self.telemetry_delays:
+            reading = self.telemetry_line.fill(reading, rows) if reset else self.telemetry_line.push(reading)
+        fresh = np.broadcast_to(self.telemetry_line.delay[at][..., None], reading.shape)
+        if self.loses and not reset and lost_draw is not None:
+            lost = lost_draw < self.loss[at]
+            reading = np.where(lost, self.delivered[at], reading)
+            self.age[at] = np.where(lost, self.age[at] + 1, fresh)
+        else:
+            self.age[at] = fresh
+        self.delivered[at] = reading
+        return reading, self.age[at]
+
 
 @dataclass(frozen=True)
 class SensorNoise:
@@ -389,22 +424,23 @@ class SensorModel:
 
 
 class NoiseStreams:
-    """One seeded standard-normal stream per vehicle of a batch, `width` draws per frame.
+    """One seeded stream per vehicle of a batch, `width` draws per frame: standard normal, or `uniform`
+    on [0, 1).
 
     Draws `block` frames at a time per vehicle: the same numbers, in the same order, as a
     generator drawing each frame when it is needed (numpy fills arrays draw by draw).
     """
 
-    def __init__(self, n: int, width: int = SensorModel.DRAWS, block: int = 256) -> None:
-        self.block = block
+    def __init__(self, n: int, width: int = SensorModel.DRAWS, block: int = 256,
+                 uniform: bool = False) -> None:
+        self.block, self.uniform = block, uniform
         self._rngs = [np.random.default_rng() for _ in range(n)]
         self._draws = np.zeros((n, block, width))
         self._pos = np.zeros(n, dtype=np.int64)
 
     def reseed(self, i: int, seed: int | None) -> None:
         self._rngs[i] = np.random.default_rng(seed)
-        self._rngs[i].standard_normal(out=self._draws[i])
-        self._pos[i] = 0
+        self._refill(i)
 
     def next(self, idx: np.ndarray) -> np.ndarray:
         """The next frame's draws of vehicles `idx`, (len(idx), width)."""
@@ -413,6 +449,13 @@ class NoiseStreams:
         pos += 1
         self._pos[idx] = pos
         for i in idx[pos == self.block]:
-            self._rngs[i].standard_normal(out=self._draws[i])
-            self._pos[i] = 0
+            self._refill(i)
         return z
+
+    def _refill(self, i: int) -> None:
+        rng = self._rngs[i]
+        if self.uniform:
+            rng.random(out=self._draws[i])
+        else:
+            rng.standard_normal(out=self._draws[i])
+        self._pos[i] = 0

@@ -73,7 +73,14 @@ PARAMETERS: dict[str, Parameter] = {
     "battery_resistance": _effect("battery_resistance"),
     "battery_current_per_thrust": _effect("battery_current_per_thrust"),
     "battery_drawn_at_start": _effect("battery_drawn_at_start"),
+    # last: ranges without them draw every other parameter as before
+    "esc_telemetry_delay_ticks": _effect("esc_telemetry_delay_ticks", "ticks"),
+    "esc_telemetry_loss": _effect("esc_telemetry_loss"),
 }
+# The ESC telemetry bus. The default's distillation ranges draw it (iris_sensors); the perturbation
+# ranges (iris, relative) do not: a late bus is judged by the health rules and the faults table,
+# and on a perturbed airframe it would hand the policy to the PID mid-flight and mix the two.
+BUS_PARAMETERS = frozenset({"esc_telemetry_delay_ticks", "esc_telemetry_loss"})
 GYRO_KEYWORDS = frozenset({"gyro_noise_std", "gyro_vibration", "gyro_delay_ticks"})
 
 
@@ -306,6 +313,8 @@ def _parameter(key: str, entry: Any, where: str) -> ParameterRange:
         raise RandomizationError(f"{at}: need lo <= nominal <= hi, got {lo:g} <= {nominal:g} <= {hi:g}")
     if not lo <= hi:
         raise RandomizationError(f"{at}: need lo <= hi, got [{lo:g}, {hi:g}]")
+    if key == "esc_telemetry_loss" and hi >= 1.0:
+        raise RandomizationError(f"{at}: a share of frames lost must stay below 1, got range {rng!r}")
     if kind == "ticks" and not all(float(v).is_integer() for v in values):
         raise RandomizationError(f"{at}: ticks must be whole numbers, got nominal {entry['nominal']!r}, "
                                  f"range {rng!r}")

@@ -91,8 +91,10 @@ class Twin:
         self._plain = not (self.effects.torques or self.effects.sags or self.effects.esc_delays
                            or self.effects.shakes)
         self._omega = [0.0] * 4
+        self.rotor_speed_sent = np.zeros(4)  # the ESCs' readings as sent, before the bus delays or loses them
         self._t_us = 0
         self._rng = np.random.default_rng()
+        self._telemetry_rng = np.random.default_rng()  # which ESC frames the bus loses
         self.faults: FaultInjector | None = None  # injected faults (sim_bridge/faults.py); None: none
         self.reset()
 
@@ -104,10 +106,18 @@ class Twin:
     def rotor_speed(self) -> np.ndarray:
         return np.array(self._omega)
 
-    def reset(self, seed: int | None = None, state: TwinState | None = None) -> SensorFrame:
-        """Start over at t = 0 from `state` (at rest, level, by default); returns the first frame."""
+    def reset(self, seed: int | None = None, state: TwinState | None = None,
+              telemetry_seed: int | None = None) -> SensorFrame:
+        """Start over at t = 0 from `state` (at rest, level, by default); returns the first frame.
+
+        `seed` seeds the sensor noise, `telemetry_seed` the ESC frames the bus loses (by
+        default drawn from `seed`'s generator, when the airframe loses any)."""
         if seed is not None:
             self._rng = np.random.default_rng(seed)
+        if telemetry_seed is None and seed is not None and self.effects.loses:
+            telemetry_seed = int(np.random.default_rng([seed, 1]).integers(2**63))
+        if telemetry_seed is not None:
+            self._telemetry_rng = np.random.default_rng(telemetry_seed)
         state = state or TwinState()
         mujoco.mj_resetData(self.model, self.data)
         quat = np.asarray(state.attitude, dtype=float)
@@ -182,10 +192,18 @@ class Twin:
                                                    self._rng.standard_normal(SensorModel.DRAWS))
         if fx.gyro_delays:
             gyro = fx.gyro_delayed(gyro, reset=reset)
+        rotor_t_us = None
+        self.rotor_speed_sent = omega
+        if fx.telemetry_effects:
+            lost_draw = None if reset or not fx.loses else self._telemetry_rng.random(4)
+            omega, age = fx.telemetry(omega, lost_draw, reset=reset)
+            rotor_t_us = self._t_us - age * self.dt_us
         if self.faults is not None:
-            gyro, omega, gyro_t_us, rotor_t_us = self.faults.read(gyro, omega, self._t_us)
-            return SensorFrame(self._t_us, gyro, accel, omega, gyro_t_us, rotor_t_us)
-        return SensorFrame(self._t_us, gyro, accel, omega)
+            gyro, omega, gyro_t_us, fault_t_us = self.faults.read(gyro, omega, self._t_us)
+            if rotor_t_us is not None:  # the fault acts on what the bus delivered, already this old
+                fault_t_us = rotor_t_us if fault_t_us is None else fault_t_us - (self._t_us - rotor_t_us)
+            return SensorFrame(self._t_us, gyro, accel, omega, gyro_t_us, fault_t_us)
+        return SensorFrame(self._t_us, gyro, accel, omega, None, rotor_t_us)
 
     def clean_gyro(self) -> np.ndarray:
         """The gyro's reading now without vibration, noise or delay: the body rate the metrics

@@ -38,7 +38,7 @@ from fcemu.sim_bridge.twin import Twin, hover_state
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
 NOISE_BLOCK = 256  # steps of sensor noise drawn at a time per copy
-MAX_DELAY_TICKS = 32  # the longest ESC or gyro delay a copy's airframe may have
+MAX_DELAY_TICKS = 32  # the longest ESC, gyro or telemetry delay a copy's airframe may have
 CTRL_AND_TORQUE = mujoco.mjtState.mjSTATE_CTRL.value | mujoco.mjtState.mjSTATE_QFRC_APPLIED.value
 
 
@@ -99,6 +99,7 @@ class BatchedRateEnv(VectorEnv):
         self._rngs = [np.random.default_rng() for _ in range(n)]
         self._factors: list[dict[str, float]] = [{} for _ in range(n)]
         self._noise = NoiseStreams(n, SensorModel.DRAWS, NOISE_BLOCK) if self._noisy else None
+        self._lost = NoiseStreams(n, 4, NOISE_BLOCK, uniform=True) if cfg.loses_telemetry else None
         self._pool = rollout.Rollout(nthread=nthread)
         self._datas = [mujoco.MjData(self._model) for _ in range(max(1, nthread))]
         self._scratch = self._datas[0]
@@ -136,9 +137,9 @@ class BatchedRateEnv(VectorEnv):
         fx.advance(self._omega, self._ctrl[:, 0])
         self._t += 1
         rate = self._sens[:, 0, self._gyro] * FLU_FROM_FRD
-        gyro, rotor = self._measure(rate, self._rows, False)
+        gyro, rotor, sent = self._measure(rate, self._rows, False)
         setpoint = self._sched[self._rows, self._t]
-        obs, reward, info = self._task.step(setpoint, rate, gyro, rotor, pwm)
+        obs, reward, info = self._task.step(setpoint, rate, gyro, rotor, pwm, sent)
         truncated = self._t >= self._n_steps
         if truncated.any():
             info["final_obs"], info["_final_obs"] = obs.copy(), truncated.copy()
@@ -152,6 +153,11 @@ class BatchedRateEnv(VectorEnv):
     def current_setpoint(self) -> np.ndarray:
         """Each copy's setpoint (n, 3) for the observation it last returned."""
         return self._sched[self._rows, self._t]
+
+    @property
+    def on_time_observation(self) -> np.ndarray | None:
+        """Each copy's observation had its ESC telemetry bus been on time (`RateTask.on_time_observation`)."""
+        return self._task.on_time_observation()
 
     @property
     def current_throttle(self) -> np.ndarray:
@@ -180,13 +186,15 @@ class BatchedRateEnv(VectorEnv):
                 self._set_airframe(i, self.config.base_airframe.scaled(**ep.factors))
             if self._noise is not None:
                 self._noise.reseed(i, ep.noise_seed)
+            if self._lost is not None:
+                self._lost.reseed(i, ep.telemetry_seed)
             if ep.in_flight:  # as RateControlEnv's twin starts from `hover_state`
                 motor = self.config.base_airframe.motor
                 self._omega[i] = hover_state(self.config.base_airframe, ep.throttle).rotor_speed
                 start_pwm[row] = motor.pwm_for_rotor_speed(self._omega[i])
         self._fx.reset(start_pwm, idx)
-        gyro, rotor = self._measure(self._sens[idx, 0, self._gyro] * FLU_FROM_FRD, idx, True)
-        return self._task.reset(self._sched[idx, 0], gyro, rotor, rows)
+        gyro, rotor, sent = self._measure(self._sens[idx, 0, self._gyro] * FLU_FROM_FRD, idx, True)
+        return self._task.reset(self._sched[idx, 0], gyro, rotor, rows, sent)
 
     def _set_airframe(self, i: int, airframe: Airframe) -> None:
         self._kf[i] = airframe.motor.kf
@@ -205,10 +213,12 @@ class BatchedRateEnv(VectorEnv):
         mujoco.mj_forward(model, d)
         self._sens[i, 0] = d.sensordata  # the twin's first frame after reset
 
-    def _measure(self, rate: np.ndarray, idx: np.ndarray, reset: bool) -> tuple[np.ndarray, np.ndarray]:
-        """What the gyro and rotor speed sensors of copies `idx` report, from each copy's noise stream.
+    def _measure(self, rate: np.ndarray, idx: np.ndarray, reset: bool
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What the gyro and rotor speed sensors of copies `idx` report, from each copy's noise stream,
+        and the rotor speeds as the ESCs sent them (before the bus delays or loses them).
 
-        `reset`: the copies start an episode (the gyro delay line starts over holding the reading).
+        `reset`: the copies start an episode (the gyro and telemetry delay lines start over).
         """
         omega = self._omega[idx]
         fx = self._fx
@@ -218,4 +228,8 @@ class BatchedRateEnv(VectorEnv):
                                                 self._gyro_std[idx] if self.config.draws_gyro_noise else None)
         if fx.gyro_delays:
             gyro = fx.gyro_delayed(gyro, None if not reset else idx, reset)
-        return gyro, omega
+        sent = omega
+        if fx.telemetry_effects:
+            lost_draw = None if reset or self._lost is None else self._lost.next(idx)
+            omega, _ = fx.telemetry(omega, lost_draw, None if not reset else idx, reset)
+        return gyro, omega, sent

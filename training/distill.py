@@ -41,8 +41,8 @@ from fcemu.firmware.observation import FIELD_DEFS, FIELDS, INTEGRAL, MOTOR_OUTPU
 from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.training.distill_config import DistillConfig, from_args
 
-__all__ = ["DistillConfig", "DistillError", "Teacher", "columns", "distill", "nudge", "student_train_config",
-           "union_spec"]
+__all__ = ["DistillConfig", "DistillError", "Teacher", "columns", "distill", "fly", "nudge",
+           "student_train_config", "union_spec"]
 
 COLLECTIVE_WEIGHT = 0.1
 OPTIONAL_FIELDS = {INTEGRAL: "integral", RMS: "error_rms", MOTOR_OUTPUT: "motor_output", RATE: "rate"}
@@ -254,7 +254,11 @@ def fly(env, teacher: Teacher, student: Student | None, cols: tuple[np.ndarray, 
         keep_union: bool = False) -> tuple:
     """One round: every twin `steps` steps; the student's observations, the teacher's labels,
     the episode ends, the tracking error |Ω* − Ω| of the student's episodes, the next observation,
-    and (`keep_union`) the whole observations both read."""
+    and (`keep_union`) the whole observations both read (the student's, the teacher's).
+
+    Where the twins' ESC telemetry bus is late or lossy, the teacher reads the observation the bus
+    would have given on time (`BatchedRateEnv.on_time_observation`) and the student its own: the
+    student learns what the teacher would do had it seen the rotors now."""
     t_cols, s_cols = cols
     n = env.num_envs
     by_teacher = np.ones(n, dtype=bool) if student is None else rng.random(n) < teacher_share
@@ -262,12 +266,17 @@ def fly(env, teacher: Teacher, student: Student | None, cols: tuple[np.ndarray, 
     labels = np.empty((steps, n, 4), dtype=np.float32)
     ended = np.empty((steps, n), dtype=bool)
     union = np.empty((steps, *obs.shape), dtype=np.float32) if keep_union else None
+    seen = np.empty_like(union) if keep_union and env.on_time_observation is not None else None
     errors: list[float] = []
     for k in range(steps):
         s_obs[k] = obs[:, s_cols]
+        on_time = env.on_time_observation
+        teacher_obs = obs if on_time is None else on_time
         if union is not None:
-            union[k] = obs
-        labels[k] = teacher.act(np.ascontiguousarray(obs[:, t_cols]))
+            union[k] = teacher_obs
+            if seen is not None:
+                seen[k] = obs
+        labels[k] = teacher.act(np.ascontiguousarray(teacher_obs[:, t_cols]))
         action = labels[k] if student is None else np.where(by_teacher[:, None], labels[k],
                                                               student.act(s_obs[k]))
         obs, _, _, truncated, info = env.step(np.clip(action, -1.0, 1.0).astype(np.float32))
@@ -278,23 +287,28 @@ def fly(env, teacher: Teacher, student: Student | None, cols: tuple[np.ndarray, 
             by_teacher[truncated] = rng.random(int(truncated.sum())) < teacher_share
         if bar is not None and k % 50 == 49:
             bar.update(50)
-    return s_obs, labels, ended, (float(np.mean(errors)) if errors else None), obs, union
+    return s_obs, labels, ended, (float(np.mean(errors)) if errors else None), obs, (union, seen)
 
 
 def nudge(union: np.ndarray, teacher: Teacher, cols: tuple[np.ndarray, np.ndarray], std: np.ndarray,
-          step: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+          step: float, rng: np.random.Generator, seen: np.ndarray | None = None
+          ) -> tuple[np.ndarray, np.ndarray]:
     """Each observation with the student's columns moved by `step` standard deviations in a random
-    direction (the teacher's other columns as they were), and the teacher's action there.
+    direction (the teacher's other columns as they were), and the teacher's action there. `union` is
+    what the teacher read; `seen`, where it differs, what the student read, moved the same way.
 
     Fitting the difference of the two actions to the teacher's fits the student's local gains, the
     slope of the action against each input it sees, which decide how the closed loop rings; the
     squared error alone fits the values and leaves the slopes to chance."""
     t_cols, s_cols = cols
     flat = union.reshape(-1, union.shape[-1]).copy()
-    flat[:, s_cols] += (step * std * rng.standard_normal((len(flat), len(s_cols)))).astype(np.float32)
+    moved = (step * std * rng.standard_normal((len(flat), len(s_cols)))).astype(np.float32)
+    flat[:, s_cols] += moved
     labels = np.concatenate([teacher.act(np.ascontiguousarray(chunk[:, t_cols]))
                              for chunk in np.array_split(flat, max(1, len(flat) // 8192))])
-    return flat[:, s_cols], labels
+    if seen is None:
+        return flat[:, s_cols], labels
+    return seen.reshape(-1, seen.shape[-1])[:, s_cols] + moved, labels
 
 
 def distill(cfg: DistillConfig) -> dict[str, Any]:
@@ -345,7 +359,7 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
     t0 = time.perf_counter()
     for r in range(cfg.rounds):
         share = cfg.beta ** r
-        s_obs, labels, ended, flown_error, obs, union_obs = fly(
+        s_obs, labels, ended, flown_error, obs, (union_obs, seen_obs) = fly(
             env, teacher, student, cols, cfg.steps, share, rng, obs, bar, keep_union=bool(cfg.gain_weight))
         data.add(s_obs, labels, ended)
         if student is None:  # the observation statistics, from the teacher's flights (as VecNormalize's)
@@ -354,8 +368,9 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
             venv.obs_rms.count = float(s_obs.shape[0] * s_obs.shape[1])
             student = Student(model, venv.obs_rms.mean, venv.obs_rms.var, venv.epsilon)
         if union_obs is not None:
-            data.add_nudged(*nudge(union_obs, teacher, cols, np.sqrt(venv.obs_rms.var), cfg.gain_step, rng))
-            del union_obs
+            data.add_nudged(*nudge(union_obs, teacher, cols, np.sqrt(venv.obs_rms.var), cfg.gain_step, rng,
+                                   seen_obs))
+            del union_obs, seen_obs
         if bar is not None:
             bar.set_postfix_str(f"fitting on {data.size} samples")
         losses = fit(student, data, cfg.fit_steps * (3 if r == cfg.rounds - 1 else 1), cfg, gen)

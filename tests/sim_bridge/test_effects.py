@@ -46,7 +46,8 @@ def test_nominal_has_every_effect_off_and_the_realistic_one_every_effect_on_with
         assert set(sources) == set(effect_fields())
         assert all(len(s) > 10 for s in sources.values())
     for name in effect_fields():
-        if name not in ("battery_voltage_full", "battery_drawn_at_start"):  # full 3S in both
+        # full 3S in both; the telemetry on time in both (a late bus is a fault or a training range)
+        if name not in ("battery_voltage_full", "battery_drawn_at_start", "esc_telemetry_delay_ticks"):
             assert getattr(REALISTIC, name) != getattr(IRIS, name), name
     # the realistic airframe is the nominal one plus effects
     assert REALISTIC.mass == IRIS.mass and REALISTIC.motor == IRIS.motor
@@ -60,6 +61,10 @@ def test_unknown_effect_and_fractional_ticks_are_refused(tmp_path):
     half_tick = {"esc_delay_ticks": {"value": 1.5}}
     path.write_text(json.dumps({"base": "iris", "name": "bad", "effects": half_tick}))
     with pytest.raises(ValueError, match="whole number of ticks"):
+        load_airframe(path)
+    every_frame_lost = {"esc_telemetry_loss_fraction": {"value": 1.0}}
+    path.write_text(json.dumps({"base": "iris", "name": "bad", "effects": every_frame_lost}))
+    with pytest.raises(ValueError, match="below 1"):
         load_airframe(path)
 
 
@@ -160,6 +165,35 @@ def test_a_pwm_step_reaches_the_rotors_and_the_gyro_exactly_k_ticks_later(k):
     np.testing.assert_array_equal(gyro_omega, omega)  # the rotors do not wait for the gyro
     np.testing.assert_array_equal(delayed[k:], gyro[: len(gyro) - k])
     np.testing.assert_array_equal(delayed[:k], np.zeros((k, 3)))  # the reading at rest, held
+
+
+def test_late_esc_telemetry_arrives_k_ticks_later_with_its_true_sample_time():
+    pwm = np.array([1700.0, 1300.0, 1700.0, 1300.0])
+    plain, late = Twin(IRIS), Twin(replace(IRIS, esc_telemetry_delay_ticks=3))
+    frames = [(plain.reset(), late.reset())] + [(plain.step(pwm), late.step(pwm)) for _ in range(20)]
+    omega = np.array([p.rotor_speed for p, _ in frames])
+    seen = np.array([q.rotor_speed for _, q in frames])
+    np.testing.assert_array_equal(seen[3:], omega[:-3])
+    # only the ESC bus is late
+    np.testing.assert_array_equal([q.gyro for _, q in frames], [p.gyro for p, _ in frames])
+    assert all((q.rotor_speed_age_us() == 3000).all() for _, q in frames)
+    assert plain.rotor_speed.tolist() == late.rotor_speed.tolist()  # the rotors themselves are on time
+
+
+def test_a_lost_esc_frame_holds_the_last_sample_with_its_old_time():
+    pwm = np.array([1700.0, 1300.0, 1700.0, 1300.0])
+    plain, lossy = Twin(IRIS), Twin(replace(IRIS, esc_telemetry_loss=0.3))
+    frames = [(plain.reset(), lossy.reset(telemetry_seed=5))] + [(plain.step(pwm), lossy.step(pwm))
+                                                                   for _ in range(400)]
+    omega = np.array([p.rotor_speed for p, _ in frames])
+    seen = np.array([q.rotor_speed for _, q in frames])
+    age = np.array([q.rotor_speed_age_us() for _, q in frames]) // 1000
+    assert 0.25 < (age > 0).mean() < 0.35  # a frame is lost with probability 0.3
+    for k in range(1, len(frames)):  # each reading is the true speed of `age` ticks before
+        np.testing.assert_array_equal(seen[k], omega[k - age[k], range(4)])
+    again = Twin(replace(IRIS, esc_telemetry_loss=0.3))
+    again.reset(telemetry_seed=5)
+    np.testing.assert_array_equal([again.step(pwm).rotor_speed for _ in range(400)], seen[1:])
 
 
 def test_delay_line_rows_have_their_own_delays():

@@ -11,7 +11,14 @@ import pytest
 
 from fcemu.sim_bridge.airframe import AIRFRAME_DIR, build_mjcf, load_airframe
 from fcemu.sim_bridge.env import RateControlEnv
-from fcemu.sim_bridge.randomization import PARAMETERS, RandomizationError, load_randomization, ranges_for
+from fcemu.sim_bridge.randomization import (
+    BUS_PARAMETERS,
+    PARAMETERS,
+    RandomizationError,
+    load_randomization,
+    parse_randomization,
+    ranges_for,
+)
 from fcemu.sim_bridge.vec_env import BatchedRateEnv
 
 SHIPPED = AIRFRAME_DIR / "iris.randomization.json"
@@ -20,7 +27,8 @@ SHIPPED = AIRFRAME_DIR / "iris.randomization.json"
 def test_the_shipped_ranges_load_and_match_the_airframe():
     ranges = load_randomization("iris")
     assert ranges.path == SHIPPED and ranges.airframe == "iris"
-    assert {p.key for p in ranges.parameters} == set(PARAMETERS)  # every parameter the twin honours
+    # every parameter the twin honours but the ESC telemetry bus (the distillation ranges draw it)
+    assert {p.key for p in ranges.parameters} == set(PARAMETERS) - BUS_PARAMETERS
     iris = load_airframe("iris")
     realistic = load_airframe("iris_realistic")
     for p in ranges.parameters:
@@ -244,6 +252,19 @@ def test_the_fine_tuning_ranges_are_the_shipped_ones_with_the_esc_delay_at_its_t
             assert (q.lo, q.hi) == (p.lo, p.hi), p.key
 
 
+def test_the_distillation_ranges_add_the_esc_telemetry_bus_to_the_fine_tuning_ones():
+    esc2, sensors = load_randomization("iris_esc2"), load_randomization("iris_sensors")
+    assert [p for p in sensors.parameters if p.key not in BUS_PARAMETERS] == list(esc2.parameters)
+    late, lost = sensors.parameter("esc_telemetry_delay_ticks"), sensors.parameter("esc_telemetry_loss")
+    assert (late.lo, late.hi, lost.lo, lost.hi) == (0, 5, 0.0, 0.05)
+    draws = [sensors.draw(np.random.default_rng(s)) for s in range(200)]
+    assert {d["esc_telemetry_delay_ticks"] for d in draws} == set(range(6))
+    assert all(0.0 <= d["esc_telemetry_loss"] <= 0.05 for d in draws)
+    with pytest.raises(RandomizationError, match="below 1"):
+        parse_randomization({"airframe": "iris", "parameters": {"esc_telemetry_loss": {
+            "nominal": 0, "range": [0, 1], "unit": "share", "source": "every frame"}}})
+
+
 # ── ranges relative to any airframe ───────────────────────────────────────────────────
 PHYSICAL = ("mass", "inertia_xx", "inertia_yy", "inertia_zz", "kf", "km", "tau_up", "tau_down")
 
@@ -268,7 +289,7 @@ def test_ranges_for_an_airframe_are_its_own_file_else_the_relative_ones():
         ranges, airframe = ranges_for(name), load_airframe(name)
         assert ranges.path.name == "relative.randomization.json" and ranges.airframe == name
         ranges.check_airframe(airframe)
-        assert {p.key for p in ranges.parameters} == set(PARAMETERS)
+        assert {p.key for p in ranges.parameters} == set(PARAMETERS) - BUS_PARAMETERS
         for key in PHYSICAL:
             p = ranges.parameter(key)
             assert p.lo < PARAMETERS[key].nominal(airframe) < p.hi, key

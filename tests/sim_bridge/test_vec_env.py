@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from fcemu.sim_bridge.env import RateControlEnv
+from fcemu.sim_bridge.randomization import parse_randomization
 from fcemu.sim_bridge.twin import SensorNoise
 from fcemu.sim_bridge.vec_env import NOISE_BLOCK, BatchedRateEnv
 
@@ -32,6 +33,11 @@ CONFIGS = {
                                episode_s=0.05),
     "inflight-randomised": dict(randomize="iris_esc2", action_mapping="throttle", inflight_share=0.5,
                                 episode_s=0.05),
+    # ESC telemetry late and lossy, per copy; episodes past a block of loss draws; some nominal
+    "telemetry": dict(randomize=parse_randomization({"airframe": "iris", "parameters": {
+        "esc_telemetry_delay_ticks": {"nominal": 0, "range": [0, 5], "unit": "ticks", "source": "test"},
+        "esc_telemetry_loss": {"nominal": 0, "range": [0, 0.4], "unit": "share", "source": "test"}}}),
+        randomize_share=0.7, action_mapping="throttle", inflight_share=0.5, episode_s=0.3),
 }
 
 
@@ -58,7 +64,30 @@ def _assert_matches_single_envs(batch: BatchedRateEnv, singles: list[RateControl
                 np.testing.assert_array_equal(info["final_obs"][i], o)
                 o, _ = env.reset()
             np.testing.assert_array_equal(obs[i], o, err_msg=f"obs step {k} env {i}")
+            if batch.on_time_observation is not None:
+                np.testing.assert_array_equal(batch.on_time_observation[i], env.on_time_observation)
     return ends
+
+
+def test_the_on_time_observation_is_what_the_bus_would_have_delivered():
+    kw = CONFIGS["telemetry"]
+    env = RateControlEnv(**kw)
+    assert RateControlEnv(**CONFIGS["inflight-randomised"]).on_time_observation is None
+    spec = env.obs_spec
+    rotor = next(np.arange(cols.start, cols.stop)
+                 for cols, field, _ in spec.layout if field.source == "rotor_speed")
+    other = np.setdiff1d(np.arange(spec.step_size), rotor)
+    late = 0
+    for seed in range(6):
+        obs, _ = env.reset(seed=seed)
+        for _ in range(40):
+            obs, *_ = env.step(np.full(4, 0.3, dtype=np.float32))
+        on_time = env.on_time_observation
+        np.testing.assert_array_equal(on_time[other], obs[other])  # only the rotor speeds differ
+        sent = env.twin.rotor_speed_sent * spec.rotor_speed_scale
+        np.testing.assert_allclose(on_time[rotor], sent, rtol=1e-6)
+        late += not np.array_equal(on_time[rotor], obs[rotor])
+    assert late >= 2
 
 
 @pytest.mark.parametrize("name", CONFIGS)

@@ -23,12 +23,15 @@ from fcemu.firmware.observation import (
     observe_step,
 )
 from fcemu.sim_bridge.airframe import AIRFRAME_DIR, DEFAULT_AIRFRAME, load_airframe
+from fcemu.sim_bridge.randomization import parse_randomization
+from fcemu.sim_bridge.vec_env import BatchedRateEnv
 from fcemu.training.distill import (
     DistillConfig,
     DistillError,
     Teacher,
     columns,
     distill,
+    fly,
     nudge,
     student_train_config,
     union_spec,
@@ -100,6 +103,30 @@ def test_a_nudge_moves_only_the_students_columns_and_the_teacher_labels_the_move
     again = flat.copy()
     again[:, cols[1]] = moved
     np.testing.assert_allclose(labels, teacher.act(np.ascontiguousarray(again[:, cols[0]])), atol=1e-6)
+
+
+    # privileged: the teacher read `flown`, the student `seen`; both moved the same way
+    seen = flown + 0.5
+    moved_seen, labels_seen = nudge(flown, teacher, cols, std, 0.05, np.random.default_rng(1), seen)
+    np.testing.assert_allclose(moved_seen - seen.reshape(15, -1)[:, cols[1]], moved - flat[:, cols[1]],
+                               atol=1e-6)
+    np.testing.assert_array_equal(labels_seen, labels)
+
+
+def test_on_a_late_telemetry_bus_the_teacher_labels_what_it_would_do_on_time():
+    teacher = Teacher(TEACHER)
+    late = parse_randomization({"airframe": "iris", "parameters": {"esc_telemetry_delay_ticks": {
+        "nominal": 0, "range": [3, 3], "unit": "ticks", "source": "test"}}})
+    env = BatchedRateEnv(3, randomize=late, memory=teacher.spec.memory, obs_fields=teacher.spec.fields,
+                         action_mapping="throttle", throttle=0.6, episode_s=0.1, reward="unclipped",
+                         integral_leak=teacher.spec.integral_leak, rms_leak=teacher.spec.rms_leak)
+    cols = (np.arange(teacher.spec.size),) * 2
+    obs, _ = env.reset(seed=3)
+    s_obs, labels, _, _, _, (on_time, seen) = fly(env, teacher, None, cols, 30, 1.0,
+                                                  np.random.default_rng(0), obs, None, keep_union=True)
+    np.testing.assert_array_equal(s_obs, seen)  # the student's own, late view
+    assert not np.array_equal(on_time, seen)
+    np.testing.assert_allclose(labels, [teacher.act(np.ascontiguousarray(o)) for o in on_time], atol=1e-6)
 
 
 def test_the_gain_match_fits_the_teachers_slopes(tmp_path):
