@@ -101,9 +101,9 @@ class RateTask:
     def __init__(self, cfg: EnvConfig, batch_shape: tuple[int, ...] = ()) -> None:
         self.config, self.spec, self.reward = cfg, cfg.observation_spec, cfg.rate_reward
         self.history = ObservationHistory(self.spec, batch_shape)
-        # what the observation would be had the ESC telemetry bus delivered every frame on time: a
-        # distillation teacher's view (privileged: the student learns to fly the bus it sees)
-        self.on_time = ObservationHistory(self.spec, batch_shape) if cfg.late_or_lossy_telemetry else None
+        # the observation of the readings as sampled, before the gyro's delay and the ESC bus: a
+        # distillation teacher's view (privileged: the student learns to fly the late inputs it sees)
+        self.on_time = ObservationHistory(self.spec, batch_shape) if cfg.late_sensors else None
         self._previous_u = np.zeros((*batch_shape, 4))
         self._first = np.ones(batch_shape, dtype=bool)  # episode starts: no previous output
         self._any_first = True
@@ -116,7 +116,8 @@ class RateTask:
         return action_to_pwm(self.config.action_mapping, np.asarray(action, dtype=np.float32), throttle)
 
     def reset(self, setpoint: np.ndarray, gyro: np.ndarray, rotor_speed: np.ndarray,
-              rows: np.ndarray | None = None, on_time_rotor_speed: np.ndarray | None = None) -> np.ndarray:
+              rows: np.ndarray | None = None, on_time: tuple[np.ndarray, np.ndarray] | None = None
+              ) -> np.ndarray:
         """The first observation of a new episode; with a mask `rows`, of those copies (given theirs)."""
         self._any_first = True
         at = ... if rows is None else rows
@@ -124,7 +125,7 @@ class RateTask:
         self._held[at] = 0
         self._held_setpoint[at] = setpoint
         if self.on_time is not None:
-            self._start(self.on_time, observe_step(self.spec, setpoint, gyro, on_time_rotor_speed), rows)
+            self._start(self.on_time, observe_step(self.spec, setpoint, *on_time), rows)
         return self._start(self.history, observe_step(self.spec, setpoint, gyro, rotor_speed), rows)
 
     def _start(self, history: ObservationHistory, step: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
@@ -135,7 +136,7 @@ class RateTask:
         return history.reset(full, rows)
 
     def on_time_observation(self) -> np.ndarray | None:
-        """The observation on-time ESC telemetry would give (None: the bus is never late or lossy)."""
+        """The observation of the readings as sampled (None: no input is ever late or lossy)."""
         return None if self.on_time is None else self.on_time.observation()
 
     def _settled(self, setpoint: np.ndarray) -> np.ndarray | None:
@@ -148,7 +149,7 @@ class RateTask:
         return self._held >= self._gate_ticks
 
     def step(self, setpoint: np.ndarray, rate: np.ndarray, gyro: np.ndarray, rotor_speed: np.ndarray,
-             pwm: np.ndarray, on_time_rotor_speed: np.ndarray | None = None
+             pwm: np.ndarray, on_time: tuple[np.ndarray, np.ndarray] | None = None
              ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
         """(observation, reward, info) after the physics step: `rate` is what the reward judges."""
         pwm = np.asarray(pwm, dtype=float)  # float32 actions give float32 PWM; Δu is float64
@@ -160,7 +161,7 @@ class RateTask:
         self._previous_u = u
         obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed, motor_output=u))
         if self.on_time is not None:
-            self.on_time.push(observe_step(self.spec, setpoint, gyro, on_time_rotor_speed, motor_output=u))
+            self.on_time.push(observe_step(self.spec, setpoint, *on_time, motor_output=u))
         return obs, reward, {"setpoint": setpoint, "rate": rate, "gyro": gyro, "pwm": pwm, **terms}
 
 
@@ -203,7 +204,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
 
     @property
     def on_time_observation(self) -> np.ndarray | None:
-        """The observation had the ESC telemetry bus been on time (`RateTask.on_time_observation`)."""
+        """The observation had the gyro and the ESC bus been on time (`RateTask.on_time_observation`)."""
         return self._task.on_time_observation()
 
     def reset(self, *, seed: int | None = None,
@@ -217,7 +218,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         frame = self._twin.reset(seed=ep.noise_seed, state=start, telemetry_seed=ep.telemetry_seed)
         self._t = 0
         setpoint = ep.setpoints[0]
-        obs = self._task.reset(setpoint, frame.gyro, frame.rotor_speed, None, self._twin.rotor_speed_sent)
+        obs = self._task.reset(setpoint, frame.gyro, frame.rotor_speed, None, self._twin.sampled)
         info = {"setpoint": setpoint.copy(), "rate": self._rate(frame.gyro), "gyro": frame.gyro,
                 "throttle": ep.throttle, "factors": dict(ep.factors)}
         return obs, info
@@ -230,7 +231,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         self._t += 1
         setpoint = self._episode.setpoints[self._t].copy()
         obs, reward, info = self._task.step(setpoint, self._rate(frame.gyro), frame.gyro, frame.rotor_speed,
-                                            pwm, self._twin.rotor_speed_sent)
+                                            pwm, self._twin.sampled)
         return obs, float(reward), False, self._t >= self._n_steps, info
 
     def _set_twin(self, airframe: Airframe) -> None:

@@ -187,12 +187,14 @@ class EnvConfig:
         return (self.noise is not None and self.noise.enabled) or self.draws_gyro_noise
 
     @property
-    def late_or_lossy_telemetry(self) -> bool:
-        """Whether some episode's ESC telemetry bus delays or loses frames: the environments then also
-        keep the observation its on-time readings would give (`RateTask.on_time_observation`)."""
-        drawn = isinstance(self.randomize, Randomization) and any(
-            key in self.randomize for key in ("esc_telemetry_delay_ticks", "esc_telemetry_loss"))
-        return drawn or self.base_airframe.telemetry_effects
+    def late_sensors(self) -> bool:
+        """Whether some episode's gyro or ESC telemetry reaches the firmware late or lossy: the
+        environments then also keep the observation of the readings as sampled
+        (`RateTask.on_time_observation`)."""
+        late = ("gyro_delay_ticks", "esc_telemetry_delay_ticks", "esc_telemetry_loss")
+        drawn = isinstance(self.randomize, Randomization) and any(key in self.randomize for key in late)
+        base = self.base_airframe
+        return drawn or bool(base.gyro_delay_ticks) or base.telemetry_effects
 
     @property
     def loses_telemetry(self) -> bool:

@@ -91,7 +91,8 @@ class Twin:
         self._plain = not (self.effects.torques or self.effects.sags or self.effects.esc_delays
                            or self.effects.shakes)
         self._omega = [0.0] * 4
-        self.rotor_speed_sent = np.zeros(4)  # the ESCs' readings as sent, before the bus delays or loses them
+        # the gyro and rotor speed readings as sampled, before the gyro's delay and the ESC bus
+        self.sampled: tuple[np.ndarray, np.ndarray] = (np.zeros(3), np.zeros(4))
         self._t_us = 0
         self._rng = np.random.default_rng()
         self._telemetry_rng = np.random.default_rng()  # which ESC frames the bus loses
@@ -190,10 +191,10 @@ class Twin:
         if self._noisy:
             gyro, accel, omega = self.sensors.read(gyro, accel, omega,
                                                    self._rng.standard_normal(SensorModel.DRAWS))
+        self.sampled = (gyro, omega)
         if fx.gyro_delays:
             gyro = fx.gyro_delayed(gyro, reset=reset)
         rotor_t_us = None
-        self.rotor_speed_sent = omega
         if fx.telemetry_effects:
             lost_draw = None if reset or not fx.loses else self._telemetry_rng.random(4)
             omega, age = fx.telemetry(omega, lost_draw, reset=reset)

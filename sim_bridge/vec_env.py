@@ -156,7 +156,7 @@ class BatchedRateEnv(VectorEnv):
 
     @property
     def on_time_observation(self) -> np.ndarray | None:
-        """Each copy's observation had its ESC telemetry bus been on time (`RateTask.on_time_observation`)."""
+        """Each copy's observation had its gyro and ESC bus been on time (`RateTask.on_time_observation`)."""
         return self._task.on_time_observation()
 
     @property
@@ -214,9 +214,9 @@ class BatchedRateEnv(VectorEnv):
         self._sens[i, 0] = d.sensordata  # the twin's first frame after reset
 
     def _measure(self, rate: np.ndarray, idx: np.ndarray, reset: bool
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
         """What the gyro and rotor speed sensors of copies `idx` report, from each copy's noise stream,
-        and the rotor speeds as the ESCs sent them (before the bus delays or loses them).
+        and both as sampled (before the gyro's delay and the ESC bus).
 
         `reset`: the copies start an episode (the gyro and telemetry delay lines start over).
         """
@@ -226,9 +226,9 @@ class BatchedRateEnv(VectorEnv):
         if self._noise is not None:
             gyro, _, omega = self._sensors.read(gyro, None, omega, self._noise.next(idx),
                                                 self._gyro_std[idx] if self.config.draws_gyro_noise else None)
+        sent = (gyro, omega)
         if fx.gyro_delays:
             gyro = fx.gyro_delayed(gyro, None if not reset else idx, reset)
-        sent = omega
         if fx.telemetry_effects:
             lost_draw = None if reset or self._lost is None else self._lost.next(idx)
             omega, _ = fx.telemetry(omega, lost_draw, None if not reset else idx, reset)

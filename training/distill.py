@@ -256,9 +256,9 @@ def fly(env, teacher: Teacher, student: Student | None, cols: tuple[np.ndarray, 
     the episode ends, the tracking error |Ω* − Ω| of the student's episodes, the next observation,
     and (`keep_union`) the whole observations both read (the student's, the teacher's).
 
-    Where the twins' ESC telemetry bus is late or lossy, the teacher reads the observation the bus
-    would have given on time (`BatchedRateEnv.on_time_observation`) and the student its own: the
-    student learns what the teacher would do had it seen the rotors now."""
+    Where the twins' gyro or ESC telemetry is late or lossy, the teacher reads the observation of
+    the readings as sampled (`BatchedRateEnv.on_time_observation`) and the student its own: the
+    student learns what the teacher would do had it seen the rates and rotors now."""
     t_cols, s_cols = cols
     n = env.num_envs
     by_teacher = np.ones(n, dtype=bool) if student is None else rng.random(n) < teacher_share

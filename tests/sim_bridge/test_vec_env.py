@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from fcemu.firmware.observation import observe_step
 from fcemu.sim_bridge.env import RateControlEnv
 from fcemu.sim_bridge.randomization import parse_randomization
 from fcemu.sim_bridge.twin import SensorNoise
@@ -33,10 +34,11 @@ CONFIGS = {
                                episode_s=0.05),
     "inflight-randomised": dict(randomize="iris_esc2", action_mapping="throttle", inflight_share=0.5,
                                 episode_s=0.05),
-    # ESC telemetry late and lossy, per copy; episodes past a block of loss draws; some nominal
+    # ESC telemetry late and lossy, the gyro late, per copy; episodes past a block of loss draws; some nominal
     "telemetry": dict(randomize=parse_randomization({"airframe": "iris", "parameters": {
         "esc_telemetry_delay_ticks": {"nominal": 0, "range": [0, 5], "unit": "ticks", "source": "test"},
-        "esc_telemetry_loss": {"nominal": 0, "range": [0, 0.4], "unit": "share", "source": "test"}}}),
+        "esc_telemetry_loss": {"nominal": 0, "range": [0, 0.4], "unit": "share", "source": "test"},
+        "gyro_delay_ticks": {"nominal": 0, "range": [0, 3], "unit": "ticks", "source": "test"}}}),
         randomize_share=0.7, action_mapping="throttle", inflight_share=0.5, episode_s=0.3),
 }
 
@@ -69,25 +71,20 @@ def _assert_matches_single_envs(batch: BatchedRateEnv, singles: list[RateControl
     return ends
 
 
-def test_the_on_time_observation_is_what_the_bus_would_have_delivered():
-    kw = CONFIGS["telemetry"]
-    env = RateControlEnv(**kw)
-    assert RateControlEnv(**CONFIGS["inflight-randomised"]).on_time_observation is None
-    spec = env.obs_spec
-    rotor = next(np.arange(cols.start, cols.stop)
-                 for cols, field, _ in spec.layout if field.source == "rotor_speed")
-    other = np.setdiff1d(np.arange(spec.step_size), rotor)
+def test_the_on_time_observation_is_what_the_sensors_sampled_before_their_delays_and_the_bus():
+    env = RateControlEnv(**CONFIGS["telemetry"])
+    assert RateControlEnv(**CONFIGS["inflight-half"]).on_time_observation is None  # nothing late
     late = 0
-    for seed in range(6):
+    for seed in range(12):
         obs, _ = env.reset(seed=seed)
         for _ in range(40):
-            obs, *_ = env.step(np.full(4, 0.3, dtype=np.float32))
-        on_time = env.on_time_observation
-        np.testing.assert_array_equal(on_time[other], obs[other])  # only the rotor speeds differ
-        sent = env.twin.rotor_speed_sent * spec.rotor_speed_scale
-        np.testing.assert_allclose(on_time[rotor], sent, rtol=1e-6)
-        late += not np.array_equal(on_time[rotor], obs[rotor])
-    assert late >= 2
+            obs, _, _, _, info = env.step(np.full(4, 0.3, dtype=np.float32))
+        sampled = observe_step(env.obs_spec, info["setpoint"], *env.twin.sampled)
+        np.testing.assert_array_equal(env.on_time_observation, sampled)
+        seen = observe_step(env.obs_spec, info["setpoint"], info["gyro"], env.twin.sampled[1])
+        np.testing.assert_array_equal(obs[:3], seen[:3])  # the rate error of the gyro the firmware read
+        late += not np.array_equal(sampled, obs)
+    assert late >= 3
 
 
 @pytest.mark.parametrize("name", CONFIGS)
