@@ -26,9 +26,9 @@ from typing import Any
 from fcemu.firmware.action import ACTION_MAPPINGS, DEFAULT_ACTION_MAPPING
 from fcemu.firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK, FIELDS, ObservationSpec
 from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME, Airframe, load_airframe
-from fcemu.sim_bridge.plant import SensorNoise
 from fcemu.sim_bridge.randomization import RELATIVE, Randomization, randomization_path, ranges_for
 from fcemu.sim_bridge.reward import REWARDS, UNWEIGHTED, RateReward
+from fcemu.sim_bridge.sensor_model import SensorNoise
 from fcemu.sim_bridge.tasks import HOLD_S, OMEGA_MAX, REST_S, TRAINING_TASKS
 
 TASKS = TRAINING_TASKS

@@ -20,7 +20,8 @@ from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf, load_airframe
 from fcemu.sim_bridge.faults import FaultInjector
-from fcemu.sim_bridge.plant import AirframeEffects, MotorModel, SensorModel, SensorNoise
+from fcemu.sim_bridge.plant import AirframeEffects, MotorModel
+from fcemu.sim_bridge.sensor_model import SensorModel, SensorNoise
 
 
 @dataclass(frozen=True)

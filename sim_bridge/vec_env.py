@@ -33,7 +33,8 @@ from mujoco import rollout
 
 from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, build_mjcf
 from fcemu.sim_bridge.env import EnvConfig, RateTask, draw_episode, with_options
-from fcemu.sim_bridge.plant import AirframeEffects, MotorModel, NoiseStreams, SensorModel
+from fcemu.sim_bridge.plant import AirframeEffects, MotorModel
+from fcemu.sim_bridge.sensor_model import NoiseStreams, SensorModel
 from fcemu.sim_bridge.twin import Twin, hover_state
 
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS.value

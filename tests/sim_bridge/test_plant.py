@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from fcemu.sim_bridge.airframe import load_airframe
-from fcemu.sim_bridge.plant import MotorModel, NoiseStreams, SensorModel, SensorNoise
+from fcemu.sim_bridge.plant import MotorModel
+from fcemu.sim_bridge.sensor_model import NoiseStreams, SensorModel, SensorNoise
 
 MOTORS = MotorModel.from_spec(load_airframe("iris").motor, 0.001)
 NOISE = SensorNoise(gyro_std=0.1, gyro_bias=(0.01, -0.02, 0.03), accel_std=0.5, accel_bias=(0.1, 0.0, -0.1),
