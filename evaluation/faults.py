@@ -20,7 +20,7 @@ import math
 import re
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -76,6 +76,7 @@ class FaultResult:
     error_after_nominal: float  # the same window of the fault-free run
     answers: dict[str, tuple[int, float]]  # verdict → (episodes, median ticks after injection)
     handover_reasons: dict[str, int]
+    answer_ticks: dict[str, list[int]] = field(default_factory=dict)  # verdict → each episode's ticks
 
     def answer_text(self) -> str:
         if not self.answers:
@@ -86,10 +87,17 @@ class FaultResult:
             parts.append(f"{label}: {n}/{self.episodes} ep., median {ticks:.0f} ticks")
         return "; ".join(parts)
 
+    def _spread(self, what: str) -> dict[str, float]:
+        ticks = self.answer_ticks.get(what)
+        if not ticks:
+            return {}
+        return {"p95_ticks": float(np.percentile(ticks, 95)), "worst_ticks": float(max(ticks))}
+
     def to_json(self) -> dict:
         return {"fault": self.fault.describe(), "episodes": self.episodes, "upright": self.upright,
                 "error_after": self.error_after, "error_after_fault_free": self.error_after_nominal,
-                "answers": {k: {"episodes": n, "median_ticks": t} for k, (n, t) in self.answers.items()},
+                "answers": {k: {"episodes": n, "median_ticks": t, **self._spread(k)}
+                            for k, (n, t) in self.answers.items()},
                 "handover_reasons": self.handover_reasons}
 
 
@@ -139,7 +147,7 @@ def fault_result(plan: FaultPlan, faulted: Traces, nominal: Traces, dt: float,
     answers = {what: (len(t), float(np.median(t))) for what, t in verdicts.items()}
     reasons = Counter(re.sub(r"\d", "N", h) for h in plan.handover if h and policy)
     return FaultResult(plan.fault, n, int(upright), _error_after(faulted, plan.ticks),
-                       _error_after(nominal, plan.ticks), answers, dict(reasons))
+                       _error_after(nominal, plan.ticks), answers, dict(reasons), verdicts)
 
 
 def fault_table(rows: Sequence[tuple[str, FaultResult]]) -> str:
