@@ -251,14 +251,14 @@ def fit(student: Student, data: Dataset, steps: int, cfg: DistillConfig, gen: to
 # ── DAgger ─────────────────────────────────────────────────────────────────────────────
 def fly(env, teacher: Teacher, student: Student | None, cols: tuple[np.ndarray, np.ndarray], steps: int,
         teacher_share: float, rng: np.random.Generator, obs: np.ndarray, bar,
-        keep_union: bool = False) -> tuple:
+        keep_union: bool = False, privileged: bool = False) -> tuple:
     """One round: every twin `steps` steps; the student's observations, the teacher's labels,
     the episode ends, the tracking error |Ω* − Ω| of the student's episodes, the next observation,
     and (`keep_union`) the whole observations both read (the student's, the teacher's).
 
-    Where the twins' gyro or ESC telemetry is late or lossy, the teacher reads the observation of
-    the readings as sampled (`BatchedRateEnv.on_time_observation`) and the student its own: the
-    student learns what the teacher would do had it seen the rates and rotors now."""
+    `privileged`: where the twins' gyro or ESC telemetry is late or lossy, the teacher reads the
+    observation of the readings as sampled (`BatchedRateEnv.on_time_observation`) and the student
+    its own: the student learns what the teacher would do had it seen the rates and rotors now."""
     t_cols, s_cols = cols
     n = env.num_envs
     by_teacher = np.ones(n, dtype=bool) if student is None else rng.random(n) < teacher_share
@@ -266,11 +266,12 @@ def fly(env, teacher: Teacher, student: Student | None, cols: tuple[np.ndarray, 
     labels = np.empty((steps, n, 4), dtype=np.float32)
     ended = np.empty((steps, n), dtype=bool)
     union = np.empty((steps, *obs.shape), dtype=np.float32) if keep_union else None
-    seen = np.empty_like(union) if keep_union and env.on_time_observation is not None else None
+    privileged = privileged and env.on_time_observation is not None
+    seen = np.empty_like(union) if keep_union and privileged else None
     errors: list[float] = []
     for k in range(steps):
         s_obs[k] = obs[:, s_cols]
-        on_time = env.on_time_observation
+        on_time = env.on_time_observation if privileged else None
         teacher_obs = obs if on_time is None else on_time
         if union is not None:
             union[k] = teacher_obs
@@ -360,7 +361,8 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
     for r in range(cfg.rounds):
         share = cfg.beta ** r
         s_obs, labels, ended, flown_error, obs, (union_obs, seen_obs) = fly(
-            env, teacher, student, cols, cfg.steps, share, rng, obs, bar, keep_union=bool(cfg.gain_weight))
+            env, teacher, student, cols, cfg.steps, share, rng, obs, bar, keep_union=bool(cfg.gain_weight),
+            privileged=cfg.privileged)
         data.add(s_obs, labels, ended)
         if student is None:  # the observation statistics, from the teacher's flights (as VecNormalize's)
             venv.obs_rms.mean = s_obs.reshape(-1, s_obs.shape[-1]).mean(0).astype(np.float64)

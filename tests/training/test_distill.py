@@ -122,11 +122,16 @@ def test_on_a_late_telemetry_bus_the_teacher_labels_what_it_would_do_on_time():
                          integral_leak=teacher.spec.integral_leak, rms_leak=teacher.spec.rms_leak)
     cols = (np.arange(teacher.spec.size),) * 2
     obs, _ = env.reset(seed=3)
-    s_obs, labels, _, _, _, (on_time, seen) = fly(env, teacher, None, cols, 30, 1.0,
-                                                  np.random.default_rng(0), obs, None, keep_union=True)
+    s_obs, labels, _, _, _, (on_time, seen) = fly(env, teacher, None, cols, 30, 1.0, np.random.default_rng(0),
+                                                  obs, None, keep_union=True, privileged=True)
     np.testing.assert_array_equal(s_obs, seen)  # the student's own, late view
     assert not np.array_equal(on_time, seen)
     np.testing.assert_allclose(labels, [teacher.act(np.ascontiguousarray(o)) for o in on_time], atol=1e-6)
+    obs, _ = env.reset(seed=3)  # not privileged: the teacher reads what the student reads
+    s_obs, labels, _, _, _, (_, seen) = fly(env, teacher, None, cols, 30, 1.0, np.random.default_rng(0),
+                                                obs, None, keep_union=True)
+    assert seen is None
+    np.testing.assert_allclose(labels, [teacher.act(np.ascontiguousarray(o)) for o in s_obs], atol=1e-6)
 
 
 def test_the_gain_match_fits_the_teachers_slopes(tmp_path):

@@ -66,6 +66,7 @@ def test_a_new_env_flag_reaches_the_environment_from_train_and_distill():
 def test_distillations_default_ranges_are_the_airframes():
     assert training_ranges("iris") == "iris_esc2"  # the shipped default's recipe
     assert DistillConfig(teacher="t.onnx").ranges() == "iris_esc2"
+    assert not DistillConfig(teacher="t.onnx").privileged  # the shipped default's recipe
     assert DistillConfig(teacher="t.onnx", randomize="none").ranges() is None
     assert DistillConfig(teacher="t.onnx", randomize="iris").ranges() == "iris"
     assert DistillConfig(teacher="t.onnx", airframe="crazyflie").ranges() == "relative"  # built for it
