@@ -98,12 +98,13 @@ class RateTask:
     `RateControlEnv` and `BatchedRateEnv` step through this, which keeps them bit-identical.
     """
 
-    def __init__(self, cfg: EnvConfig, batch_shape: tuple[int, ...] = ()) -> None:
+    def __init__(self, cfg: EnvConfig, batch_shape: tuple[int, ...] = (), on_time_view: bool = False) -> None:
         self.config, self.spec, self.reward = cfg, cfg.observation_spec, cfg.rate_reward
         self.history = ObservationHistory(self.spec, batch_shape)
-        # the observation of the readings as sampled, before the gyro's delay and the ESC bus: a
-        # distillation teacher's view (privileged: the student learns to fly the late inputs it sees)
-        self.on_time = ObservationHistory(self.spec, batch_shape) if cfg.late_sensors else None
+        # `on_time_view`: also the observation of the readings as sampled, before the gyro's delay and
+        # the ESC bus, where some are late: a distillation teacher's (privileged) view
+        keep = on_time_view and cfg.late_sensors
+        self.on_time = ObservationHistory(self.spec, batch_shape) if keep else None
         self._previous_u = np.zeros((*batch_shape, 4))
         self._first = np.ones(batch_shape, dtype=bool)  # episode starts: no previous output
         self._any_first = True
@@ -179,14 +180,15 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
     def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None,
-                 **options: Any) -> None:
-        """`config`, or EnvConfig's fields as keywords (`RateControlEnv(memory=3)`)."""
+                 on_time_view: bool = False, **options: Any) -> None:
+        """`config`, or EnvConfig's fields as keywords (`RateControlEnv(memory=3)`); `on_time_view`:
+        keep `on_time_observation` too."""
         self.config = with_options(config, options)
         self.obs_spec = self.config.observation_spec
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)
         self.render_mode = render_mode
-        self._task = RateTask(self.config)
+        self._task = RateTask(self.config, on_time_view=on_time_view)
         self._n_steps = self.config.n_steps
         self._noisy = self.config.gyro_is_not_rate
         self._factors: dict[str, float] = {}
@@ -204,7 +206,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
 
     @property
     def on_time_observation(self) -> np.ndarray | None:
-        """The observation had the gyro and the ESC bus been on time (`RateTask.on_time_observation`)."""
+        """The observation had the gyro and the ESC bus been on time (None: not kept, or nothing late)."""
         return self._task.on_time_observation()
 
     def reset(self, *, seed: int | None = None,

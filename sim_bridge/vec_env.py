@@ -47,14 +47,15 @@ class BatchedRateEnv(VectorEnv):
     """`n_envs` copies of `RateControlEnv(config)` (or of `RateControlEnv(**options)`) stepped together.
 
     `nthread` > 0 steps the physics on a MuJoCo thread pool (the results do not depend
-    on it). Info holds batch arrays: setpoint, rate, gyro, pwm, the reward terms
-    (`sim_bridge.reward.REWARD_TERMS`), and on episode ends final_obs with its mask _final_obs.
+    on it); `on_time_view` keeps `on_time_observation` too (`RateTask`). Info holds batch
+    arrays: setpoint, rate, gyro, pwm, the reward terms (`sim_bridge.reward.REWARD_TERMS`),
+    and on episode ends final_obs with its mask _final_obs.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
     def __init__(self, n_envs: int, config: EnvConfig | None = None, *, nthread: int = 0,
-                 **options: Any) -> None:
+                 on_time_view: bool = False, **options: Any) -> None:
         if n_envs < 1:
             raise ValueError(f"n_envs must be >= 1, got {n_envs}")
         cfg = self.config = with_options(config, options)
@@ -96,7 +97,7 @@ class BatchedRateEnv(VectorEnv):
         self._sched = np.zeros((n, self._n_steps + 1, 3))
         self._t = np.zeros(n, dtype=np.int64)
         self._throttle = np.zeros(n)
-        self._task = RateTask(cfg, (n,))
+        self._task = RateTask(cfg, (n,), on_time_view)
         self._rngs = [np.random.default_rng() for _ in range(n)]
         self._factors: list[dict[str, float]] = [{} for _ in range(n)]
         self._noise = NoiseStreams(n, SensorModel.DRAWS, NOISE_BLOCK) if self._noisy else None
@@ -157,7 +158,7 @@ class BatchedRateEnv(VectorEnv):
 
     @property
     def on_time_observation(self) -> np.ndarray | None:
-        """Each copy's observation had its gyro and ESC bus been on time (`RateTask.on_time_observation`)."""
+        """Each copy's observation had its gyro and ESC bus been on time (None: not kept, or nothing late)."""
         return self._task.on_time_observation()
 
     @property

@@ -347,7 +347,7 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # PPO's batch size against one twin's rollout: never rolled out
         model = make_model(train_cfg, venv, out / "tb")
-    env = BatchedRateEnv(cfg.envs, **env_kwargs)
+    env = BatchedRateEnv(cfg.envs, on_time_view=cfg.privileged, **env_kwargs)
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     data, student, history = Dataset(), None, []

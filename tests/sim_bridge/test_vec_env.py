@@ -72,8 +72,10 @@ def _assert_matches_single_envs(batch: BatchedRateEnv, singles: list[RateControl
 
 
 def test_the_on_time_observation_is_what_the_sensors_sampled_before_their_delays_and_the_bus():
-    env = RateControlEnv(**CONFIGS["telemetry"])
-    assert RateControlEnv(**CONFIGS["inflight-half"]).on_time_observation is None  # nothing late
+    env = RateControlEnv(on_time_view=True, **CONFIGS["telemetry"])
+    nothing_late = RateControlEnv(on_time_view=True, **CONFIGS["inflight-half"])
+    assert nothing_late.on_time_observation is None
+    assert RateControlEnv(**CONFIGS["telemetry"]).on_time_observation is None  # not asked for
     late = 0
     for seed in range(12):
         obs, _ = env.reset(seed=seed)
@@ -92,7 +94,8 @@ def test_batch_is_bit_identical_to_single_envs_across_auto_resets(name):
     kw = CONFIGS[name]
     n = 3
     steps = 700 if kw["episode_s"] > 0.1 else 160
-    ends = _assert_matches_single_envs(BatchedRateEnv(n, **kw), [RateControlEnv(**kw) for _ in range(n)],
+    ends = _assert_matches_single_envs(BatchedRateEnv(n, on_time_view=True, **kw),
+                                       [RateControlEnv(on_time_view=True, **kw) for _ in range(n)],
                                        seed=10, steps=steps)
     assert ends >= 2 * n  # several auto-resets per copy
     if "noise" in kw:

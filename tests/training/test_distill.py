@@ -117,8 +117,9 @@ def test_on_a_late_telemetry_bus_the_teacher_labels_what_it_would_do_on_time():
     teacher = Teacher(TEACHER)
     late = parse_randomization({"airframe": "iris", "parameters": {"esc_telemetry_delay_ticks": {
         "nominal": 0, "range": [3, 3], "unit": "ticks", "source": "test"}}})
-    env = BatchedRateEnv(3, randomize=late, memory=teacher.spec.memory, obs_fields=teacher.spec.fields,
-                         action_mapping="throttle", throttle=0.6, episode_s=0.1, reward="unclipped",
+    env = BatchedRateEnv(3, on_time_view=True, randomize=late, memory=teacher.spec.memory,
+                         obs_fields=teacher.spec.fields, action_mapping="throttle", throttle=0.6,
+                         episode_s=0.1, reward="unclipped",
                          integral_leak=teacher.spec.integral_leak, rms_leak=teacher.spec.rms_leak)
     cols = (np.arange(teacher.spec.size),) * 2
     obs, _ = env.reset(seed=3)
