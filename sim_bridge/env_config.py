@@ -26,7 +26,13 @@ from typing import Any
 from fcemu.firmware.action import ACTION_MAPPINGS, DEFAULT_ACTION_MAPPING
 from fcemu.firmware.observation import DEFAULT_LEAK, DEFAULT_RMS_LEAK, FIELDS, ObservationSpec
 from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME, Airframe, load_airframe
-from fcemu.sim_bridge.randomization import RELATIVE, Randomization, randomization_path, ranges_for
+from fcemu.sim_bridge.randomization import (
+    BUS_PARAMETERS,
+    RELATIVE,
+    Randomization,
+    randomization_path,
+    ranges_for,
+)
 from fcemu.sim_bridge.reward import REWARDS, UNWEIGHTED, RateReward
 from fcemu.sim_bridge.sensor_model import SensorNoise
 from fcemu.sim_bridge.tasks import HOLD_S, OMEGA_MAX, REST_S, TRAINING_TASKS
@@ -188,10 +194,9 @@ class EnvConfig:
 
     @property
     def late_sensors(self) -> bool:
-        """Whether some episode's gyro or ESC telemetry reaches the firmware late or lossy: the
-        environments then also keep the observation of the readings as sampled
-        (`RateTask.on_time_observation`)."""
-        late = ("gyro_delay_ticks", "esc_telemetry_delay_ticks", "esc_telemetry_loss")
+        """Whether some episode's gyro or ESC telemetry reaches the firmware late or lossy: only then
+        is there an observation of the readings as sampled to keep (`RateTask`'s `on_time_view`)."""
+        late = BUS_PARAMETERS | {"gyro_delay_ticks"}
         drawn = isinstance(self.randomize, Randomization) and any(key in self.randomize for key in late)
         base = self.base_airframe
         return drawn or bool(base.gyro_delay_ticks) or base.telemetry_effects

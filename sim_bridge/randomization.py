@@ -77,7 +77,7 @@ PARAMETERS: dict[str, Parameter] = {
     "esc_telemetry_delay_ticks": _effect("esc_telemetry_delay_ticks", "ticks"),
     "esc_telemetry_loss": _effect("esc_telemetry_loss"),
 }
-# The ESC telemetry bus. The default's distillation ranges draw it (iris_sensors); the perturbation
+# The ESC telemetry bus. The bus-aware training ranges draw it (iris_sensors); the perturbation
 # ranges (iris, relative) do not: a late bus is judged by the health rules and the faults table,
 # and on a perturbed airframe it would hand the policy to the PID mid-flight and mix the two.
 BUS_PARAMETERS = frozenset({"esc_telemetry_delay_ticks", "esc_telemetry_loss"})
