@@ -24,7 +24,9 @@ class RateController(Protocol):
 
     `update` is called once per tick with the tick's period `dt` in seconds; it must
     return finite PWM in [1000, 2000]. The loop sends 1000 itself while disarmed and
-    calls `reset` on arming, so the controller never sees disarmed ticks.
+    calls `reset` on arming, so the controller never sees disarmed ticks. A controller that
+    can start in flight without a bump also has `take_over(setpoint, frame)`, which the loop
+    calls instead of `reset` when it switches to it mid-flight (the PID: firmware/pid.py).
     """
 
     name: str

@@ -134,7 +134,7 @@ class FlightLoop:
             pwm = DISARMED_PWM
         else:
             if not self._armed or name != self._active:
-                self._switch(name)
+                self._switch(name, command.setpoint, frame)
             pwm, name = self._run_controller(name, command.setpoint, frame)
         self._armed = command.armed
         plant_start = time.perf_counter_ns()
@@ -152,10 +152,15 @@ class FlightLoop:
         for _ in range(slots):
             self.frame = self.plant.pwm_write(pwm)
 
-    def _switch(self, name: str) -> None:
+    def _switch(self, name: str, setpoint: RateSetpoint, frame: SensorFrame) -> None:
+        """On arming a controller starts from reset; in flight one that can takes over bumplessly."""
         controller = self.controllers.get(name)
         if controller is not None:
-            controller.reset()
+            take_over = getattr(controller, "take_over", None)
+            if self._armed and take_over is not None:
+                take_over(setpoint, frame)
+            else:
+                controller.reset()
         self._active = name
 
     def _run_controller(self, name: str, setpoint: RateSetpoint,

@@ -158,6 +158,24 @@ class RatePID:
             ax.ff_lpf.reset(0.0)
             ax.p_lpf.reset(0.0)
 
+    def take_over(self, setpoint: Sequence[float], gyro: Sequence[float]) -> None:
+        """Start mid-flight from another controller, as Betaflight's PID does when NEURAL drops.
+
+        There its filters and setpoint derivative ran all along and only the I-term is reset;
+        here they start where the gyro and the setpoint are, so neither D nor feedforward kicks.
+        The I-term starts at zero rather than at the other controller's last output: that output
+        is a snapshot of a controller being handed over for bad inputs, often mid-oscillation
+        (seeded from it, a late-telemetry hand-over flew 10x worse than from zero).
+        """
+        self.reset()
+        for ax, sp, raw in zip(self._axes, setpoint, gyro, strict=True):
+            for filt in (ax.gyro_lpf, ax.gyro_lpf2, ax.dterm_lpf, ax.dterm_lpf2):
+                filt.reset(raw)
+            ax.d_prev = raw
+            ax.sp_prev = sp
+            ax.relax_lpf.reset(sp)
+            ax.p_lpf.reset(ax.kp * (sp - raw))
+
     def _configure(self, reset_state: bool) -> None:
         g, dt = self.gains, self.dt
         if dt <= 0.0:

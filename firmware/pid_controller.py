@@ -92,6 +92,11 @@ class PIDRateController:
         self.pid.reset()
         self.mixer.reset()
 
+    def take_over(self, setpoint: RateSetpoint, frame: SensorFrame) -> None:
+        """Start mid-flight from another controller: no D or feedforward kick (`RatePID.take_over`)."""
+        self.pid.take_over(np.asarray(setpoint.rates, dtype=float).tolist(), frame.gyro.tolist())
+        self.mixer.reset()
+
     def update(self, setpoint: RateSetpoint, frame: SensorFrame, dt: float) -> np.ndarray:
         nominal = self.pid.dt
         if abs(dt - nominal) > 0.2 * nominal:

@@ -93,6 +93,32 @@ def test_disarmed_sends_1000_and_arming_resets_the_controller():
     assert ctl.resets == 1
 
 
+class TakingOverController(ConstantController):
+    def __init__(self, pwm: float = 1450.0) -> None:
+        super().__init__(pwm)
+        self.taken_over: list[tuple[RateSetpoint, SensorFrame]] = []
+
+    def take_over(self, setpoint: RateSetpoint, frame: SensorFrame) -> None:
+        self.taken_over.append((setpoint, frame))
+
+
+def test_a_controller_switched_to_in_flight_takes_over_and_one_armed_into_resets():
+    backup = TakingOverController()
+    commander = type("C", (), {})()
+    commander.command = lambda t_us, frame: Command(
+        True, RateSetpoint(np.array([1.0, 0.0, 0.0]), 0.5), "main" if t_us < 5000 else "backup")
+    loop, _, rec = make_loop({"main": ConstantController(), "backup": backup}, commander)
+    loop.run(0.01)
+    assert backup.resets == 0 and len(backup.taken_over) == 1
+    setpoint, frame = backup.taken_over[0]
+    switched = next(s for s in rec.samples if s.controller == "backup")
+    assert frame is switched.frame and setpoint.rates[0] == 1.0
+    first = TakingOverController()
+    loop, _, _ = make_loop({"main": first}, armed())
+    loop.run(0.005)
+    assert first.resets == 1 and first.taken_over == []
+
+
 @pytest.mark.parametrize("bad", [[np.nan, 1500, 1500, 1500], [1500, 2500, 1500, 1500], [1500, 1500],
                                  RuntimeError("boom")])
 def test_bad_controller_output_goes_to_the_fallback_and_is_counted(bad):

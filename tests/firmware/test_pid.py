@@ -184,6 +184,24 @@ def test_reset_clears_state_and_arming_while_rotating_gives_no_d_kick():
     assert out[0] == pytest.approx(pid.terms["i"][0])
 
 
+def test_take_over_mid_step_starts_from_p_alone_without_a_feedforward_or_d_kick():
+    gains = bare(kp=(40.0, 40.0, 40.0), ki=(10.0, 10.0, 10.0), kd=(0.01, 0.01, 0.01), kff=(0.02, 0.02, 0.02),
+                 dterm_lowpass_hz=80.0, gyro_lowpass_hz=100.0, iterm_relax="rp")
+    pid = RatePID(gains, DT)
+    for _ in range(100):
+        pid.update([1.0, 1.0, 1.0], ZERO)
+    sp, gyro = [3.0, -2.0, 1.0], [2.5, -1.0, 0.0]  # another controller flew to here, mid-step
+    pid.take_over(sp, gyro)
+    out = pid.update(sp, gyro)
+    assert pid.terms["d"] == [0.0, 0.0, 0.0] and pid.terms["f"] == [0.0, 0.0, 0.0]
+    p = [40.0 * GAIN_SCALE * (s - g) for s, g in zip(sp, gyro, strict=True)]
+    assert out == pytest.approx([pi + ii for pi, ii in zip(p, pid.terms["i"], strict=True)], rel=1e-12)
+    assert max(map(abs, pid.terms["i"])) < 1e-3  # what it integrated before is gone
+    pid.reset()
+    kicked = pid.update(sp, gyro)  # from reset, the setpoint seems to jump from 0: a feedforward kick
+    assert abs(pid.terms["f"][0]) > 1.0 and kicked != out
+
+
 def test_set_gains_keeps_i_and_set_dt_keeps_integral_units():
     pid = RatePID(bare(ki=(10.0, 10.0, 10.0)), DT)
     for _ in range(100):
