@@ -83,7 +83,8 @@ class FaultResult:
             return "none"
         parts = []
         for what, (n, ticks) in sorted(self.answers.items(), key=lambda kv: kv[1][1]):
-            label = {"handover": "PID takes over", "gyro_failed": "gyro failed → LAND"}.get(what, what)
+            label = {"handover": "PID takes over", "gyro_failed": "gyro failed → LAND",
+                     "esc_late": "rotor speed read ahead"}.get(what, what)
             parts.append(f"{label}: {n}/{self.episodes} ep., median {ticks:.0f} ticks")
         return "; ".join(parts)
 

@@ -148,21 +148,30 @@ def _telemetry_of(pwm: list[np.ndarray], delay: int, gain: float = 1.0) -> list[
     return [out[0]] * delay + out[: len(out) - delay]
 
 
-def test_late_telemetry_is_found_by_its_lag_behind_the_commanded_speed() -> None:
-    """The delay that best fits the telemetry to the model of the commanded speed: 5 ms is handed over
-    within 100 ms of moving commands, 2 ms (an ESC's own pipeline) is not, nor is a still rotor."""
+def test_late_telemetry_is_found_by_its_lag_and_brought_forward_by_the_model() -> None:
+    """The delay that best fits the telemetry to the model of the commanded speed: 5 ms is found within
+    100 ms of moving commands and the policy flies on readings brought forward by the model over the
+    fitted lag; 2 ms (an ESC's own pipeline) is not found, nor is a still rotor."""
     pwm = [np.array([1600.0, 1600.0, 1600.0, 1600.0]) + 80.0 * math.sin(k / 15.0) * np.array([1, -1, -1, 1])
            for k in range(400)]
+    on_time = np.array(_telemetry_of(pwm, 0))
+
+    read: list[np.ndarray] = []
 
     def fly(delay: int, commands: list[np.ndarray], gain: float = 1.0) -> HealthMonitor:
         m = HealthMonitor(IRIS_RULES)
+        read.clear()
         for k, (p, w) in enumerate(zip(commands, _telemetry_of(commands, delay, gain), strict=True)):
-            m.check(_frame(k, _hover(k)[0], w), p)  # the reading after `p` was written
+            read.append(m.check(_frame(k, _hover(k)[0], w), p).rotor_speed)  # the reading after `p`
         return m
 
-    late = fly(5, pwm)
-    assert late.handover.startswith("rotor speed") and late.handover.endswith("lagging")
-    assert late.detected["handover"] < 100
+    for delay in (5, 10):
+        late = fly(delay, pwm)
+        assert late.policy_trusted and not late.handover and late.detected["esc_late"] < 100
+        after = late.detected["esc_late"] + 1
+        raw = np.abs(np.array(_telemetry_of(pwm, delay))[after:] - on_time[after:]).mean()
+        brought_forward = np.abs(np.array(read)[after:] - on_time[after:]).mean()
+        assert raw > 10.0 and brought_forward < 0.02 * raw, (delay, raw, brought_forward)
     assert not fly(2, pwm).detected
     assert not fly(0, pwm).detected
     still = [np.full(4, 1600.0)] * 400
@@ -214,8 +223,13 @@ def test_the_loop_flies_the_pid_once_the_policy_cannot_be_trusted() -> None:
     flown, loop = _fly_policy(Fault("esc-telemetry", "intermittent", 2, 0.5))
     assert set(flown[:200]) == {"main"} and flown[-1] == "pid" and not loop.faults
     assert loop.health.handover == "rotor speed 2 losing frames"
+
+
+
+def test_the_policy_flies_on_late_telemetry_brought_forward() -> None:
     flown, loop = _fly_policy(Fault("esc-telemetry", "delayed", 0, 0.005), at=150)
-    assert loop.health.handover.endswith("lagging") and loop.health.detected["handover"] - 150 <= 100
+    assert set(flown) == {"main"} and loop.health.policy_trusted
+    assert loop.health.detected["esc_late"] - 150 <= 100
 
 
 def test_the_policy_flies_on_through_ordinary_telemetry_loss() -> None:
