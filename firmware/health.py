@@ -340,7 +340,7 @@ class LagFit:
         self.misfit = (r.esc_lag_misfit * r.rotor_speed_max) ** 2 / (1.0 - keep)
         self.sums = [0.0] * 6
         self.over = 0  # ticks in a row the fit has been late
-        self.lag = 0.0  # the last lag fitted while the model moved, in ticks
+        self.lag = 0.0  # the last lag the fit judged (ticks): how far a late bus is read ahead
 
     def late(self, v: float, m: float, dm: float) -> bool:
         """Add the sample `v` against the model's speed `m` and slope `dm`; True once the fit has put
@@ -357,11 +357,12 @@ class LagFit:
         late = False
         if sums[0] > self.motion and det > 0.0:
             lag = (sums[3] * sums[2] - sums[1] * sums[4]) / det
-            self.lag = lag
             gain_error = (sums[0] * sums[4] - sums[1] * sums[3]) / det
             left_by_gain = sums[5] - sums[4] * sums[4] / sums[2]
             left = sums[5] - lag * sums[3] - gain_error * sums[4]
-            late = (lag > self.limit and abs(gain_error) < r.esc_lag_gain_max and left_by_gain > self.misfit
-                    and left_by_gain - left > r.esc_lag_explains * left_by_gain)
+            if (abs(gain_error) < r.esc_lag_gain_max and left_by_gain > self.misfit
+                    and left_by_gain - left > r.esc_lag_explains * left_by_gain):
+                self.lag = lag  # a fit the delay explains; an early or still one can be anything
+                late = lag > self.limit
         self.over = self.over + 1 if late else 0
         return self.over >= r.esc_lag_ticks

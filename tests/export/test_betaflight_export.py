@@ -126,6 +126,7 @@ def test_the_lag_rule_s_motor_model_is_the_policy_airframe_s_and_none_without_on
     assert motor == pytest.approx([iris.rotor_speed_max, iris.pwm_min, iris.pwm_max, iris.motor_tau_up_s,
                                    iris.motor_tau_down_s], rel=1e-7)  # float32 literals
     assert (values["NEURAL_LAG_BASE_TICKS"], values["NEURAL_LAG_TICKS"]) == (6, iris.esc_lag_ticks)
+    assert values["NEURAL_LAG_AHEAD_TICKS"] == round(iris.esc_max_age_s * 1000)  # HealthMonitor's reach
     assert values["NEURAL_LAG_MISFIT"] == pytest.approx(iris.esc_lag_misfit, rel=1e-7)
     unknown = health_header({**check_contract(SHIPPED), "airframe": None,
                              "motor_model": motor_model_of("an-airframe-not-shipped")})

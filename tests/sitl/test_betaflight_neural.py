@@ -114,12 +114,14 @@ def test_lost_rpm_frames_are_held_and_neural_flies_on(telemetry_faults):
 
 
 @pytest.mark.slow
-def test_rpm_telemetry_5_ms_late_drops_neural_within_100_ms(telemetry_faults):
-    row = telemetry_faults["esc-telemetry:delayed:5ms"]
-    assert row["dropped"] == "rpm lagging" and row["state"] == "rpm lagging", row
-    assert row["dropped_after_ticks"] <= 100 and row["max_lag_us"] > 4000, row  # 5 ms and the link's step
+def test_rpm_telemetry_5_ms_late_is_found_and_read_ahead_and_neural_flies_on(telemetry_faults):
+    row, clean = telemetry_faults["esc-telemetry:delayed:5ms"], telemetry_faults["fault-free"]
+    assert row["max_lag_us"] > 4000, row  # found: 5 ms and the link's step, past neural_esc_max_lag_us
+    assert row["dropped"] == "" and row["state"] == "flying" and row["policy_ticks"] >= TICKS - 5, row
+    # read ahead by the model, the policy tracks as it does on time (late and not read ahead: 31x)
+    assert row["roll_error_rad_s"] <= 2.0 * clean["roll_error_rad_s"], row
     # every frame arrives 5 ticks late (fewer loop ticks where the real-time SITL merged simulator steps
-    # under load): an age, under the age limit, so the lag rule decided
+    # under load): an age, under the age limit
     assert 1 <= row["max_rpm_age_ticks"] < 20, row
 
 
