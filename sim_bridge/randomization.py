@@ -77,9 +77,9 @@ PARAMETERS: dict[str, Parameter] = {
     "esc_telemetry_delay_ticks": _effect("esc_telemetry_delay_ticks", "ticks"),
     "esc_telemetry_loss": _effect("esc_telemetry_loss"),
 }
-# The ESC telemetry bus. The bus-aware training ranges draw it (iris_sensors); the perturbation
-# ranges (iris, relative) do not: a late bus is judged by the health rules and the faults table,
-# and on a perturbed airframe it would hand the policy to the PID mid-flight and mix the two.
+# The ESC telemetry bus. The bus-aware training ranges draw it (iris_sensors, the default's); the
+# perturbation ranges (iris, relative) do not: a late bus is judged by the health rules (read
+# ahead) and the faults table, and on a perturbed airframe it would mix them into the bar's lines.
 BUS_PARAMETERS = frozenset({"esc_telemetry_delay_ticks", "esc_telemetry_loss"})
 GYRO_KEYWORDS = frozenset({"gyro_noise_std", "gyro_vibration", "gyro_delay_ticks"})
 
