@@ -6,9 +6,14 @@ B, the angular acceleration per newton of each motor's thrust, the inertia, the 
 coefficient, the top rotor speed and the motors' first-order lags. From what the policy
 observes (rate error, rates, rotor speeds) it asks, per tick:
 
-1. an angular acceleration α* = (e − dt·α_now)/T_c that closes the rate error e with the time
-   constant T_c = `lag_multiple` × the motors' mean lag, e predicted one tick ahead (the gyro's
-   sample is a tick old), less the gyroscopic term −I⁻¹(Ω × IΩ) the body adds by itself;
+1. an angular acceleration that closes the rate error e as a second-order system with natural
+   frequency ω = 1/T_c (T_c = `lag_multiple` × the motors' mean lag) and damping ζ (`damping`):
+   α* = α_now + dt·(ω²·e − 2ζω·α_now), e predicted one tick ahead (the gyro's sample is a tick
+   old), less the gyroscopic term −I⁻¹(Ω × IΩ) the body adds by itself. Its α moves at most at
+   ω²·e per second, so the motors are no rougher than the tuned PID's, and it overshoots a few
+   percent where a first-order law (`damping` None: α* = (e − dt·α_now)/T_c) rises on an
+   exponential tail; on the racer the second-order law's student flies 0.995 × the PID against
+   the first-order's 1.128 × (docs/training_notes.md, 2026-11-27, a teacher of second order);
 2. the thrusts that give it, within what each rotor can reach by the next tick (its lag from
    its present speed). Two allocations are tried, and the one whose torque lands nearer α*
    (roll and pitch weighted 10 to yaw's 1) is taken: the change of torque with roll and pitch
@@ -34,7 +39,8 @@ from fcemu.firmware.observation import FIELDS, RATE, ObservationSpec
 from fcemu.sim_bridge.airframe import Airframe, load_airframe
 
 ROLL_PITCH_WEIGHT = 10.0  # the torque error's weight on roll and pitch against yaw's 1
-LAG_MULTIPLE = 0.8  # T_c in motor lags: 0.5 is faster and about twice as rough (docs/results/fit.md)
+LAG_MULTIPLE = 0.5  # T_c = 1/ω in motor lags (docs/training_notes.md, 2026-11-27, a teacher of second order)
+DAMPING = 0.7  # ζ: about 4 % of overshoot (0.5: 15 %, more Error for a faster Rise)
 BISECTIONS = 30
 SPEC_FIELDS = (*FIELDS, RATE)
 
@@ -80,7 +86,7 @@ class InversionTeacher:
     action_mapping = "throttle"
 
     def __init__(self, airframe: str | Airframe, lag_multiple: float = LAG_MULTIPLE,
-                 throttle: float | None = None, dt: float = 0.001) -> None:
+                 throttle: float | None = None, dt: float = 0.001, damping: float | None = DAMPING) -> None:
         af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
         if not lag_multiple > 0.0:
             raise ValueError(f"the inversion teacher's lag multiple must be > 0, got {lag_multiple}")
@@ -88,6 +94,7 @@ class InversionTeacher:
         self.model = m = InversionModel.of(af, dt)
         self.dt = dt
         self.time_constant = lag_multiple * m.lag_s
+        self.damping = damping
         self.throttle = float(af.hover_throttle() if throttle is None else throttle)
         self.spec = ObservationSpec(memory=1, fields=SPEC_FIELDS, max_rotor_speed=m.w_max)
         # [B; 1 1 1 1]⁻¹'s first three columns: a torque's thrusts with no change of the collective
@@ -108,7 +115,12 @@ class InversionTeacher:
         t_max = m.kf * m.w_max**2
         gyroscopic = -np.cross(rates, m.inertia * rates) / m.inertia
         now = thrust @ m.B.T + gyroscopic
-        wanted = (error - self.dt * now) / self.time_constant - gyroscopic  # from the thrusts, rad/s²
+        ahead = error - self.dt * now
+        if self.damping is None:
+            wanted = ahead / self.time_constant - gyroscopic  # from the thrusts, rad/s²
+        else:
+            omega = 1.0 / self.time_constant
+            wanted = now + self.dt * (omega * omega * ahead - 2.0 * self.damping * omega * now) - gyroscopic
         lo = m.kf * (w * (1.0 - m.a_down)) ** 2 - thrust  # each rotor's reach by the next tick
         hi = m.kf * (w + m.a_up * (m.w_max - w)) ** 2 - thrust
         hover = m.kf * (throttle * m.w_max) ** 2 / 4.0
