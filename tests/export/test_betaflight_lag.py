@@ -17,6 +17,7 @@ from fcemu.firmware.health import HealthMonitor, HealthRules
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from tests.export.mcu_tools import SHIPPED
+from tests.firmware.test_health import _telemetry_of as telemetry_of
 
 RULES = HealthRules.for_airframe(airframe_spec("iris"))
 
@@ -77,16 +78,7 @@ def _flight(delay: int, ticks: int = 400) -> tuple[list[np.ndarray], list[list[f
     """Commands that move, and the Iris's rotors following them, reported `delay` ticks late."""
     swing = np.array([1.0, -1.0, -1.0, 1.0])
     pwm = [np.full(4, 1600.0) + 80.0 * math.sin(k / 15.0) * swing for k in range(ticks)]
-    up = 1.0 - math.exp(-1e-3 / RULES.motor_tau_up_s)
-    down = 1.0 - math.exp(-1e-3 / RULES.motor_tau_down_s)
-    per_us = RULES.rotor_speed_max / (RULES.pwm_max - RULES.pwm_min)
-    speed = [(pwm[0][i] - RULES.pwm_min) * per_us for i in range(4)]
-    out = []
-    for p in pwm:
-        command = [(v - RULES.pwm_min) * per_us for v in p]
-        speed = [w + (up if c > w else down) * (c - w) for w, c in zip(speed, command, strict=True)]
-        out.append(speed)
-    return pwm, [out[0]] * delay + out[: ticks - delay]
+    return pwm, telemetry_of(pwm, delay)
 
 
 @pytest.mark.parametrize("delay", [0, 2, 5, 10])
