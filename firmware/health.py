@@ -34,10 +34,10 @@ firmware's answers"):
   a dead motor, is not late); d beyond `esc_max_lag_s` (NN_ESC_MAX_LAG) for `esc_lag_ticks`
   ticks in a row is late beyond the ESC's own pipeline, and the policy flies on: from then on every
   motor's readings (one late motor says the bus is late) are brought forward by the model over
-  that motor's fitted lag, w + m(t) − m(t − d) (a Smith predictor: the reading keeps what the
+  that motor's last judged lag, w + m(t) − m(t − d) (a Smith predictor: the reading keeps what the
   model misses, a sagging battery, and gains the change the lag hides). A late ESC handed over
   to the PID cost the default 3.3× its fault-free Error at 5 ms; brought forward, 1.3×
-  (docs/results/faults.md). A fitted lag past `esc_max_age_s` (a reading that old says little
+  (docs/results/faults.md). A judged lag past `esc_max_age_s` (a reading that old says little
   of the rotor now) hands over.
 - Rotor speed stale: a motor's new samples bit-identical for `rotor_stale_ticks` ticks while its
   PWM moved more than `stale_pwm_us` from where it was when the reading last changed. Rotor speed
