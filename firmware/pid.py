@@ -162,16 +162,14 @@ class RatePID:
         """Start mid-flight from another controller, as Betaflight's PID does when NEURAL drops.
 
         There its filters and setpoint derivative ran all along and only the I-term is reset;
-        here they start where the gyro and the setpoint are, so neither D nor feedforward kicks.
-        The I-term starts at zero rather than at the other controller's last output: that output
-        is a snapshot of a controller being handed over for bad inputs, often mid-oscillation
-        (seeded from it, a late-telemetry hand-over flew 10x worse than from zero).
+        here they start where the gyro and the setpoint are (the gyro's filters as after `reset`,
+        from the next update's sample), so neither D nor feedforward kicks. The I-term starts at
+        zero rather than at the other controller's last output: that output is a snapshot of a
+        controller being handed over for bad inputs, often mid-oscillation (seeded from it, a
+        late-telemetry hand-over flew 10x worse than from zero).
         """
         self.reset()
         for ax, sp, raw in zip(self._axes, setpoint, gyro, strict=True):
-            for filt in (ax.gyro_lpf, ax.gyro_lpf2, ax.dterm_lpf, ax.dterm_lpf2):
-                filt.reset(raw)
-            ax.d_prev = raw
             ax.sp_prev = sp
             ax.relax_lpf.reset(sp)
             ax.p_lpf.reset(ax.kp * (sp - raw))
