@@ -122,6 +122,12 @@ class HealthRules:
                    motor_tau_up_s=airframe.motor_tau_up, motor_tau_down_s=airframe.motor_tau_down)
 
 
+def read_ahead_ticks(esc_lag_base_s: float, esc_max_age_s: float, dt: float) -> int:
+    """The most ticks a late reading is brought forward: `esc_max_age_s` (NN_ESC_MAX_AGE), and at
+    least the model's slope base. Betaflight's patch reads ahead as far (NEURAL_LAG_AHEAD_TICKS)."""
+    return max(1, round(esc_lag_base_s / dt), round(esc_max_age_s / dt))
+
+
 class HealthMonitor:
     """The rules above for one vehicle; `detected` maps each verdict to the tick it was reached."""
 
@@ -135,7 +141,7 @@ class HealthMonitor:
         self._esc_max_age_us = r.esc_max_age_s * 1e6
         self._loss_gain = 1.0 - math.exp(-dt / r.esc_loss_window_s)
         self._lag_base = max(1, round(r.esc_lag_base_s / dt))
-        self._max_lag = max(self._lag_base, round(r.esc_max_age_s / dt))  # ticks a reading is brought forward
+        self._max_lag = read_ahead_ticks(r.esc_lag_base_s, r.esc_max_age_s, dt)
         self._speed_per_us = r.rotor_speed_max / (r.pwm_max - r.pwm_min)
         self._tolerance = r.rotor_tolerance * r.rotor_speed_max
         self.outbox: list[tuple[int, str]] = []
