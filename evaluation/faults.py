@@ -20,7 +20,7 @@ import math
 import re
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -74,9 +74,13 @@ class FaultResult:
     upright: int
     error_after: float  # Σ over axes of the mean Error from the fault tick on
     error_after_nominal: float  # the same window of the fault-free run
-    answers: dict[str, tuple[int, float]]  # verdict → (episodes, median ticks after injection)
+    answer_ticks: dict[str, list[int]]  # verdict → each episode's ticks after injection
     handover_reasons: dict[str, int]
-    answer_ticks: dict[str, list[int]] = field(default_factory=dict)  # verdict → each episode's ticks
+
+    @property
+    def answers(self) -> dict[str, tuple[int, float]]:
+        """Verdict → (episodes, median ticks after injection)."""
+        return {what: (len(t), float(np.median(t))) for what, t in self.answer_ticks.items()}
 
     def answer_text(self) -> str:
         if not self.answers:
@@ -88,17 +92,12 @@ class FaultResult:
             parts.append(f"{label}: {n}/{self.episodes} ep., median {ticks:.0f} ticks")
         return "; ".join(parts)
 
-    def _spread(self, what: str) -> dict[str, float]:
-        ticks = self.answer_ticks.get(what)
-        if not ticks:
-            return {}
-        return {"p95_ticks": float(np.percentile(ticks, 95)), "worst_ticks": float(max(ticks))}
-
     def to_json(self) -> dict:
         return {"fault": self.fault.describe(), "episodes": self.episodes, "upright": self.upright,
                 "error_after": self.error_after, "error_after_fault_free": self.error_after_nominal,
-                "answers": {k: {"episodes": n, "median_ticks": t, **self._spread(k)}
-                            for k, (n, t) in self.answers.items()},
+                "answers": {k: {"episodes": len(t), "median_ticks": float(np.median(t)),
+                                "p95_ticks": float(np.percentile(t, 95)), "worst_ticks": float(max(t))}
+                            for k, t in self.answer_ticks.items()},
                 "handover_reasons": self.handover_reasons}
 
 
@@ -145,10 +144,9 @@ def fault_result(plan: FaultPlan, faulted: Traces, nominal: Traces, dt: float,
             if what == "handover" and not policy:
                 continue
             verdicts.setdefault(what, []).append(ticks)
-    answers = {what: (len(t), float(np.median(t))) for what, t in verdicts.items()}
     reasons = Counter(re.sub(r"\d", "N", h) for h in plan.handover if h and policy)
     return FaultResult(plan.fault, n, int(upright), _error_after(faulted, plan.ticks),
-                       _error_after(nominal, plan.ticks), answers, dict(reasons), verdicts)
+                       _error_after(nominal, plan.ticks), verdicts, dict(reasons))
 
 
 def fault_table(rows: Sequence[tuple[str, FaultResult]]) -> str:
