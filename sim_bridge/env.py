@@ -98,12 +98,14 @@ class RateTask:
     `RateControlEnv` and `BatchedRateEnv` step through this, which keeps them bit-identical.
     """
 
-    def __init__(self, cfg: EnvConfig, batch_shape: tuple[int, ...] = (), on_time_view: bool = False) -> None:
+    def __init__(self, cfg: EnvConfig, batch_shape: tuple[int, ...] = (), on_time_view: bool = False,
+                 always: bool = False) -> None:
         self.config, self.spec, self.reward = cfg, cfg.observation_spec, cfg.rate_reward
         self.history = ObservationHistory(self.spec, batch_shape)
         # `on_time_view`: also the observation of the readings as sampled, before the gyro's delay and
-        # the ESC bus, where some are late: a distillation teacher's (privileged) view
-        keep = on_time_view and cfg.late_sensors
+        # the ESC bus, where some are late (`always`: whether or not they are, for a view of the truth):
+        # a distillation teacher's (privileged) view
+        keep = on_time_view and (always or cfg.late_sensors)
         self.on_time = ObservationHistory(self.spec, batch_shape) if keep else None
         self._previous_u = np.zeros((*batch_shape, 4))
         self._first = np.ones(batch_shape, dtype=bool)  # episode starts: no previous output

@@ -47,7 +47,8 @@ class BatchedRateEnv(VectorEnv):
     """`n_envs` copies of `RateControlEnv(config)` (or of `RateControlEnv(**options)`) stepped together.
 
     `nthread` > 0 steps the physics on a MuJoCo thread pool (the results do not depend
-    on it); `on_time_view` keeps `on_time_observation` too (`RateTask`). Info holds batch
+    on it); `on_time_view` keeps `on_time_observation` too (`RateTask`), and with `truth_view` that
+    view is the true rates and rotor speeds (no delay, loss, noise or vibration). Info holds batch
     arrays: setpoint, rate, gyro, pwm, the reward terms (`sim_bridge.reward.REWARD_TERMS`),
     and on episode ends final_obs with its mask _final_obs.
     """
@@ -55,7 +56,7 @@ class BatchedRateEnv(VectorEnv):
     metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
     def __init__(self, n_envs: int, config: EnvConfig | None = None, *, nthread: int = 0,
-                 on_time_view: bool = False, **options: Any) -> None:
+                 on_time_view: bool = False, truth_view: bool = False, **options: Any) -> None:
         if n_envs < 1:
             raise ValueError(f"n_envs must be >= 1, got {n_envs}")
         cfg = self.config = with_options(config, options)
@@ -97,7 +98,8 @@ class BatchedRateEnv(VectorEnv):
         self._sched = np.zeros((n, self._n_steps + 1, 3))
         self._t = np.zeros(n, dtype=np.int64)
         self._throttle = np.zeros(n)
-        self._task = RateTask(cfg, (n,), on_time_view)
+        self._truth_view = truth_view and on_time_view
+        self._task = RateTask(cfg, (n,), on_time_view, always=self._truth_view)
         self._rngs = [np.random.default_rng() for _ in range(n)]
         self._factors: list[dict[str, float]] = [{} for _ in range(n)]
         self._noise = NoiseStreams(n, SensorModel.DRAWS, NOISE_BLOCK) if self._noisy else None
@@ -228,7 +230,7 @@ class BatchedRateEnv(VectorEnv):
         if self._noise is not None:
             gyro, _, omega = self._sensors.read(gyro, None, omega, self._noise.next(idx),
                                                 self._gyro_std[idx] if self.config.draws_gyro_noise else None)
-        sent = (gyro, omega)
+        sent = (rate, omega) if self._truth_view else (gyro, omega)
         if fx.gyro_delays:
             gyro = fx.gyro_delayed(gyro, None if not reset else idx, reset)
         if fx.telemetry_effects:

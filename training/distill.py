@@ -78,15 +78,22 @@ class Teacher:
 INVERSION = "inversion"  # the teacher that inverts the airframe's model (`training.inversion_teacher`)
 
 
-def make_teacher(name: str, airframe: str) -> Any:
+def is_model_based(name: str) -> bool:
+    """Whether the teacher reads the state rather than sensors it was trained on: privileged, it reads
+    the truth, where a trained teacher reads its sensors as sampled (`fcemu distill --privileged`)."""
+    return name == INVERSION or name.startswith(INVERSION + ":")
+
+
+def make_teacher(name: str, airframe: str, privileged: bool = False) -> Any:
     """`inversion` (or `inversion:K`, its time constant in motor lags) for the model-based teacher
-    of `airframe`, else an exported policy's path."""
-    if name == INVERSION or name.startswith(INVERSION + ":"):
+    of `airframe` (`privileged`: reading the truth), else an exported policy's path."""
+    if is_model_based(name):
         from fcemu.training.inversion_teacher import LAG_MULTIPLE, InversionTeacher
 
         multiple = name.partition(":")[2]
         try:
-            return InversionTeacher(airframe, float(multiple) if multiple else LAG_MULTIPLE)
+            return InversionTeacher(airframe, float(multiple) if multiple else LAG_MULTIPLE,
+                                    reads_truth=privileged)
         except ValueError as exc:
             raise DistillError(f"teacher {name!r}: {exc}") from None
     return Teacher(name)
@@ -329,7 +336,7 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
             raise DistillError(f"--{name.replace('_', '-')} must be finite and >= 0, got {value}")
     if cfg.gain_weight and not cfg.gain_step:
         raise DistillError("--gain-weight needs a --gain-step above 0")
-    teacher = make_teacher(cfg.teacher, cfg.airframe)
+    teacher = make_teacher(cfg.teacher, cfg.airframe, cfg.privileged)
     train_cfg, spec = student_train_config(cfg, teacher)
     torch.set_num_threads(train_cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -347,7 +354,8 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # PPO's batch size against one twin's rollout: never rolled out
         model = make_model(train_cfg, venv, out / "tb")
-    env = BatchedRateEnv(cfg.envs, on_time_view=cfg.privileged, **env_kwargs)
+    env = BatchedRateEnv(cfg.envs, on_time_view=cfg.privileged, truth_view=is_model_based(cfg.teacher),
+                         **env_kwargs)
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     data, student, history = Dataset(), None, []

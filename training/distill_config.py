@@ -68,7 +68,8 @@ class DistillConfig:
     # at 1.9× its Error instead of 5× (policies/README.md; docs/training_notes.md, 2026-11-27).
     privileged: bool = option(
         False, "where the twins' gyro or ESC telemetry is late or lossy, the teacher reads the readings as "
-               "sampled and the student its own (off: both read the firmware's)")
+               "sampled and the student its own (off: both read the firmware's); the model-based teacher "
+               "`inversion` reads the true rates and rotor speeds, without noise or vibration either")
     foreign_teacher: bool = option(False, "distil a teacher made for another airframe than --airframe "
                                           "(its fcemu.airframe); refused unless given")
     seed: int = option(0, "seed of the twins, the mixture and the network")

@@ -8,8 +8,11 @@ observes (rate error, rates, rotor speeds) it asks, per tick:
 
 1. an angular acceleration that closes the rate error e as a second-order system with natural
    frequency ω = 1/T_c (T_c = `lag_multiple` × the motors' mean lag) and damping ζ (`damping`):
-   α* = α_now + dt·(ω²·e − 2ζω·α_now), e predicted one tick ahead (the gyro's sample is a tick
-   old), less the gyroscopic term −I⁻¹(Ω × IΩ) the body adds by itself. Its α moves at most at
+   α* = α_now + dt·(ω²·e − 2ζω·α_now), e predicted ahead over the loop's delay (the gyro's
+   sample is a tick old, plus the airframe's gyro and ESC delays), less what the body adds by
+   itself: the gyroscopic term −I⁻¹(Ω × IΩ) and, where the airframe has them, the rotors'
+   gyroscopic moment and the rate damping (without them an identified Iris with damping flew
+   863 against 716: the law held a steady error against the damping). Its α moves at most at
    ω²·e per second, so the motors are no rougher than the tuned PID's, and it overshoots a few
    percent where a first-order law (`damping` None: α* = (e − dt·α_now)/T_c) rises on an
    exponential tail; on the racer the second-order law's student flies 0.995 × the PID against
@@ -30,7 +33,7 @@ is the policy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -58,6 +61,13 @@ class InversionModel:
     pwm_min: float
     pwm_max: float
     lag_s: float
+    # What the airframe's effects add, zero on the nominal twin (`sim_bridge.plant.body_torque`):
+    # (3,) rad/s² per rad/s of each FRD rate, D / I
+    damping: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # (4,) J_r·s_i: the rotors' momentum is h_z = −Σ J_r·s_i·ω_i
+    rotor_momentum: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    gyro_delay_ticks: int = 0  # ticks the gyro adds beside its own one
+    esc_delay_ticks: int = 0  # ticks from a command to its motor
 
     @classmethod
     def of(cls, airframe: Airframe, dt: float = 0.001) -> InversionModel:
@@ -67,7 +77,18 @@ class InversionModel:
         rig = rig_constants(nominal(airframe), dt)
         m = airframe.motor
         return cls(rig.B, rig.inertia, rig.kf, rig.w_max, rig.a_up, rig.a_down, float(m.pwm_min),
-                   float(m.pwm_max), 0.5 * (m.tau_up + m.tau_down))
+                   float(m.pwm_max), 0.5 * (m.tau_up + m.tau_down),
+                   np.asarray(airframe.rate_damping, dtype=float) / rig.inertia,
+                   airframe.rotor_inertia * np.asarray(airframe.spin, dtype=float),
+                   int(airframe.gyro_delay_ticks), int(airframe.esc_delay_ticks))
+
+    def body_acceleration(self, rates: np.ndarray, rotor: np.ndarray) -> np.ndarray:
+        """The body's own angular acceleration (n, 3) beside the thrusts': gyroscopic −I⁻¹(Ω × IΩ),
+        the rotors' gyroscopic moment −Ω × h and the rate damping −D·Ω, as the twin flies them."""
+        h_z = -(rotor @ self.rotor_momentum)
+        moment = np.stack([-rates[:, 1] * h_z, rates[:, 0] * h_z, np.zeros_like(h_z)], axis=-1)
+        own = -np.cross(rates, self.inertia * rates) + moment
+        return own / self.inertia - self.damping * rates
 
 
 def max_scale(lo: np.ndarray, hi: np.ndarray, delta: np.ndarray) -> np.ndarray:
@@ -86,7 +107,10 @@ class InversionTeacher:
     action_mapping = "throttle"
 
     def __init__(self, airframe: str | Airframe, lag_multiple: float = LAG_MULTIPLE,
-                 throttle: float | None = None, dt: float = 0.001, damping: float | None = DAMPING) -> None:
+                 throttle: float | None = None, dt: float = 0.001, damping: float | None = DAMPING,
+                 reads_truth: bool = False) -> None:
+        """`reads_truth`: its observation is of the true rates (a privileged distillation's), so the
+        error is predicted ahead over the ESC's delay only, not the gyro's too."""
         af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
         if not lag_multiple > 0.0:
             raise ValueError(f"the inversion teacher's lag multiple must be > 0, got {lag_multiple}")
@@ -95,6 +119,7 @@ class InversionTeacher:
         self.dt = dt
         self.time_constant = lag_multiple * m.lag_s
         self.damping = damping
+        self.ahead_ticks = 1 + m.esc_delay_ticks + (0 if reads_truth else m.gyro_delay_ticks)
         self.throttle = float(af.hover_throttle() if throttle is None else throttle)
         self.spec = ObservationSpec(memory=1, fields=SPEC_FIELDS, max_rotor_speed=m.w_max)
         # [B; 1 1 1 1]⁻¹'s first three columns: a torque's thrusts with no change of the collective
@@ -113,9 +138,9 @@ class InversionTeacher:
         w = np.clip(rotor, 0.0, m.w_max)
         thrust = m.kf * w * w
         t_max = m.kf * m.w_max**2
-        gyroscopic = -np.cross(rates, m.inertia * rates) / m.inertia
+        gyroscopic = m.body_acceleration(rates, w)
         now = thrust @ m.B.T + gyroscopic
-        ahead = error - self.dt * now
+        ahead = error - self.ahead_ticks * self.dt * now
         if self.damping is None:
             wanted = ahead / self.time_constant - gyroscopic  # from the thrusts, rad/s²
         else:

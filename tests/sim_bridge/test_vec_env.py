@@ -89,6 +89,19 @@ def test_the_on_time_observation_is_what_the_sensors_sampled_before_their_delays
     assert late >= 3
 
 
+def test_the_truth_view_is_the_true_rates_and_rotor_speeds_without_noise_vibration_or_delay():
+    env = BatchedRateEnv(3, on_time_view=True, truth_view=True, airframe="iris_realistic",
+                         action_mapping="throttle", episode_s=0.05)
+    env.reset(seed=2)
+    for _ in range(30):
+        obs, _, _, _, info = env.step(np.full((3, 4), 0.3, dtype=np.float32))
+    truth = observe_step(env.obs_spec, info["setpoint"], info["rate"], env._omega)
+    np.testing.assert_array_equal(env.on_time_observation, truth)
+    assert not np.allclose(obs[:, :3], truth[:, :3], atol=1e-4)  # the firmware's gyro is noisy and late
+    plain = BatchedRateEnv(3, truth_view=True, airframe="iris")  # a view only where one is asked for
+    assert plain.on_time_observation is None
+
+
 @pytest.mark.parametrize("name", CONFIGS)
 def test_batch_is_bit_identical_to_single_envs_across_auto_resets(name):
     kw = CONFIGS[name]

@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -5,7 +7,9 @@ import fcemu.evaluation.runner as runner
 from fcemu.evaluation.metrics import AXES, compute_metrics
 from fcemu.firmware.action import action_to_pwm
 from fcemu.firmware.observation import observe_step
-from fcemu.training.inversion_teacher import InversionController, InversionTeacher, max_scale
+from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.plant import body_torque
+from fcemu.training.inversion_teacher import InversionController, InversionModel, InversionTeacher, max_scale
 
 
 def test_max_scale_is_the_largest_share_some_collective_keeps_inside_every_motors_reach():
@@ -64,3 +68,45 @@ def test_the_teacher_flies_the_commands_with_less_error_than_the_airframes_tuned
 def test_a_time_constant_that_is_not_positive_is_refused():
     with pytest.raises(ValueError, match="lag multiple"):
         InversionTeacher("iris", 0.0)
+
+
+def test_the_teacher_knows_the_body_torques_the_twin_adds_damping_and_the_rotors_momentum():
+    airframe = load_airframe("iris_realistic")
+    model = InversionModel.of(airframe)
+    rng = np.random.default_rng(4)
+    rates, rotor = rng.uniform(-6, 6, (32, 3)), rng.uniform(300, 1000, (32, 4))
+    torque = body_torque(rates, rotor, rotor, np.asarray(airframe.rate_damping), airframe.rotor_inertia,
+                         np.asarray(airframe.spin, dtype=float), 0.001)  # no spin-up: the rotors hold
+    gyroscopic = -np.cross(rates, model.inertia * rates)
+    np.testing.assert_allclose(model.body_acceleration(rates, rotor), (torque + gyroscopic) / model.inertia,
+                               rtol=1e-12, atol=1e-9)
+    assert (model.gyro_delay_ticks, model.esc_delay_ticks) == (2, 1)
+    assert InversionTeacher(airframe).ahead_ticks == 4  # its own tick, the gyro's two, the ESC's one
+    assert InversionTeacher(airframe, reads_truth=True).ahead_ticks == 2
+    nominal = InversionModel.of(load_airframe("iris"))
+    assert not nominal.damping.any() and not nominal.rotor_momentum.any() and not nominal.gyro_delay_ticks
+
+
+def test_knowing_the_damping_and_the_delays_flies_a_damped_late_airframe_closer(monkeypatch, tmp_path):
+    import dataclasses
+    import json
+
+    spec = json.loads((Path(__file__).parents[2] / "sim_bridge/airframes/iris_realistic.json").read_text())
+    spec["name"] = "iris_damped_late"
+    spec["effects"] = {k: v for k, v in spec["effects"].items()
+                       if k in ("rate_damping_N_m_s_rad", "esc_delay_ticks", "gyro_delay_ticks")}
+    spec["effects"]["rate_damping_N_m_s_rad"]["value"] = [0.15, 0.15, 0.1]
+    path = tmp_path / "damped.json"
+    path.write_text(json.dumps(spec))
+    knowing = InversionTeacher(str(path))
+    blind = InversionTeacher(str(path))
+    blind.model = dataclasses.replace(blind.model, damping=np.zeros(3), rotor_momentum=np.zeros(4))
+    blind.ahead_ticks = 1
+    original = runner.load_controller
+    teachers = {"knowing": knowing, "blind": blind}
+    monkeypatch.setattr(runner, "load_controller", lambda spec, *a, **k: InversionController(
+        teachers[spec]) if spec in teachers else original("pid:iris"))
+    cfg = runner.EvalConfig(episodes=4, seed=11, airframe=str(path))
+    error = {name: sum(compute_metrics(runner.run_controller(name, cfg, progress=False)).stat("error", a).mean
+                       for a in AXES) for name in teachers}
+    assert error["knowing"] < 0.9 * error["blind"], error
