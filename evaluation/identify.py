@@ -4,7 +4,9 @@ The model is the twin's (`sim_bridge.plant`): each motor's speed follows its com
 u (0..1) after `esc_delay` ticks through a first-order lag, ω ← ω + α(a + b·u − ω), α from
 τ_up rising and τ_down falling; each axis accelerates by c·Σ(lever_i·ω_i²) (the lever: −y_i
 on roll, x_i on pitch, the spin on yaw, from the base airframe's geometry), minus a damping
-d·rate, plus on yaw the rotors' spin-up reaction j·Σ spin_i·dω_i/dt; the gyro reads the rate
+d·rate, plus the body's gyroscopic coupling g·Ω_a·Ω_b (roll q·r, pitch p·r, yaw p·q: the
+inertia's ratios, g_roll = (I_yy − I_zz)/I_xx, which the identification flight's yawing doublets
+excite) and on yaw the rotors' spin-up reaction j·Σ spin_i·dω_i/dt; the gyro reads the rate
 `gyro_delay` ticks late. With ESC rpm in the log the motors are fitted to it and the rates to
 the measured speeds; without, the rate fit takes the speeds its own motor model makes of the
 commands and the time constants are those that fit the rates best (the base's up/down ratio).
@@ -63,6 +65,7 @@ class AxisFit:
     effectiveness: Estimate  # c: rad/s² per (rad/s)² of lever-weighted rotor speed squared
     damping: Estimate  # d: 1/s
     spin_up: Estimate | None  # j (yaw only): rad/s² per rad/s² of signed rotor acceleration
+    coupling: Estimate  # g: rad/s² per (rad/s)² of the other two rates' product
     delay_ticks: int
     rms: float  # rad/s² of the acceleration residual
 
@@ -156,6 +159,15 @@ def axis_regressors(speed: np.ndarray, lever: np.ndarray, dt: float, axis: int) 
     return np.stack(columns, axis=1)
 
 
+COUPLED = ((1, 2), (0, 2), (0, 1))  # per axis, the two rates whose product its gyroscopic term is
+
+
+def coupling_regressor(rates: np.ndarray, axis: int) -> np.ndarray:
+    """(T,) the product of the other two rates that the body's gyroscopic term on `axis` scales."""
+    a, b = COUPLED[axis]
+    return rates[:, a] * rates[:, b]
+
+
 def smooth(x: np.ndarray, dt: float) -> np.ndarray:
     """The same zero-phase low-pass on both sides of the fit: the relation between rate and rotor
     speeds is linear, so it holds of the filtered signals, which lose the gyro's noise and the
@@ -176,7 +188,8 @@ def fit_rates(log: FlightLog, speed: np.ndarray, lever: np.ndarray) -> RateFit:
         best = None
         for delay in range(MAX_DELAY_TICKS + 1):
             n = len(accel) - delay
-            x = np.column_stack([base[:n], -g[delay:delay + n, axis], np.ones(n)])
+            x = np.column_stack([base[:n], -g[delay:delay + n, axis],
+                                 coupling_regressor(g[delay:delay + n], axis), np.ones(n)])
             y = accel[delay:, axis]
             beta, *_ = np.linalg.lstsq(x, y, rcond=None)
             residual = y - x @ beta
@@ -187,14 +200,16 @@ def fit_rates(log: FlightLog, speed: np.ndarray, lever: np.ndarray) -> RateFit:
         std = np.sqrt(np.diag(_covariance(x, residual) / (2 * SMOOTH_HZ * dt)))
         spin = Estimate.normal(beta[1], std[1]) if axis == 2 else None
         k = 2 if axis == 2 else 1
-        fits.append(AxisFit(Estimate.normal(beta[0], std[0]), Estimate.normal(beta[k], std[k]), spin, delay,
-                            float(np.sqrt(np.mean(residual**2)))))
+        coupling = Estimate.normal(beta[k + 1], std[k + 1])
+        fits.append(AxisFit(Estimate.normal(beta[0], std[0]), Estimate.normal(beta[k], std[k]), spin,
+                            coupling, delay, float(np.sqrt(np.mean(residual**2)))))
         results.append((delay, base, beta))
     gyro_delay = int(np.median([f.delay_ticks for f in fits]))
     modelled = np.zeros((len(g), 3))
     for axis, (delay, base, beta) in enumerate(results):
         n = len(g) - delay
-        modelled[delay:, axis] = np.column_stack([base[:n], -g[delay:, axis], np.ones(n)]) @ beta
+        x = np.column_stack([base[:n], -g[delay:, axis], coupling_regressor(g[delay:], axis), np.ones(n)])
+        modelled[delay:, axis] = x @ beta
     return RateFit((fits[0], fits[1], fits[2]), gyro_delay, modelled, speed)
 
 
@@ -268,10 +283,12 @@ def predict_ahead(log: FlightLog, accel: np.ndarray, horizon: int) -> np.ndarray
 
 def airframe_accel(log: FlightLog, speed: np.ndarray, airframe: Airframe, lever: np.ndarray) -> np.ndarray:
     """(T, 3) the acceleration `airframe`'s twin gives the logged rotor speeds and rates (its
-    effectiveness, damping, spin-up reaction and gyro delay, the twin's own tick included)."""
+    effectiveness, damping, gyroscopic coupling, spin-up reaction and gyro delay, the twin's own
+    tick included)."""
     inertia = airframe.inertia()
     m = airframe.motor
     c = [m.kf / inertia[0], m.kf / inertia[1], m.kf * m.km / inertia[2]]
+    coupling = gyroscopic_coupling(inertia)
     damping = np.array(airframe.rate_damping) / inertia
     delay = airframe.gyro_delay_ticks + 1
     g = smooth(log.gyro, log.dt)
@@ -280,8 +297,15 @@ def airframe_accel(log: FlightLog, speed: np.ndarray, airframe: Airframe, lever:
     for axis in range(3):
         columns = smooth(axis_regressors(speed, lever, log.dt, axis), log.dt)
         coef = [c[axis]] + ([airframe.rotor_inertia / inertia[2]] if axis == 2 else [])
-        out[delay:, axis] = columns[:n] @ np.array(coef) - damping[axis] * g[delay:, axis]
+        out[delay:, axis] = (columns[:n] @ np.array(coef) - damping[axis] * g[delay:, axis]
+                             + coupling[axis] * coupling_regressor(g[delay:], axis))
     return out
+
+
+def gyroscopic_coupling(inertia: np.ndarray) -> np.ndarray:
+    """(3,) g per axis of −I⁻¹(Ω × IΩ) for a diagonal inertia: (I_yy − I_zz)/I_xx on roll, and so on."""
+    ixx, iyy, izz = inertia
+    return np.array([(iyy - izz) / ixx, (izz - ixx) / iyy, (ixx - iyy) / izz])
 
 
 def prediction_fit(log: FlightLog, predicted: np.ndarray) -> np.ndarray:

@@ -2,11 +2,13 @@
 
 What a rate log gives are ratios: the torque each rotor speed makes per unit of inertia, the
 motors' lag and delay, the speed a command asks for, the command that hovers. A file needs
-absolute numbers, so the base airframe gives what the log cannot (mass, geometry, the yaw
-moment constant, the rotor and body sizes, the battery), and the rest follows:
-k_F from the mass and the hover rotor speed, each axis's inertia from k_F (and k_M) over its
-fitted effectiveness. Each number's `sources` entry says which it is: "identified from LOG"
-with its 95 % interval, derived, or the base's.
+absolute numbers, so the base airframe gives what the log cannot (mass, geometry, the rotor
+and body sizes, the battery), and the rest follows: k_F from the mass and the hover rotor speed,
+roll's and pitch's inertia from k_F over their fitted effectiveness, the yaw inertia from the
+rates' gyroscopic coupling, (I_yy − I_zz)/I_xx and (I_zz − I_xx)/I_yy, and the yaw moment
+constant from it and the yaw effectiveness. A log whose rates never coupled keeps the base's
+moment constant and derives I_zz from it. Each number's `sources` entry says which it is:
+"identified from LOG" with its 95 % interval, derived, or the base's.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import numpy as np
 
 from fcemu.evaluation.identify import (
     AXES,
+    Z95,
     Estimate,
     MotorFit,
     RateFit,
@@ -38,6 +41,7 @@ from fcemu.sim_bridge.airframe_file import GRAVITY
 # tick late with no delay configured: that tick of the measured delay is the twin's own.
 TWIN_GYRO_LAG_TICKS = 1
 TWIN_DT = 0.001  # s: the physics step the file's *_ticks count (the twin at 1 kHz)
+YAW_INERTIA_TOLERANCE = 0.2  # I_zz from the coupling only within ± this share of its value (95 %)
 ATTRIBUTE_OF_EFFECT = {attribute: key for key, attribute in EFFECT_KEYS.items()}
 
 
@@ -159,21 +163,32 @@ def identified_document(ident: Identification, name: str) -> dict:
     how = "ESC rpm against the command" if mf.from_rpm else "the rate response to the motor commands"
     sources["motor.time_constant_up_s"] = f"{at} ({how}): {mf.tau_up.text(' s')}"
     sources["motor.time_constant_down_s"] = f"{at} ({how}): {mf.tau_down.text(' s')}"
-    km = base.motor.km
     c = [_scaled(rf.axes[i].effectiveness, effectiveness_scale) for i in range(3)]
     if min(ci.value for ci in c) <= 0:
         raise LogError(f"{log.path}: a motor command turns the vehicle the wrong way round "
                        f"({', '.join(f'{a} {ci.value:.3g}' for a, ci in zip(AXES, c, strict=True))}): "
                        "motor order or spins differ from the base's")
-    total = [kf / c[0].value, kf / c[1].value, kf * km / c[2].value]
+    roll_pitch = [kf / c[0].value, kf / c[1].value]
+    izz = yaw_inertia(roll_pitch, rf.axes[0].coupling, rf.axes[1].coupling)
+    if izz is None:
+        km = base.motor.km
+        izz_text = "k_F·k_M over the yaw effectiveness (k_M the base's: the log's rates never coupled)"
+    else:
+        km = c[2].value * izz.value / kf
+        sources["motor.moment_constant_m"] = (f"derived: the yaw effectiveness {c[2].text()} × I_zz / k_F, "
+                                              f"I_zz from the gyroscopic coupling: {izz.text(' kg·m²')}")
+        izz_text = (f"from roll's and pitch's gyroscopic coupling {at} (roll {rf.axes[0].coupling.text()}, "
+                    f"pitch {rf.axes[1].coupling.text()})")
+    total = [*roll_pitch, kf * km / c[2].value]
     rotors_part = base.inertia() - np.array(base.base_inertia)
     inertia = [t - r for t, r in zip(total, rotors_part, strict=True)]
     if min(inertia) <= 0:
         raise LogError(f"{log.path}: the identified inertia {total} is below the rotors' own share: the base "
                        f"{ident.base_label} does not fit this vehicle")
     parts = [f"{a} {ci.text(' rad/s² per (N·m/k_F)')}" for a, ci in zip(AXES, c, strict=True)]
-    sources["base_inertia_kg_m2"] = (f"derived: k_F (k_F·k_M on yaw) over the effectiveness {at} "
-                                     f"({'; '.join(parts)}), less the rotors' share by the base's geometry")
+    sources["base_inertia_kg_m2"] = (f"derived: roll and pitch k_F over the effectiveness {at} "
+                                     f"({'; '.join(parts)}); yaw {izz_text}; less the rotors' share by the "
+                                     "base's geometry")
     per_tick = log.dt / TWIN_DT  # the log's samples in the twin's physics steps
     delay_esc = round(mf.delay_ticks * per_tick)
     delay_gyro = max(0, round(rf.gyro_delay_ticks * per_tick) - TWIN_GYRO_LAG_TICKS)
@@ -206,14 +221,32 @@ def identified_document(ident: Identification, name: str) -> dict:
     effect_sources = tuple((attr, effects[attr][1] if attr in effects else
                             f"{kept}: {base_sources.get(attr, '')}".rstrip(": "))
                            for attr in ATTRIBUTE_OF_EFFECT)
-    motor = replace(base.motor, max_rotor_speed=float(max_speed), kf=float(kf), tau_up=mf.tau_up.value,
-                    tau_down=mf.tau_down.value, pwm_min=float(pwm_min), pwm_max=PWM_MIN + PWM_SPAN)
+    motor = replace(base.motor, max_rotor_speed=float(max_speed), kf=float(kf), km=float(km),
+                    tau_up=mf.tau_up.value, tau_down=mf.tau_down.value, pwm_min=float(pwm_min),
+                    pwm_max=PWM_MIN + PWM_SPAN)
     airframe = replace(airframe, name=name, base_inertia=tuple(float(v) for v in inertia), motor=motor,
                        effect_sources=effect_sources)
     source = (f"Identified by fcemu identify from {log.name} ({len(log.t)} samples at {1 / log.dt:.0f} Hz, "
               f"motor commands from {log.command_source}{', ESC rpm' if mf.from_rpm else ', no ESC rpm'}) "
               f"on the base airframe {ident.base_label}." + "".join(f" {note}." for note in log.notes))
     return airframe_document(airframe, source, sources)
+
+
+def yaw_inertia(roll_pitch: list[float], roll: Estimate, pitch: Estimate) -> Estimate | None:
+    """I_zz from the gyroscopic coupling's two readings, g_roll = (I_yy − I_zz)/I_xx and
+    g_pitch = (I_zz − I_xx)/I_yy, weighted by their intervals; None where the log did not couple
+    the rates well enough to say (its interval wider than `YAW_INERTIA_TOLERANCE` of the value)."""
+    ixx, iyy = roll_pitch
+    readings = [(iyy - roll.value * ixx, ixx * (roll.high - roll.low) / (2 * Z95)),
+                (ixx + pitch.value * iyy, iyy * (pitch.high - pitch.low) / (2 * Z95))]
+    weights = [1.0 / std**2 for _, std in readings if std > 0]
+    if len(weights) < 2:
+        return None
+    value = sum(w * v for w, (v, _) in zip(weights, readings, strict=True)) / sum(weights)
+    std = sum(weights) ** -0.5
+    if value <= 0 or Z95 * std > YAW_INERTIA_TOLERANCE * value:
+        return None
+    return Estimate.normal(value, std)
 
 
 def write_airframe(doc: dict, path: Path) -> Airframe:

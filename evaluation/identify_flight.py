@@ -3,7 +3,9 @@
 As PX4's system-identification flights and Betaflight's CHIRP mode do, the rate setpoint
 carries the excitation while the PID flies: per axis a doublet, then a chirp sweeping
 `CHIRP_HZ`, and first a few collective steps, which spin the four motors up and down together
-(the motors' time constants and their speed against the command over a wide range). The twin is
+(the motors' time constants and their speed against the command over a wide range). Last, roll
+and pitch doublets while the vehicle yaws each way: the products of two rates they make are what
+the body's gyroscopic coupling, and so the yaw inertia against roll's and pitch's, is read from. The twin is
 on the ball-joint rig at its hover throttle, so the rotors run where they would in a hover.
 The loop ticks in lockstep with the twin, faster than real time; the log is the one
 `fcemu sitl --ulog` writes (`sitl.ulog_writer`).
@@ -30,6 +32,7 @@ DOUBLET_RATE = (2.5, 2.5, 1.5)  # rad/s, roll, pitch, yaw
 # The chirp's is smaller: the rate loop peaks near 2 Hz, and a saturated motor says nothing.
 CHIRP_RATE = (0.8, 0.8, 1.0)
 COLLECTIVE_STEP = 0.12  # throttle above and below hover in the collective steps
+YAWING_DOUBLET_S = 0.3  # each half of a roll or pitch doublet flown while yawing at the yaw doublet's rate
 
 
 def excitation(rate_hz: float, hover: float, axis_s: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
@@ -63,6 +66,13 @@ def excitation(rate_hz: float, hover: float, axis_s: float = 6.0) -> tuple[np.nd
         rates = np.zeros((len(t), 3))
         rates[:, axis] = CHIRP_RATE[axis] * np.sin(phase)
         add(rates, hover)
+        hold(0.3)
+    for yaw in (DOUBLET_RATE[2], -DOUBLET_RATE[2]):
+        steps = [(0.0, 0.0, yaw, 0.4)]
+        steps += [(v, 0.0, yaw, YAWING_DOUBLET_S) for v in (DOUBLET_RATE[0], -DOUBLET_RATE[0])]
+        steps += [(0.0, v, yaw, YAWING_DOUBLET_S) for v in (DOUBLET_RATE[1], -DOUBLET_RATE[1])]
+        for roll, pitch, yaw_rate, seconds in steps:
+            add(np.tile([roll, pitch, yaw_rate], (round(seconds * rate_hz), 1)), hover)
         hold(0.3)
     return np.concatenate(pieces_rates), np.concatenate(pieces_throttle)
 

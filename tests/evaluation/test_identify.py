@@ -169,3 +169,30 @@ def test_esc_rpm_slower_than_the_gyro_is_left_out_and_said(tmp_path) -> None:
     assert read.rotor_speed is None
     assert read.notes == ("esc_status at 100 Hz against the gyro's 1000 Hz is too slow for the motor lag: "
                           "its rpm is left out (log esc_status at the loop rate: docs/identify.md)",)
+
+
+def test_the_yawing_doublets_give_the_yaw_inertia_and_moment_constant_a_rate_log_hid(tmp_path) -> None:
+    from fcemu.evaluation.identify import gyroscopic_coupling
+
+    out = tmp_path / "drawn"
+    assert main(["identify", "--fly", "iris", "--perturb-seed", "206", "--out", str(out)]) == 0
+    true, identified = load_airframe(out / "true_airframe.json"), load_airframe(out / "airframe.json")
+    base = load_airframe("iris")
+    coupling = {name: gyroscopic_coupling(a.inertia()) for name, a in
+                (("true", true), ("identified", identified), ("base", base))}
+    assert np.allclose(coupling["identified"], coupling["true"], rtol=0.15), coupling
+    assert not np.allclose(coupling["base"], coupling["true"], rtol=0.15)  # the draw moved them
+    assert identified.motor.km == pytest.approx(true.motor.km, rel=0.05)
+    assert abs(base.motor.km / true.motor.km - 1) > 0.1
+    doc = json.loads((out / "airframe.json").read_text())
+    assert "gyroscopic coupling" in doc["sources"]["motor.moment_constant_m"]
+
+
+def test_rates_that_never_coupled_keep_the_base_s_moment_constant() -> None:
+    from fcemu.evaluation.identify import Estimate
+    from fcemu.evaluation.identify_airframe import yaw_inertia
+
+    # I_xx 0.02, I_yy 0.03, I_zz 0.04: roll reads (0.03 − 0.04)/0.02, pitch (0.04 − 0.02)/0.03
+    tight = yaw_inertia([0.02, 0.03], Estimate.normal(-0.5, 0.01), Estimate.normal(2 / 3, 0.01))
+    assert tight is not None and tight.value == pytest.approx(0.04, rel=1e-9)
+    assert yaw_inertia([0.02, 0.03], Estimate.normal(-0.5, 2.0), Estimate.normal(0.5, 2.0)) is None
