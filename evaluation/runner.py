@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tqdm import tqdm
 
-from fcemu.firmware.controller import RateSetpoint
+from fcemu.firmware.controller import RateController, RateSetpoint
 from fcemu.firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
 from fcemu.firmware.controllers import load_controller
 from fcemu.firmware.health import HealthMonitor, HealthRules
@@ -142,18 +142,20 @@ class TraceRecorder:
 
 def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
                    on_episode: Callable[[int], None] | None = None,
-                   airframe: Airframe | None = None, faults: FaultPlan | None = None) -> Traces:
+                   airframe: Airframe | None = None, faults: FaultPlan | None = None,
+                   controller: RateController | None = None) -> Traces:
     """Fly `spec` (pid, pid:<preset>, FILE.onnx) over the evaluation set; return its traces.
 
     `airframe` replaces the nominal Iris (e.g. a perturbed one); its hover throttle is flown
     unless `cfg.throttle` is set. `faults` injects its faults into the twin at its tick of each
-    episode and records what the firmware's health monitor made of them.
+    episode and records what the firmware's health monitor made of them. `controller` flies instead
+    of the one `spec` names (which then only names it), with no fallback: a model-based teacher.
     """
     from fcemu.sim_bridge.airframe_spec import airframe_spec
 
     configured = airframe_spec(airframe or cfg.airframe)  # what the firmware is set up for
-    controllers = {"main": load_controller(spec, cfg.rate_hz, configured)}
-    neural = not spec.startswith("pid")
+    controllers = {"main": controller or load_controller(spec, cfg.rate_hz, configured)}
+    neural = controller is None and not spec.startswith("pid")
     if neural:
         controllers[FALLBACK] = load_controller(cfg.fallback, airframe=configured)
     setpoints = setpoint_schedules(cfg)

@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +64,14 @@ STUDENT_RECIPE = {"learning_rate": 3e-3, "gain_weight": 0.0, "episode_s": 0.5, "
 # one-tick student of the same view (docs/training_notes.md, 2026-11-27, a teacher for real sensors).
 # Four ticks fit an F405's budget with the 48-48 network (231 µs); eight do not (318 µs).
 SENSED_MEMORY = 4
+
+
+# The teacher's speed is the airframe's: a slow-motored one (a Crazyflie's motors lag 72 ms) rises
+# late at the default, a quick one can go faster. Each is flown alone through the action mapping on
+# SPEED_COMMANDS of the tuning commands, on the nominal twin, and the fastest-tracking one whose
+# motors are no rougher than the bar allows against the tuned PID's on the same commands is taught.
+TEACHER_SPEEDS = (0.5, 0.35, 0.25)  # time constants in motor lags, the default first
+SPEED_COMMANDS = 20
 
 
 def _stage(log: Any, t0: float, text: str) -> None:
@@ -112,6 +120,35 @@ def given_pid_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
         bound = {"sum": round(float(cached_bounds(rig, commands, solve)[:, 0].mean()), 2)}
     return {"held_out": {"bound": bound}, "meets_lines": None, "fails": [], "time_s": None,
             "given": opts.pid}
+
+
+def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]:
+    """The teacher's time constant in motor lags (`TEACHER_SPEEDS`), chosen on the tuning commands."""
+    from fcemu.evaluation.bar import SMOOTHNESS_BAR, error_sum
+    from fcemu.evaluation.metrics import compute_metrics
+    from fcemu.evaluation.runner import EvalConfig, run_controller
+    from fcemu.sim_bridge.airframe import load_airframe
+    from fcemu.training.inversion_teacher import InversionController, InversionTeacher
+    from fcemu.training.pid_tune import nominal
+
+    airframe = nominal(load_airframe(opts.airframe))
+    n = min(SPEED_COMMANDS, opts.episodes)
+    cfg = EvalConfig(episodes=n, seed=opts.seed, airframe=opts.airframe)
+    ref = compute_metrics(run_controller(f"pid:{pid}", cfg, progress=False, airframe=airframe))
+    limit = SMOOTHNESS_BAR * ref.stat("smoothness", "roll").mean
+    flown = []
+    for multiple in TEACHER_SPEEDS:
+        teacher = InversionController(InversionTeacher(airframe, multiple), mapped=True)
+        m = compute_metrics(run_controller("inversion", cfg, progress=False, airframe=airframe,
+                                           controller=teacher))
+        flown.append({"lag_multiple": multiple, "error_sum": round(error_sum(m), 2),
+                      "smoothness": round(m.stat("smoothness", "roll").mean, 3)})
+        log(f"  teacher at {multiple:g} motor lags: Error {flown[-1]['error_sum']:.1f}, motors "
+            f"{flown[-1]['smoothness']:.2f} (the PID {error_sum(ref):.1f}, {limit / SMOOTHNESS_BAR:.2f})")
+    smooth_enough = [f for f in flown if f["smoothness"] <= limit] or flown[:1]
+    chosen = min(smooth_enough, key=lambda f: f["error_sum"])
+    return {"lag_multiple": chosen["lag_multiple"], "flown": flown, "pid_error_sum": round(error_sum(ref), 2),
+            "pid_smoothness": round(ref.stat("smoothness", "roll").mean, 3), "commands": n}
 
 
 def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
@@ -191,9 +228,17 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
         _stage(log, t0, f"the PID given: {opts.pid}")
         tuned = given_pid_stage(opts, out, log)
     times["tune"] = round(time.monotonic() - t0, 1)
-    _stage(log, t0, "fitting the policy to the model-based teacher")
+    speed = None
+    if opts.lag_multiple is None:
+        _stage(log, t0, "choosing the teacher's speed on the tuning commands")
+        t = time.monotonic()
+        speed = teacher_speed_stage(opts, out / "pid.json", log)
+        opts = replace(opts, lag_multiple=speed["lag_multiple"])
+        times["teacher"] = round(time.monotonic() - t, 1)
+    _stage(log, t0, f"fitting the policy to the model-based teacher ({opts.lag_multiple:g} motor lags)")
     t = time.monotonic()
     student = distill_stage(opts, out)
+    student["speed"] = speed
     times["policy"] = round(time.monotonic() - t, 1)
     _stage(log, t0, f"policy written ({student['inputs']} inputs); checking it against the PID")
     t = time.monotonic()

@@ -41,6 +41,18 @@ def task_table(name: str, task: dict[str, Any]) -> list[str]:
         f"{pid['smoothness']:.2f} | {_mark(checks['smoothness'])} |", ""]
 
 
+def teacher_speed(student: dict[str, Any]) -> str:
+    """Which time constant the teacher closed the rate error with, and how it was chosen."""
+    speed = student.get("speed")
+    if speed is None:
+        return f"`{student['teacher']}`, its time constant given."
+    flown = ", ".join(f"{f['lag_multiple']:g} lags: Error {f['error_sum']:.1f}, motors {f['smoothness']:.2f}"
+                      for f in speed["flown"])
+    return (f"time constant {speed['lag_multiple']:g} motor lags, the fastest-tracking of those flown alone "
+            f"on {speed['commands']} tuning commands whose motors stay within 1.5 × the PID's "
+            f"({speed['pid_smoothness']:.2f} µs/step, Error {speed['pid_error_sum']:.1f}): {flown}.")
+
+
 def write_report(summary: dict[str, Any], path: Path) -> None:
     check, times, student = summary["check"], summary["time_s"], summary["student"]
     verdict = "meets the bar" if summary["meets_bar"] else "does not meet the bar"
@@ -55,6 +67,7 @@ def write_report(summary: dict[str, Any], path: Path) -> None:
         + (f"given (`--pid {tune['given']}`), not tuned here." if tune["given"] else
            f"the tune's lines {'met' if tune['meets_lines'] else 'not met: ' + '; '.join(tune['fails'])}."),
         f"- Policy: `{summary['policy']}`.",
+        f"- Teacher: {teacher_speed(student)}",
         f"- Lower bound on the Error (`fcemu bound`, from rest): "
         f"{'not available' if check['bound_sum'] is None else format(check['bound_sum'], '.1f')}.",
         "- STM32F405 at 168 MHz (`fcemu bench mcu`, ≤ 250 µs): "
@@ -63,7 +76,8 @@ def write_report(summary: dict[str, Any], path: Path) -> None:
         ""]
     for name, title in (("episodic", "From rest (episodic)"), ("inflight", "In flight, from hover")):
         lines += task_table(title, check["tasks"][name])
-    lines += ["## Time", "", "| tune (bound included) | policy | check | total |", "|---:|---:|---:|---:|",
-              f"| {times['tune']:.0f} s | {times['policy']:.0f} s | {times['check']:.0f} s | "
-              f"{times['total']:.0f} s |", ""]
+    lines += ["## Time", "", "| tune (bound included) | teacher's speed | policy | check | total |",
+              "|---:|---:|---:|---:|---:|",
+              f"| {times['tune']:.0f} s | {times.get('teacher', 0.0):.0f} s | {times['policy']:.0f} s | "
+              f"{times['check']:.0f} s | {times['total']:.0f} s |", ""]
     path.write_text("\n".join(lines))

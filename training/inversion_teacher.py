@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fcemu.firmware.action import pwm_to_action
+from fcemu.firmware.action import action_to_pwm, pwm_to_action
 from fcemu.firmware.observation import FIELDS, RATE, ObservationSpec
 from fcemu.sim_bridge.airframe import Airframe, load_airframe
 
@@ -207,12 +207,14 @@ class InversionTeacher:
 
 class InversionController:
     """The teacher flying one vehicle in the firmware's loop (`RateController`), as its own figures in
-    docs/results/fit.md were flown."""
+    docs/results/fit.md were flown; `mapped`: its PWM through the action mapping and back, all a
+    policy can give."""
 
     name = "inversion"
 
-    def __init__(self, teacher: InversionTeacher) -> None:
+    def __init__(self, teacher: InversionTeacher, mapped: bool = False) -> None:
         self.teacher = teacher
+        self.mapped = mapped
 
     def reset(self) -> None:
         pass
@@ -221,4 +223,8 @@ class InversionController:
         rates = np.asarray(frame.gyro, dtype=np.float64)[None]
         error = np.asarray(setpoint.rates, dtype=np.float64)[None] - rates
         rotor = np.asarray(frame.rotor_speed, dtype=np.float64)[None]
-        return self.teacher.pwm(error, rates, rotor, setpoint.throttle)[0]
+        pwm = self.teacher.pwm(error, rates, rotor, setpoint.throttle)
+        if self.mapped:
+            mapping = self.teacher.action_mapping
+            pwm = action_to_pwm(mapping, pwm_to_action(mapping, pwm), setpoint.throttle)
+        return pwm[0]

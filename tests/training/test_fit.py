@@ -23,8 +23,13 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     for name in ("pid.json", "tune.json", "policy.onnx", "fit.json", "report.md"):
         assert (out / name).is_file(), name
     assert json.loads((out / "fit.json").read_text()) == summary
-    assert summary["student"]["teacher"] == "inversion" and summary["student"]["inputs"] == 10
-    assert set(summary["time_s"]) == {"tune", "policy", "check", "total"}
+    assert summary["student"]["inputs"] == 10
+    assert set(summary["time_s"]) == {"tune", "teacher", "policy", "check", "total"}
+    speed = summary["student"]["speed"]
+    assert speed["commands"] == 2 and [f["lag_multiple"] for f in speed["flown"]] == [0.5, 0.35, 0.25]
+    chosen = next(f for f in speed["flown"] if f["lag_multiple"] == speed["lag_multiple"])
+    assert chosen["smoothness"] <= 1.5 * speed["pid_smoothness"] or chosen == speed["flown"][0]
+    assert summary["student"]["teacher"] == f"inversion:{speed['lag_multiple']:g}"
     check = summary["check"]
     assert check["seed"] == 6 and check["bound_sum"] > 0.0 and check["mcu_us_f405"] is None
     episodic = check["tasks"]["episodic"]["bar"]
@@ -34,7 +39,7 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     assert summary["meets_bar"] == all(t["bar"]["meets_bar"] for t in check["tasks"].values())
     report = (out / "report.md").read_text()
     assert "fcemu fit --airframe racer5" in report and "Success %" in report
-    assert "fcemu bench mcu" in report and "not measured" in report
+    assert "fcemu bench mcu" in report and "not measured" in report and "motor lags" in report
     # the policy carries its airframe: flown on it by the firmware, refused on another's envelope
     policy = NeuralRateController(out / "policy.onnx", airframe=airframe_spec("racer5"))
     assert policy.spec.fields == ("rate_error", "rotor_speed", "rate")
