@@ -44,6 +44,7 @@ class TickSample(NamedTuple):
     command: Command
     pwm: np.ndarray  # what was written
     controller: str  # which controller produced it (may be the fallback)
+    sensed: SensorFrame | None = None  # what the sensors said, before the health checks read any ahead
 
 
 class Commander(Protocol):
@@ -120,7 +121,7 @@ class FlightLoop:
     def tick(self, t_us: int) -> TickSample:
         command = self.commander.command(t_us, self.frame)
         name = command.controller
-        frame = self.frame
+        frame = sensed = self.frame
         health = self.health
         if health is not None:
             if command.armed and not self._armed:
@@ -140,7 +141,7 @@ class FlightLoop:
         plant_start = time.perf_counter_ns()
         self.frame = self.plant.pwm_write(pwm)
         self.plant_ns = time.perf_counter_ns() - plant_start
-        sample = TickSample(t_us, frame, command, pwm, name)
+        sample = TickSample(t_us, frame, command, pwm, name, sensed)
         for sink in self.sinks:
             sink.publish(sample)
         self.last_sample = sample

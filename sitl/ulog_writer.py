@@ -86,7 +86,7 @@ class ULogRecorder:
         k = self._n % CHUNK
         if k == 0:
             self._chunks.append(np.empty((CHUNK, COLUMNS)))
-        frame = sample.frame
+        frame = sample.sensed or sample.frame  # the ESCs' rpm as reported, as PX4's esc_status logs it
         setpoint = sample.command.setpoint
         self._chunks[-1][k] = (sample.t_us, frame.gyro_t_us if frame.gyro_t_us is not None else frame.t_us,
                                frame.t_us, *frame.gyro, *setpoint.rates, setpoint.throttle,

@@ -52,3 +52,14 @@ def test_fcemu_sitl_ulog_writes_the_file_and_refuses_one_it_cannot(tmp_path, cap
     assert len(ULog(str(path)).get_dataset("esc_status").data["timestamp"]) == 500
     assert main(["sitl", "--no-mavlink", "--duration", "0.1", "--ulog", str(tmp_path)]) == 2
     assert f"fcemu: error: --ulog {tmp_path}: cannot write it" in capsys.readouterr().err
+
+
+def test_esc_status_is_the_rpm_the_escs_reported_not_the_firmwares_reading_ahead(tmp_path) -> None:
+    recorder, sitl = _fly(0.2)
+    last = sitl.loop.last_sample
+    ahead = last.frame._replace(rotor_speed=last.frame.rotor_speed + 50.0)  # a late bus read ahead
+    recorder.publish(last._replace(t_us=last.t_us + 1000, frame=ahead, sensed=last.frame))
+    esc = ULog(str(recorder.write(tmp_path / "flight.ulg"))).get_dataset("esc_status").data
+    rpm = [esc[f"esc[{i}].esc_rpm"][-1] for i in range(4)]
+    assert np.allclose(rpm, last.frame.rotor_speed * RPM_PER_RAD_S, atol=0.5)
+    assert last.sensed is not None  # the loop keeps what the sensors said beside what the controller read
