@@ -8,10 +8,12 @@ Top to bottom, one stage each:
    `--tune-budget-s` share of the time: DIR/pid.json and DIR/tune.json. It also solves, or reads
    from its cache, `fcemu bound`'s lower bound on the held-out commands (seed S + 1).
 2. **The teacher**: the airframe's model inverted tick by tick (`training.inversion_teacher`);
-   nothing to train.
+   nothing to train. Its speed (`TEACHER_SPEEDS`) is chosen on the tuning commands, each flown
+   alone through the action mapping against the tuned PID.
 3. **The policy**: a student fitted to the teacher by DAgger on the airframe's twins
-   (`fcemu distill inversion`), nominal and drawn from the airframe's ranges; exported as
-   DIR/policy.onnx with the airframe and its envelope in its metadata.
+   (`fcemu distill inversion`), nominal and drawn from the airframe's ranges; where the sensors
+   are not the truth the teacher reads the truth and the student `SENSED_MEMORY` ticks; exported
+   as DIR/policy.onnx with the airframe and its envelope in its metadata.
 4. **The check**: the policy and the tuned PID on the same held-out commands, against the bar
    for an airframe of one's own (`evaluation.bar.airframe_bar_verdict`), the bound, and the
    policy's time on an STM32F405 (`fcemu bench mcu`, when the Cortex-M tools are installed).
