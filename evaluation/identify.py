@@ -22,6 +22,7 @@ from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
 from fcemu.evaluation.identify_log import IDLE, FlightLog
+from fcemu.evaluation.rate_boxes import GYRO_PAIRS, gyro_coefficients
 from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 from fcemu.sim_bridge.airframe import Airframe
 
@@ -159,12 +160,9 @@ def axis_regressors(speed: np.ndarray, lever: np.ndarray, dt: float, axis: int) 
     return np.stack(columns, axis=1)
 
 
-COUPLED = ((1, 2), (0, 2), (0, 1))  # per axis, the two rates whose product its gyroscopic term is
-
-
 def coupling_regressor(rates: np.ndarray, axis: int) -> np.ndarray:
     """(T,) the product of the other two rates that the body's gyroscopic term on `axis` scales."""
-    a, b = COUPLED[axis]
+    a, b = GYRO_PAIRS[axis]
     return rates[:, a] * rates[:, b]
 
 
@@ -288,7 +286,7 @@ def airframe_accel(log: FlightLog, speed: np.ndarray, airframe: Airframe, lever:
     inertia = airframe.inertia()
     m = airframe.motor
     c = [m.kf / inertia[0], m.kf / inertia[1], m.kf * m.km / inertia[2]]
-    coupling = gyroscopic_coupling(inertia)
+    coupling = gyro_coefficients(inertia)
     damping = np.array(airframe.rate_damping) / inertia
     delay = airframe.gyro_delay_ticks + 1
     g = smooth(log.gyro, log.dt)
@@ -300,12 +298,6 @@ def airframe_accel(log: FlightLog, speed: np.ndarray, airframe: Airframe, lever:
         out[delay:, axis] = (columns[:n] @ np.array(coef) - damping[axis] * g[delay:, axis]
                              + coupling[axis] * coupling_regressor(g[delay:], axis))
     return out
-
-
-def gyroscopic_coupling(inertia: np.ndarray) -> np.ndarray:
-    """(3,) g per axis of −I⁻¹(Ω × IΩ) for a diagonal inertia: (I_yy − I_zz)/I_xx on roll, and so on."""
-    ixx, iyy, izz = inertia
-    return np.array([(iyy - izz) / ixx, (izz - ixx) / iyy, (ixx - iyy) / izz])
 
 
 def prediction_fit(log: FlightLog, predicted: np.ndarray) -> np.ndarray:

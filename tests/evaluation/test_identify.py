@@ -172,13 +172,13 @@ def test_esc_rpm_slower_than_the_gyro_is_left_out_and_said(tmp_path) -> None:
 
 
 def test_the_yawing_doublets_give_the_yaw_inertia_and_moment_constant_a_rate_log_hid(tmp_path) -> None:
-    from fcemu.evaluation.identify import gyroscopic_coupling
+    from fcemu.evaluation.rate_boxes import gyro_coefficients
 
     out = tmp_path / "drawn"
     assert main(["identify", "--fly", "iris", "--perturb-seed", "206", "--out", str(out)]) == 0
     true, identified = load_airframe(out / "true_airframe.json"), load_airframe(out / "airframe.json")
     base = load_airframe("iris")
-    coupling = {name: gyroscopic_coupling(a.inertia()) for name, a in
+    coupling = {name: gyro_coefficients(a.inertia()) for name, a in
                 (("true", true), ("identified", identified), ("base", base))}
     assert np.allclose(coupling["identified"], coupling["true"], rtol=0.15), coupling
     assert not np.allclose(coupling["base"], coupling["true"], rtol=0.15)  # the draw moved them
