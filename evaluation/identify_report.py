@@ -13,6 +13,7 @@ import numpy as np
 
 from fcemu.evaluation.identify import AXES, airframe_accel, levers, predict_ahead, prediction_fit
 from fcemu.evaluation.identify_airframe import Identification
+from fcemu.evaluation.rate_boxes import gyro_coefficients
 from fcemu.sim_bridge.airframe import Airframe
 
 AHEAD_S = 0.05
@@ -92,6 +93,12 @@ def write_report(ident: Identification, airframe: Airframe, airframe_path: Path,
         rows.append(_row(f"{name} gyro vibration", f"{airframe.gyro_vibration[i]:.4g} rad/s per (rad/s)²",
                          true(truth and truth.gyro_vibration[i]), " rad/s per (rad/s)²"))
     for i, name in enumerate(AXES):
+        rows.append(_row(f"{name} gyroscopic coupling", rf.axes[i].coupling.text(),
+                         None if true_inertia is None else float(gyro_coefficients(true_inertia)[i])))
+    km_identified = m.km != ident.base.motor.km  # the coupling gave the yaw inertia, so k_M follows
+    rows.append(_row("yaw moment constant k_M", f"{m.km:.4g} m" + ("" if km_identified else " (the base's)"),
+                     true(truth and truth.motor.km), " m"))
+    for i, name in enumerate(AXES):
         rows.append(_row(f"{name} effectiveness k_F/I (k_F·k_M/I on yaw)", rf.axes[i].effectiveness.text(),
                          None if truth is None else _effectiveness(truth)[i]))
         rows.append(_row(f"{name} inertia (whole airframe)", f"{inertia[i]:.4g} kg·m²",
@@ -108,9 +115,12 @@ def write_report(ident: Identification, airframe: Airframe, airframe_path: Path,
         f"# {airframe.name}: identified from {log.name}", "",
         f"`{airframe_path}` from `{log.path}`: {len(log.t)} samples at {1 / log.dt:.0f} Hz, motor commands "
         f"from {log.command_source}, {'with' if mf.from_rpm else 'without'} ESC rpm; base airframe "
-        f"{ident.base_label}. Mass, geometry, k_M, rotor sizes and the battery are the base's "
-        "(a rate log cannot give them); k_F follows from the base's mass and the hover rotor speed, the "
-        "inertia from k_F over the effectiveness. Every number's source is in the airframe file.", "",
+        f"{ident.base_label}. Mass, geometry, rotor sizes and the battery are the base's (a rate log cannot "
+        "give them); k_F follows from the base's mass and the hover rotor speed, roll's and pitch's inertia "
+        "from k_F over the effectiveness, "
+        + ("the yaw inertia from the rates' gyroscopic coupling and k_M from it" if km_identified else
+           "the yaw inertia from the base's k_M (the log's rates never turned about two axes at once)")
+        + ". Every number's source is in the airframe file.", "",
         *(f"Left out: {note}." for note in log.notes), *([""] if log.notes else []),
         *rows, "",
         f"## Body rates predicted {horizon * log.dt * 1000:.0f} ms ahead", "",

@@ -186,6 +186,9 @@ def test_the_yawing_doublets_give_the_yaw_inertia_and_moment_constant_a_rate_log
     assert abs(base.motor.km / true.motor.km - 1) > 0.1
     doc = json.loads((out / "airframe.json").read_text())
     assert "gyroscopic coupling" in doc["sources"]["motor.moment_constant_m"]
+    report = (out / "report.md").read_text()
+    assert "| roll gyroscopic coupling |" in report and "k_M from it" in report
+    assert "(the base's)" not in report
 
 
 def test_rates_that_never_coupled_keep_the_base_s_moment_constant() -> None:
