@@ -106,7 +106,7 @@ def test_knowing_the_damping_and_the_delays_flies_a_damped_late_airframe_closer(
     teachers = {"knowing": knowing, "blind": blind}
     monkeypatch.setattr(runner, "load_controller", lambda spec, *a, **k: InversionController(
         teachers[spec]) if spec in teachers else original("pid:iris"))
-    cfg = runner.EvalConfig(episodes=4, seed=11, airframe=str(path))
+    cfg = runner.EvalConfig(episodes=2, seed=11, airframe=str(path))
     error = {name: sum(compute_metrics(runner.run_controller(name, cfg, progress=False)).stat("error", a).mean
                        for a in AXES) for name in teachers}
     assert error["knowing"] < 0.9 * error["blind"], error
