@@ -40,6 +40,7 @@ import numpy as np
 from fcemu.firmware.action import action_to_pwm, pwm_to_action
 from fcemu.firmware.observation import FIELDS, RATE, ObservationSpec
 from fcemu.sim_bridge.airframe import Airframe, load_airframe
+from fcemu.sim_bridge.plant import body_torque
 
 ROLL_PITCH_WEIGHT = 10.0  # the torque error's weight on roll and pitch against yaw's 1
 LAG_MULTIPLE = 0.5  # T_c = 1/ω in motor lags (docs/training_notes.md, 2026-11-27, a teacher of second order)
@@ -62,10 +63,9 @@ class InversionModel:
     pwm_max: float
     lag_s: float
     # What the airframe's effects add, zero on the nominal twin (`sim_bridge.plant.body_torque`):
-    # (3,) rad/s² per rad/s of each FRD rate, D / I
-    damping: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    # (4,) J_r·s_i: the rotors' momentum is h_z = −Σ J_r·s_i·ω_i
-    rotor_momentum: np.ndarray = field(default_factory=lambda: np.zeros(4))
+    damping: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) N·m·s/rad, FRD torque −D·Ω
+    rotor_inertia: float = 0.0  # kg·m² about each rotor's spin axis
+    spin: np.ndarray = field(default_factory=lambda: np.ones(4))  # (4,) +1 counter-clockwise
     gyro_delay_ticks: int = 0  # ticks the gyro adds beside its own one
     esc_delay_ticks: int = 0  # ticks from a command to its motor
 
@@ -78,17 +78,16 @@ class InversionModel:
         m = airframe.motor
         return cls(rig.B, rig.inertia, rig.kf, rig.w_max, rig.a_up, rig.a_down, float(m.pwm_min),
                    float(m.pwm_max), 0.5 * (m.tau_up + m.tau_down),
-                   np.asarray(airframe.rate_damping, dtype=float) / rig.inertia,
-                   airframe.rotor_inertia * np.asarray(airframe.spin, dtype=float),
-                   int(airframe.gyro_delay_ticks), int(airframe.esc_delay_ticks))
+                   np.asarray(airframe.rate_damping, dtype=float), float(airframe.rotor_inertia),
+                   np.asarray(airframe.spin, dtype=float), int(airframe.gyro_delay_ticks),
+                   int(airframe.esc_delay_ticks))
 
     def body_acceleration(self, rates: np.ndarray, rotor: np.ndarray) -> np.ndarray:
-        """The body's own angular acceleration (n, 3) beside the thrusts': gyroscopic −I⁻¹(Ω × IΩ),
-        the rotors' gyroscopic moment −Ω × h and the rate damping −D·Ω, as the twin flies them."""
-        h_z = -(rotor @ self.rotor_momentum)
-        moment = np.stack([-rates[:, 1] * h_z, rates[:, 0] * h_z, np.zeros_like(h_z)], axis=-1)
-        own = -np.cross(rates, self.inertia * rates) + moment
-        return own / self.inertia - self.damping * rates
+        """The body's own angular acceleration (n, 3) beside the thrusts': gyroscopic −I⁻¹(Ω × IΩ)
+        and the twin's other body torques (`plant.body_torque`: the rotors' gyroscopic moment and the
+        rate damping; the rotors held, so no spin-up reaction)."""
+        torque = body_torque(rates, rotor, rotor, self.damping, self.rotor_inertia, self.spin, dt=1.0)
+        return (-np.cross(rates, self.inertia * rates) + torque) / self.inertia
 
 
 def max_scale(lo: np.ndarray, hi: np.ndarray, delta: np.ndarray) -> np.ndarray:

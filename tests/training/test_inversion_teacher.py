@@ -84,7 +84,7 @@ def test_the_teacher_knows_the_body_torques_the_twin_adds_damping_and_the_rotors
     assert InversionTeacher(airframe).ahead_ticks == 4  # its own tick, the gyro's two, the ESC's one
     assert InversionTeacher(airframe, reads_truth=True).ahead_ticks == 2
     nominal = InversionModel.of(load_airframe("iris"))
-    assert not nominal.damping.any() and not nominal.rotor_momentum.any() and not nominal.gyro_delay_ticks
+    assert not nominal.damping.any() and not nominal.rotor_inertia and not nominal.gyro_delay_ticks
 
 
 def test_knowing_the_damping_and_the_delays_flies_a_damped_late_airframe_closer(monkeypatch, tmp_path):
@@ -100,7 +100,7 @@ def test_knowing_the_damping_and_the_delays_flies_a_damped_late_airframe_closer(
     path.write_text(json.dumps(spec))
     knowing = InversionTeacher(str(path))
     blind = InversionTeacher(str(path))
-    blind.model = dataclasses.replace(blind.model, damping=np.zeros(3), rotor_momentum=np.zeros(4))
+    blind.model = dataclasses.replace(blind.model, damping=np.zeros(3), rotor_inertia=0.0)
     blind.ahead_ticks = 1
     original = runner.load_controller
     teachers = {"knowing": knowing, "blind": blind}
