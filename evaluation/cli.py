@@ -21,6 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="episode length (default 1 s episodic and inflight, 10 s continuous)")
     p.add_argument("--throttle", type=float, default=None, help="collective 0..1 (default: hover)")
     add_env_arguments(p, ("airframe",))
+    p.add_argument("--twin", default=None, metavar="NAME|FILE",
+                   help="the airframe the twin flies, where the firmware is set up for --airframe: e.g. the "
+                        "true quad behind a file `fcemu identify` wrote, with a policy fitted on that file")
     p.add_argument("--fallback", default="pid", metavar="PID",
                    help="the PID a policy hands over to when its input is unhealthy (default pid: the "
                         "airframe's own tune; pid:DIR/pid.json for one `fcemu tune` wrote)")

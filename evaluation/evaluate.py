@@ -26,6 +26,8 @@ def result_json(spec: str, cfg: EvalConfig, metrics: EvalMetrics,
                 perturbed: PerturbedResult | None = None) -> dict:
     out = {"controller": spec, "episodes": cfg.episodes, "seed": cfg.seed, "task": cfg.task,
            "airframe": cfg.airframe, "metrics": metrics.to_json(), "details": metrics.details_json()}
+    if cfg.twin is not None:
+        out["twin"] = cfg.twin
     if perturbed is not None:
         out["perturbed"] = perturbed.metrics.to_json()
         out["perturbation"] = perturbed.details_json()
@@ -65,9 +67,12 @@ def eval_command(args) -> int:
     specs = args.controller or ["pid"]
     try:
         cfg = EvalConfig(task=args.task, episodes=args.episodes, seed=args.seed, episode_s=args.episode_s,
-                         throttle=args.throttle, airframe=args.airframe, fallback=args.fallback)
+                         throttle=args.throttle, airframe=args.airframe, fallback=args.fallback,
+                         twin=args.twin)
         if args.perturb < 0:
             raise ValueError(f"--perturb must be >= 0, got {args.perturb}")
+        if args.twin is not None and args.perturb:
+            raise ValueError("--twin flies one given airframe: it does not combine with --perturb")
         airframes, ranges = _airframes(args)
         faults = fault_eval.check_specs(getattr(args, "fault", None) or [])
     except (RandomizationError, ValueError) as exc:

@@ -51,6 +51,9 @@ class EvalConfig:
     throttle: float | None = None  # None: the airframe's hover throttle
     rate_hz: float = 1000.0
     airframe: str = DEFAULT_AIRFRAME  # sim_bridge/airframes/<name>.json or a path, e.g. iris_realistic
+    # The airframe the twin flies where it is not the one the firmware is set up for (`airframe`): the
+    # true quad behind an identified file, which a policy fitted on that file is flown on.
+    twin: str | None = None
     fallback: str = FALLBACK  # the PID a policy hands over to: by default the airframe's own tune
 
     def __post_init__(self) -> None:
@@ -146,10 +149,11 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
                    controller: RateController | None = None) -> Traces:
     """Fly `spec` (pid, pid:<preset>, FILE.onnx) over the evaluation set; return its traces.
 
-    `airframe` replaces the nominal Iris (e.g. a perturbed one); its hover throttle is flown
-    unless `cfg.throttle` is set. `faults` injects its faults into the twin at its tick of each
-    episode and records what the firmware's health monitor made of them. `controller` flies instead
-    of the one `spec` names (which then only names it), with no fallback: a model-based teacher.
+    `airframe` replaces the nominal Iris (e.g. a perturbed one) for the firmware and the twin alike;
+    `cfg.twin`, for the twin alone. The twin's hover throttle is flown unless `cfg.throttle` is set.
+    `faults` injects its faults into the twin at its tick of each episode and records what the
+    firmware's health monitor made of them. `controller` flies instead of the one `spec` names
+    (which then only names it), with no fallback: a model-based teacher.
     """
     from fcemu.sim_bridge.airframe_spec import airframe_spec
 
@@ -161,7 +165,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     setpoints = setpoint_schedules(cfg)
     n, ticks = cfg.episodes, cfg.warmup_ticks + cfg.n_ticks
     rate, pwm = np.zeros((n, ticks, 3)), np.zeros((n, ticks, 4))
-    twin = Twin(airframe or cfg.airframe, rig="rig", dt=1.0 / cfg.rate_hz)
+    twin = Twin(airframe or cfg.twin or cfg.airframe, rig="rig", dt=1.0 / cfg.rate_hz)
     throttle = cfg.throttle_for(twin.airframe)
     start = hover_state(twin.airframe, throttle) if cfg.task == "inflight" else None
     noise_seeds = sensor_noise_seeds(cfg)

@@ -164,3 +164,21 @@ def test_eval_flies_a_scaled_iris_file_and_perturbs_it_with_ranges_around_it(tmp
                     "--perturb", "1", "--ranges", "iris")  # the Iris's are another airframe's
     assert refused.returncode == 2 and refused.stderr.startswith("fcemu: error: ")
     assert refused.stderr.count("\n") == 1 and "iris_heavy" in refused.stderr
+
+
+def test_the_twin_can_fly_another_airframe_than_the_firmware_is_set_up_for(tmp_path):
+    raw = json.loads((AIRFRAME_DIR / "iris.json").read_text())
+    raw.update(name="iris_heavy", base_mass_kg=1.7)
+    heavy = tmp_path / "iris_heavy.json"
+    heavy.write_text(json.dumps(raw))
+    base = EvalConfig(episodes=1, seed=3, episode_s=0.2)
+    iris = run_controller("pid:iris", base, progress=False)
+    same = run_controller("pid:iris", dataclasses.replace(base, twin="iris"), progress=False)
+    np.testing.assert_array_equal(same.pwm, iris.pwm)
+    # the firmware set up for the Iris, the twin the heavy one: flown as the heavy airframe is flown
+    on_heavy = run_controller("pid:iris", dataclasses.replace(base, twin=str(heavy)), progress=False)
+    heavy_alone = run_controller("pid:iris", dataclasses.replace(base, airframe=str(heavy)), progress=False)
+    np.testing.assert_array_equal(on_heavy.pwm, heavy_alone.pwm)
+    assert not np.array_equal(on_heavy.pwm, iris.pwm)
+    refused = fcemu("eval", "--twin", str(heavy), "--perturb", "1", "--episodes", "1")
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "--twin" in refused.stderr
