@@ -36,9 +36,15 @@ def readme_commands() -> list[list[str]]:
 
 
 @cache
+@cache
+def _help(words: tuple[str, ...]) -> subprocess.CompletedProcess:
+    """`fcemu WORDS --help`, once per subcommand: the README names most of them many times."""
+    return subprocess.run([sys.executable, "-m", "fcemu", *words, "--help"], capture_output=True, text=True,
+                          timeout=120, cwd=ROOT)
+
+
 def help_text(subcommand: tuple[str, ...]) -> str:
-    done = subprocess.run([sys.executable, "-m", "fcemu", *subcommand, "--help"], capture_output=True,
-                          text=True, timeout=120, cwd=ROOT)
+    done = _help(subcommand)
     assert done.returncode == 0, f"fcemu {' '.join(subcommand)} --help: {done.stderr[-500:]}"
     return done.stdout
 
@@ -51,8 +57,7 @@ def subcommand_of(argv: list[str]) -> tuple[str, ...]:
             break
         words.append(word)
     for k in range(len(words), 0, -1):
-        done = subprocess.run([sys.executable, "-m", "fcemu", *words[:k], "--help"], capture_output=True,
-                              text=True, timeout=120, cwd=ROOT)
+        done = _help(tuple(words[:k]))
         usage = f"usage: fcemu {' '.join(words[:k])}"
         if done.returncode == 0 and usage in done.stdout:
             return tuple(words[:k])
