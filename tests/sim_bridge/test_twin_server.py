@@ -39,7 +39,7 @@ from fcemu.sim_bridge.protocol import (
 )
 from fcemu.sim_bridge.twin import Twin
 from fcemu.sim_bridge.twin_server import SenderBudget, UdpTwinServer
-from tests.sim_bridge.test_link import assert_identical, pwm_sequence
+from tests.sim_bridge.link_rig import assert_identical, pwm_sequence
 
 pytestmark = pytest.mark.timeout(90)
 ROOT = Path(__file__).resolve().parents[2]
