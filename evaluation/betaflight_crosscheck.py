@@ -45,8 +45,9 @@ from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sim_bridge.link import InProcessLink
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.sim_bridge.twin import Twin
-from fcemu.sitl.betaflight import BetaflightFlight, RcMap
+from fcemu.sitl.betaflight import BetaflightFlight
 from fcemu.sitl.betaflight_process import BetaflightError, NeuralFirmware, neural_firmware
+from fcemu.sitl.betaflight_rc import RcMap
 from fcemu.sitl.traces import Traces, save_traces
 
 FCEMU_PRESET = "pid:betaflight"

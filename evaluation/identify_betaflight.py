@@ -20,8 +20,9 @@ from fcemu.evaluation.identify_flight import _Excitation, excitation
 from fcemu.sim_bridge.airframe import Airframe
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sim_bridge.twin import Twin
-from fcemu.sitl.betaflight import BetaflightFlight, RcMap
+from fcemu.sitl.betaflight import BetaflightFlight
 from fcemu.sitl.betaflight_process import BetaflightError
+from fcemu.sitl.betaflight_rc import RcMap
 from fcemu.sitl.traces import Traces
 
 SPEED = 0.25  # the twin against wall time: the SITL's clock keeps closer to the twin's slower

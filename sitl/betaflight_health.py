@@ -24,8 +24,9 @@ import numpy as np
 
 from fcemu.sim_bridge.faults import Fault, FaultInjector
 from fcemu.sim_bridge.twin import Twin
-from fcemu.sitl.betaflight import BetaflightFlight, RcMap
+from fcemu.sitl.betaflight import BetaflightFlight
 from fcemu.sitl.betaflight_process import BetaflightError, neural_firmware
+from fcemu.sitl.betaflight_rc import RcMap
 
 HOVER = 0.745  # the rig's throttle (tests/sitl/test_betaflight_neural.py)
 ROLL_STEP = 2.0  # rad/s

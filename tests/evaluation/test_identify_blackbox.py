@@ -15,8 +15,9 @@ from fcemu.evaluation.identify_flight import _Excitation
 from fcemu.evaluation.identify_log import read_flight_log
 from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.twin import Twin
-from fcemu.sitl.betaflight import BetaflightFlight, RcMap
+from fcemu.sitl.betaflight import BetaflightFlight
 from fcemu.sitl.betaflight_process import BetaflightError, port_in_use, sitl_binary
+from fcemu.sitl.betaflight_rc import RcMap
 
 pytest.importorskip("orangebox", reason="the blackbox decoder is the extra fcemu[blackbox]")
 

@@ -12,8 +12,9 @@ import pytest
 
 from fcemu.cli import main
 from fcemu.sim_bridge.twin import Twin
-from fcemu.sitl.betaflight import BASE_SETTINGS, BetaflightFlight, RcMap
+from fcemu.sitl.betaflight import BASE_SETTINGS, BetaflightFlight
 from fcemu.sitl.betaflight_process import BetaflightError, BetaflightSitl, port_in_use, sitl_binary
+from fcemu.sitl.betaflight_rc import RcMap
 
 try:
     sitl_binary()
@@ -27,16 +28,6 @@ pytestmark = pytest.mark.slow
 def _no_other_sitl():
     if port_in_use(5761):
         pytest.fail("another Betaflight SITL holds TCP 5761; its UDP ports would take our packets")
-
-
-def test_rc_map_round_trips_rates_through_betaflight_sticks():
-    rc = RcMap(rate_dps=400.0)
-    rates = np.array([1.0, -2.0, 3.0])
-    ch = rc.stick_channels(rates)
-    assert ch[1] > 1500  # FRD pitch down = Betaflight stick forward
-    assert rc.setpoint(ch) == pytest.approx(rates, abs=np.radians(0.8 / 2) + 1e-12)
-    thr = rc.throttle_channel(0.745)
-    assert abs(rc.fcemu_throttle(thr) - 0.745) < 2e-3
 
 
 def test_betaflight_arms_and_tracks_a_roll_step_on_the_rig(tmp_path):

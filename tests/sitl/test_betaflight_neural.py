@@ -20,9 +20,10 @@ from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.sensors import SensorFrame
 from fcemu.sim_bridge.betaflight_link import pack_fdm, unpack_fdm
 from fcemu.sim_bridge.twin import Twin
-from fcemu.sitl.betaflight import BetaflightFlight, RcMap
+from fcemu.sitl.betaflight import BetaflightFlight
 from fcemu.sitl.betaflight_health import SCENARIOS, fly_scenarios
 from fcemu.sitl.betaflight_process import BetaflightError, neural_firmware, port_in_use
+from fcemu.sitl.betaflight_rc import RcMap
 from fcemu.sitl.traces import Traces
 from tests.export.mcu_tools import SHIPPED, require_codegen
 
