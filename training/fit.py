@@ -71,9 +71,15 @@ SENSED_MEMORY = 4
 # The teacher's speed is the airframe's: a slow-motored one (a Crazyflie's motors lag 72 ms) rises
 # late at the default, a quick one can go faster. Each is flown alone through the action mapping on
 # SPEED_COMMANDS of the tuning commands, on the nominal twin, and the fastest-tracking one whose
-# motors are no rougher than the bar allows against the tuned PID's on the same commands is taught.
+# student's motors would be no rougher than the bar allows against the tuned PID's on the same
+# commands is taught. A student is smoother than its teacher (0.71-0.78 × its roughness: the racer's
+# at 0.5 and 0.35 lags, the Crazyflie's at 0.25), so a teacher up to SMOOTHNESS_BAR /
+# STUDENT_SMOOTHING × the PID's passes; judged on the teacher itself, the racer kept 0.5 lags (0.995 ×
+# its PID, in-flight roll Rise missed) where 0.35 gives 0.985 × and meets Rise, and the Crazyflie
+# 0.35 (1.265 × the bound) where 0.25 gives 1.174 × (docs/training_notes.md, 2026-11-27).
 TEACHER_SPEEDS = (0.5, 0.35, 0.25)  # time constants in motor lags, the default first
 SPEED_COMMANDS = 20
+STUDENT_SMOOTHING = 0.8  # the most a student's motor roughness was of its teacher's, rounded up
 
 
 def _stage(log: Any, t0: float, text: str) -> None:
@@ -137,7 +143,8 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
     n = min(SPEED_COMMANDS, opts.episodes)
     cfg = EvalConfig(episodes=n, seed=opts.seed, airframe=opts.airframe)
     ref = compute_metrics(run_controller(f"pid:{pid}", cfg, progress=False, airframe=airframe))
-    limit = SMOOTHNESS_BAR * ref.stat("smoothness", "roll").mean
+    pid_rough = ref.stat("smoothness", "roll").mean
+    limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING * pid_rough
     flown = []
     for multiple in TEACHER_SPEEDS:
         teacher = InversionController(InversionTeacher(airframe, multiple), mapped=True)
@@ -146,11 +153,11 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
         flown.append({"lag_multiple": multiple, "error_sum": round(error_sum(m), 2),
                       "smoothness": round(m.stat("smoothness", "roll").mean, 3)})
         log(f"  teacher at {multiple:g} motor lags: Error {flown[-1]['error_sum']:.1f}, motors "
-            f"{flown[-1]['smoothness']:.2f} (the PID {error_sum(ref):.1f}, {limit / SMOOTHNESS_BAR:.2f})")
+            f"{flown[-1]['smoothness']:.2f} (the PID {error_sum(ref):.1f}, {pid_rough:.2f})")
     smooth_enough = [f for f in flown if f["smoothness"] <= limit] or flown[:1]
     chosen = min(smooth_enough, key=lambda f: f["error_sum"])
     return {"lag_multiple": chosen["lag_multiple"], "flown": flown, "pid_error_sum": round(error_sum(ref), 2),
-            "pid_smoothness": round(ref.stat("smoothness", "roll").mean, 3), "commands": n}
+            "pid_smoothness": round(pid_rough, 3), "commands": n}
 
 
 def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
