@@ -72,11 +72,9 @@ SENSED_MEMORY = 4
 # late at the default, a quick one can go faster. Each is flown alone through the action mapping on
 # SPEED_COMMANDS of the tuning commands, on the nominal twin, and the fastest-tracking one whose
 # student's motors would be no rougher than the bar allows against the tuned PID's on the same
-# commands is taught. A student is smoother than its teacher (0.71-0.78 × its roughness: the racer's
-# at 0.5 and 0.35 lags, the Crazyflie's at 0.25), so a teacher up to SMOOTHNESS_BAR /
-# STUDENT_SMOOTHING × the PID's passes; judged on the teacher itself, the racer kept 0.5 lags (0.995 ×
-# its PID, in-flight roll Rise missed) where 0.35 gives 0.985 × and meets Rise, and the Crazyflie
-# 0.35 (1.265 × the bound) where 0.25 gives 1.174 × (docs/training_notes.md, 2026-11-27).
+# commands is taught. A student is smoother than its teacher, so a teacher up to SMOOTHNESS_BAR /
+# STUDENT_SMOOTHING × the PID's passes (docs/training_notes.md, 2026-11-27, the teacher's speed
+# judged by its student's motors).
 TEACHER_SPEEDS = (0.5, 0.35, 0.25)  # time constants in motor lags, the default first
 SPEED_COMMANDS = 20
 STUDENT_SMOOTHING = 0.8  # the most a student's motor roughness was of its teacher's, rounded up
