@@ -22,13 +22,20 @@ learned or not, flies below the optimum:
   (`evaluation.rate_boxes`) that provably hold every trajectory with Error ≤ cap, the
   gyroscope-free optimum. The bound is min(optimum, cap): a trajectory above the cap is
   above the bound too.
+- The tail, on an axis the gyroscopic term leaves alone (c_j = 0: the other two moments
+  equal, as on a symmetric frame): from the horizon to the episode's end the rate moves at
+  most dt·A_j per step, A_j = max |B_j·T| over thrusts in [0, T_max], so the sample n steps
+  on is at least |Ω* − Ω| at the horizon's last sample less n·dt·A_j from its command. Their
+  sum is a convex function of that last error, carried exactly by one cut per n. Without it
+  a slow axis (an X500's yaw, where a large command is not reached in 0.4 s) had much of
+  its Error outside the bound.
 
 Every relaxation is in the controller's favour: the motors are independent (the `throttle`
 mapping and the PID's mixer tie their mean to the collective), the controller knows the
 command and the state exactly (no sensor delay, no observation to infer them from), and
-the horizon ends at `horizon` steps (later error counts as zero). The optimum's split of
-the bound over roll, pitch and yaw is one optimum's, not a bound per axis: a controller
-can fly one axis below its share while paying more on another.
+on an axis with a gyroscopic term the horizon ends at `horizon` steps (later error counts as
+zero). The optimum's split of the bound over roll, pitch and yaw is one optimum's, not a
+bound per axis: a controller can fly one axis below its share while paying more on another.
 
 The twin is the nominal one: an airframe with damping, rotor inertia, delays, gyro noise
 or vibration, or battery sag on is refused, since the programme models none of them.
@@ -36,9 +43,7 @@ or vibration, or battery sag on is refused, since the programme models none of t
 
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
-import time
 from dataclasses import dataclass
 
 import mujoco
@@ -48,14 +53,14 @@ from scipy.optimize import linprog
 from tqdm import tqdm
 
 from fcemu.evaluation.rate_boxes import GYRO_PAIRS, Boxes, RateBoxes, gyro_coefficients
+from fcemu.evaluation.runner import EvalConfig
 from fcemu.firmware.errors import UserError
-from fcemu.firmware.timing import available_cpus
 from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
 from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
-from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.sim_bridge.twin import Twin
 
 HORIZON = 400  # steps: the error left after 0.4 s is a few % of an episode's
+EPISODE_SAMPLES = EvalConfig(task="episodic").n_ticks  # where the tail ends: the evaluator's episode
 OTHERS_HORIZON = 150  # steps of the programmes that bound two axes' Error for the rate boxes
 TANGENTS = np.linspace(0.1, 1.0, 10)  # fractions of ω_max where k_F·ω² is cut from below
 BOX_MARGIN = 1e-6  # rad/s added to each box edge: the twin's rounding, the solver's tolerance
@@ -107,23 +112,35 @@ def rig_constants(airframe: str | Airframe = DEFAULT_AIRFRAME, dt: float = 0.001
     return RigConstants(B, np.diag(M).copy(), mo.kf, mo.max_rotor_speed, mo.alpha_up, mo.alpha_down, dt)
 
 
+def tail_axes(c: RigConstants, horizon: int = HORIZON,
+              episode: int | None = EPISODE_SAMPLES) -> tuple[int, ...]:
+    """The axes whose bound runs on past the horizon to the episode's end (module doc: the tail)."""
+    if not episode or episode <= horizon:
+        return ()
+    return tuple(j for j, cj in enumerate(gyro_coefficients(c.inertia)) if cj == 0.0)
+
+
 @dataclass(frozen=True)
 class Optimum:
-    error: np.ndarray  # (3,) the optimum's Error per axis, samples 0 … K−1
+    error: np.ndarray  # (3,) the optimum's Error per axis, samples 0 … K−1 and the tail's
     rates: np.ndarray  # (K, 3) Ω(k), FRD
 
 
 class ErrorBound:
     """The linear programme for one horizon; `solve` returns the optimum for a held command."""
 
-    def __init__(self, c: RigConstants, horizon: int = HORIZON) -> None:
+    def __init__(self, c: RigConstants, horizon: int = HORIZON,
+                 episode: int | None = EPISODE_SAMPLES) -> None:
+        """`episode`: samples per episode, for the tail (module doc); None: the horizon's samples only."""
         self.c, self.K = c, horizon
         self.coeff = gyro_coefficients(c.inertia)
+        self.tail_steps = max(0, episode - horizon) if episode else 0
+        self.tail_axes = tail_axes(c, horizon, episode)
         K = horizon
-        # Variable blocks: ω (4K), T (4K), Ω after step k (3K), slack s ≥ |Ω* − rate| (3K), and the
-        # gyroscopic product w_j(k) = Ω_a(k−1)·Ω_b(k−1) of each axis (3K).
-        self.off_t, self.off_o, self.off_s, self.off_g = 4 * K, 8 * K, 11 * K, 14 * K
-        self.n = 17 * K
+        # Variable blocks: ω (4K), T (4K), Ω after step k (3K), slack s ≥ |Ω* − rate| (3K), the
+        # gyroscopic product w_j(k) = Ω_a(k−1)·Ω_b(k−1) of each axis (3K), and each axis' tail (3).
+        self.off_t, self.off_o, self.off_s, self.off_g, self.off_tail = 4 * K, 8 * K, 11 * K, 14 * K, 17 * K
+        self.n = 17 * K + 3
         self._build()
 
     def w(self, i: int, k: int) -> int:
@@ -195,12 +212,18 @@ class ErrorBound:
             for k in range(K - 2):
                 add([(self.o(j, k), -1.0), (self.s(j, k + 2), -1.0)], 0.0)  # Ω* − Ω ≤ s (bound set later)
                 add([(self.o(j, k), 1.0), (self.s(j, k + 2), -1.0)], 0.0)  # Ω − Ω* ≤ s
+        # The tail: τ_j ≥ n·s_j(K−1) − dt·A_j·n(n+1)/2 for every n, the pieces of Σₙ max(0, s − n·dt·A_j).
+        for j in self.tail_axes:
+            reach = c.dt * t_max * max(c.B[j][c.B[j] > 0].sum(), -c.B[j][c.B[j] < 0].sum())
+            for n in range(1, self.tail_steps + 1):
+                add([(self.s(j, K - 1), float(n)), (self.off_tail + j, -1.0)], reach * n * (n + 1) / 2.0)
         self.A_ub = sparse.csr_matrix((vals, (rows, cols)), shape=(r, self.n))
         self.b_ub = np.array(ub)
         self.A_eq = sparse.csr_matrix((eq_vals, (eq_rows, eq_cols)), shape=(e, self.n))
         self.b_eq = np.zeros(e)
         self.bounds = np.array([(0.0, c.w_max)] * 4 * K + [(0.0, t_max)] * 4 * K + [(-np.inf, np.inf)] * 3 * K
-                               + [(0.0, np.inf)] * 3 * K + [(0.0, 0.0)] * 3 * K)
+                               + [(0.0, np.inf)] * 3 * K + [(0.0, 0.0)] * 3 * K
+                               + [(0.0, np.inf if j in self.tail_axes else 0.0) for j in range(3)])
 
     def mccormick(self, box: Boxes) -> tuple[sparse.csr_matrix, np.ndarray]:
         """Rows keeping each w_j(k), k ≥ 1, in McCormick's envelope of Ω_a(k−1)·Ω_b(k−1) over `box`."""
@@ -236,11 +259,11 @@ class ErrorBound:
         command = np.asarray(command, dtype=float)
         b_ub = self.b_ub.copy()
         # Slack rows come in pairs per (axis, sample): Ω* − Ω ≤ s, then Ω − Ω* ≤ s.
-        pairs = b_ub[self.n_motor_rows:].reshape(3, K - 2, 2)
+        pairs = b_ub[self.n_motor_rows:self.n_motor_rows + 6 * (K - 2)].reshape(3, K - 2, 2)
         pairs[..., 0] = -command[:, None]
         pairs[..., 1] = command[:, None]
         A_ub, bounds = self.A_ub, self.bounds.copy()
-        products = bounds[self.off_g:].reshape(3, K, 2)
+        products = bounds[self.off_g:self.off_tail].reshape(3, K, 2)
         if gyro is not None:
             products[:] = np.asarray(gyro, dtype=float).T[..., None]
             products[:, 0] = 0.0
@@ -254,6 +277,7 @@ class ErrorBound:
         cost = np.zeros(self.n)
         for j in range(3):  # Σ of the slacks from sample 2 on (samples 0 and 1 are at rest)
             cost[self.s(j, 2):self.s(j, K - 1) + 1] = weights[j]
+            cost[self.off_tail + j] = weights[j]
         problem = {"c": cost, "A_ub": A_ub, "b_ub": b_ub, "A_eq": self.A_eq, "b_eq": self.b_eq,
                    "bounds": bounds}
         res = linprog(**problem, method="highs", options={"time_limit": SIMPLEX_TIME_LIMIT_S})
@@ -265,7 +289,8 @@ class ErrorBound:
             raise RuntimeError(f"LP for command {command} failed: {res.message}")
         slack = res.x[self.off_s:self.off_g].reshape(3, K)
         rates = res.x[self.off_o:self.off_s].reshape(3, K).T
-        return Optimum(slack[:, 2:].sum(axis=1) + 2.0 * np.abs(command), rates)
+        tail = res.x[self.off_tail:self.off_tail + 3]
+        return Optimum(slack[:, 2:].sum(axis=1) + 2.0 * np.abs(command) + tail, rates)
 
     def gyro_of(self, rates: np.ndarray) -> np.ndarray:
         """The products w_j(k) = Ω_a(k−1)·Ω_b(k−1) of a rate trajectory (K, 3); w(0) = 0."""
@@ -275,7 +300,7 @@ class ErrorBound:
 
 @dataclass(frozen=True)
 class CommandBound:
-    bound: float  # the lower bound on the Error over the horizon
+    bound: float  # the lower bound on the Error over the horizon, and the tail's (module doc)
     split: np.ndarray  # (3,) how the optimum that gives it spends it over roll, pitch, yaw
     without_gyro: float  # the gyroscope-free programme's optimum (the cap; not a bound)
     estimate: float | None  # with the gyroscopic term of its own trajectory (`gyro_passes`)
@@ -292,7 +317,8 @@ class Floor:
 
     def __init__(self, c: RigConstants, horizon: int = HORIZON) -> None:
         self.lp = ErrorBound(c, horizon)
-        self.short = ErrorBound(c, min(horizon, OTHERS_HORIZON))
+        # The other axes' Error in the boxes' proof is the horizon's: no tail.
+        self.short = ErrorBound(c, min(horizon, OTHERS_HORIZON), episode=None)
         self.boxes = RateBoxes(c, horizon)
 
     def solve(self, command: np.ndarray, gyro_passes: int = 0) -> CommandBound:
@@ -352,55 +378,3 @@ def error_bounds(commands: np.ndarray, horizon: int = HORIZON, gyro_passes: int 
         return [_solve(w) for w in tqdm(work, **bar)]
     with mp.get_context("spawn").Pool(jobs, _init_worker, (horizon, airframe)) as pool:
         return list(tqdm(pool.imap(_solve, work), **bar))
-
-
-def bound_command(args) -> int:
-    """`fcemu bound`: the bound on the evaluator's commands, and each --controller's Error against it."""
-    import sys
-
-    from fcemu.evaluation.metrics import AXES, compute_metrics
-    from fcemu.evaluation.runner import EvalConfig, run_controller
-
-    if args.episodes < 1 or args.horizon < 3 or args.gyro_passes < 0 or args.jobs < 0:
-        raise UserError("bound: --episodes must be ≥ 1, --horizon ≥ 3, --gyro-passes and --jobs ≥ 0")
-    rig_constants(args.airframe)  # refuses an airframe the programme does not model, before any work
-    progress = sys.stderr.isatty() and not args.json
-    commands = episodic_commands(args.seed, args.episodes)
-    t0 = time.perf_counter()
-    found = error_bounds(commands, args.horizon, args.gyro_passes, args.jobs or available_cpus(), progress,
-                         args.airframe)
-    per_command = np.array([b.bound for b in found])
-    split = np.array([b.split for b in found]).mean(axis=0)
-    out: dict = {"episodes": args.episodes, "seed": args.seed, "horizon": args.horizon,
-                 "airframe": args.airframe, "bound_sum": round(float(per_command.mean()), 2),
-                 "split_at_optimum": {a: round(float(v), 2) for a, v in zip(AXES, split, strict=True)},
-                 "without_gyro_sum": round(float(np.mean([b.without_gyro for b in found])), 2),
-                 "gyro_passes": args.gyro_passes, "wall_s": round(time.perf_counter() - t0, 1),
-                 "controllers": []}
-    if args.gyro_passes:
-        out["estimate_sum"] = round(float(np.mean([b.estimate for b in found])), 2)
-    cfg = EvalConfig(task="episodic", episodes=args.episodes, seed=args.seed, airframe=args.airframe)
-    for spec in args.controller or []:
-        traces = run_controller(spec, cfg, progress=progress)
-        m = compute_metrics(traces)
-        error = {a: round(m.stat("error", a).mean, 2) for a in AXES}
-        total = sum(error.values())
-        horizon_error = np.abs(traces.setpoint - traces.rate)[:, :args.horizon].sum(axis=(1, 2))
-        out["controllers"].append({"controller": spec, "error": error, "error_sum": round(total, 2),
-                                   "times_bound": round(total / out["bound_sum"], 4),
-                                   "below_bound": int((horizon_error < per_command).sum())})
-    if args.json:
-        print(json.dumps(out))
-        return 0
-    print(f"lower bound on the Error, {args.episodes} commands (seed {args.seed}), "
-          f"horizon {args.horizon} steps, nominal {args.airframe}: {out['bound_sum']:.1f}")
-    print("  the optimum's split over roll/pitch/yaw (not a bound per axis): "
-          + "/".join(f"{v:.1f}" for v in split))
-    extra = (f"; with its own trajectory's gyroscopic term {out['estimate_sum']:.1f}"
-             if args.gyro_passes else "")
-    print(f"  estimates, not bounds: without the gyroscopic term {out['without_gyro_sum']:.1f}{extra}")
-    for c in out["controllers"]:
-        print(f"{c['controller']:>32}: error " + "/".join(f"{v:.1f}" for v in c["error"].values())
-              + f" (sum {c['error_sum']:.1f}) = {c['times_bound']:.3f} × the bound; "
-              f"below it on {c['below_bound']} of {args.episodes} commands")
-    return 0

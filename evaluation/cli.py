@@ -61,4 +61,4 @@ def register_bound(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--controller", action="append", default=None,
                    help="also fly pid, pid:<preset> or FILE.onnx on the same commands and compare")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-    p.set_defaults(handler="fcemu.evaluation.bound:bound_command")
+    p.set_defaults(handler="fcemu.evaluation.bound_cli:bound_command")

@@ -196,8 +196,13 @@ def _finite(value: float) -> float | None:
 def bound_cache_path(rig: Any, commands: np.ndarray, horizon: int) -> Path:
     """Where the bound of these commands on this rig is kept: it depends on nothing else (not on
     the PID), and its programmes cost more than the search on a small machine."""
+    from fcemu.evaluation.bound import EPISODE_SAMPLES, tail_axes
+
     key = hashlib.sha256()
-    for value in (rig.B, rig.inertia, np.array([rig.kf, rig.w_max, rig.a_up, rig.a_down, rig.dt, horizon]),
+    constants = [rig.kf, rig.w_max, rig.a_up, rig.a_down, rig.dt, horizon]
+    if tail_axes(rig, horizon):
+        constants.append(EPISODE_SAMPLES)  # where the tail ends
+    for value in (rig.B, rig.inertia, np.array(constants),
                   np.asarray(commands, dtype=float)):
         key.update(np.ascontiguousarray(value, dtype=float).tobytes())
     root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")

@@ -9,9 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from fcemu.evaluation.bound import Floor, error_bounds, rig_constants
+from fcemu.evaluation.bound import ErrorBound, Floor, error_bounds, rig_constants, tail_axes
 from fcemu.evaluation.open_loop import near_optimal_pwm
 from fcemu.evaluation.rate_boxes import RateBoxes
+from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.errors import UserError
 from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
@@ -25,17 +26,17 @@ def floor() -> Floor:
     return Floor(rig_constants(), K)
 
 
-def fly_twin(seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Held PWM (mostly full-range patterns) on the ball-joint twin for K + 1 steps.
+def fly_twin(seed: int, airframe: str = "iris", steps: int = K) -> tuple[np.ndarray, np.ndarray]:
+    """Held PWM (mostly full-range patterns) on the ball-joint twin for `steps` + 1 steps.
 
-    Returns the rotor speeds ω(k), (K + 1, 4), and every gyro frame, (K + 2, 3).
+    Returns the rotor speeds ω(k), (steps + 1, 4), and every gyro frame, (steps + 2, 3).
     """
     rng = np.random.default_rng(seed)
-    twin = Twin(load_airframe("iris"), "rig", None, 0.001)
+    twin = Twin(load_airframe(airframe), "rig", None, 0.001)
     frames = [twin.reset()]
     pwm = np.full(4, 1500.0)
     speeds = []
-    for k in range(K + 1):
+    for k in range(steps + 1):
         if k % 15 == 0:
             pwm = rng.choice([1000.0, 2000.0], 4) if rng.random() < 0.7 else rng.uniform(1000, 2000, 4)
         frames.append(twin.step(pwm))
@@ -68,6 +69,40 @@ def test_every_trajectory_the_twin_flies_satisfies_the_programme(floor, seed):
     assert boxes.contains(omega)
     rows, rhs = lp.mccormick(boxes)
     assert (rows @ x - rhs).max() <= 1e-9
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_tail_holds_for_what_the_twin_flies_on_a_symmetric_frame(seed):
+    """On the X500 (equal roll and pitch moments) yaw has no gyroscopic term, so its bound runs on
+    to the episode's end: each tail row holds with the flight's own error after the horizon."""
+    c, episode = rig_constants("x500"), 400
+    lp = ErrorBound(c, K, episode)
+    assert lp.tail_axes == (2,) and tail_axes(rig_constants("iris"), K, episode) == ()
+    _, gyro = fly_twin(seed, "x500", episode)
+    rate = gyro[:episode]  # the evaluation's sample k is gyro frame k: Ω(k − 2)
+    command = np.array([0.0, 0.0, 4.0])
+    x = np.zeros(lp.n)
+    x[lp.s(2, K - 1)] = abs(command[2] - rate[K - 1, 2])
+    x[lp.off_tail + 2] = np.abs(command[2] - rate[K:, 2]).sum()
+    rows = slice(lp.n_motor_rows + 6 * (K - 2), None)
+    assert lp.A_ub[rows].shape[0] == episode - K
+    assert (lp.A_ub[rows] @ x - lp.b_ub[rows]).max() <= 1e-9
+    tail_floor = (lp.A_ub[rows] @ x - lp.b_ub[rows]).max() + x[lp.off_tail + 2]  # the most any cut asks
+    assert 0.0 < tail_floor <= x[lp.off_tail + 2]
+
+
+def test_on_a_symmetric_frame_a_slow_yaw_costs_its_whole_episode_and_no_flight_goes_below(tmp_path):
+    """Seed 2019's command 5 asks the X500 for 4.9 rad/s of yaw, more than 0.4 s of its yaw authority
+    gives: the tail raises the bound, and a PID flown on it is still above it on the samples covered."""
+    c = rig_constants("x500")
+    command = episodic_commands(2019, 6)[5]
+    with_tail = Floor(c, K).solve(command).bound
+    horizon_only = ErrorBound(c, K, episode=None).solve(command).error.sum()
+    assert with_tail > 1.5 * horizon_only
+    traces = run_controller("pid:iris", EvalConfig(episodes=6, seed=2019, airframe="x500"), progress=False)
+    error = np.abs(traces.setpoint[5] - traces.rate[5])
+    error[K:, :2] = 0.0  # roll and pitch: the horizon's samples only
+    assert error.sum() >= with_tail
 
 
 def test_zero_command_costs_nothing(floor):
@@ -105,6 +140,7 @@ def test_cli_flies_pid_and_the_policy_against_the_bound_and_neither_goes_below()
     assert run.returncode == 0, run.stderr
     out = json.loads(run.stdout)
     assert "bound" not in out and set(out["split_at_optimum"]) == {"roll", "pitch", "yaw"}
+    assert out["tail_axes"] == []  # the Iris has a gyroscopic term on every axis
     assert 0 < out["bound_sum"] <= out["without_gyro_sum"]
     assert sum(out["split_at_optimum"].values()) == pytest.approx(out["bound_sum"], abs=0.05)
     for flown in out["controllers"]:
