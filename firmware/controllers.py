@@ -39,8 +39,8 @@ def airframe_preset(airframe: AirframeSpec) -> Path:
     if path.exists():
         return path
     raise ControllerSpecError(
-        f"no PID tuned for {airframe.name}: `fcemu tune --airframe {airframe.name} --out DIR`, "
-        "then --controller pid:DIR/pid.json")
+        f"no PID tuned for {airframe.name}: `fcemu tune --airframe {airframe.name} --out DIR` "
+        "(or `fcemu fit`), then pid:DIR/pid.json as --controller, or as --fallback under a policy")
 
 
 def load_controller(spec: str, loop_rate_hz: float | None = None,

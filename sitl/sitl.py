@@ -128,14 +128,16 @@ def flying_line(controller: str) -> str:
     return f"fcemu: flying {controller}"
 
 
-def load_controllers(controller: str, rate_hz: float, airframe: AirframeSpec) -> tuple[dict, str]:
+def load_controllers(controller: str, rate_hz: float, airframe: AirframeSpec,
+                     fallback: str = FALLBACK) -> tuple[dict, str]:
     """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks,
-    each for `airframe` (a policy outside its envelope, or `pid` where none is tuned, is refused)."""
+    each for `airframe` (a policy outside its envelope, or `pid` where none is tuned, is refused).
+    `fallback`: the PID a policy hands over to, and CTRL_SEL's pid (`fcemu fit`'s DIR/pid.json)."""
     from fcemu.firmware.controllers import is_policy
 
     if is_policy(controller):
         return {"neural": load_controller(controller, rate_hz, airframe),
-                FALLBACK: load_controller(FALLBACK, airframe=airframe)}, "neural"
+                FALLBACK: load_controller(fallback, airframe=airframe)}, "neural"
     return {FALLBACK: load_controller(controller, rate_hz, airframe)}, FALLBACK
 
 
@@ -151,14 +153,16 @@ def firmware_airframe(airframe: str | object) -> tuple[object, AirframeSpec]:
 def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, realtime: bool = True,
                commander: Commander | None = None, sinks: Sequence[TelemetrySink] = (),
                twin_address: tuple[str, int] | None = None, speed: float = 1.0,
-               spin_us: int | None = None, airframe: str | object = DEFAULT_AIRFRAME) -> Sitl:
+               spin_us: int | None = None, airframe: str | object = DEFAULT_AIRFRAME,
+               fallback: str = FALLBACK) -> Sitl:
     """`airframe` (a name, a file or an Airframe): the twin's, and what the firmware's controllers,
-    health rules and scripted hover are for (over UDP, the remote twin must fly the same one)."""
+    health rules and scripted hover are for (over UDP, the remote twin must fly the same one).
+    `fallback`: the PID under a policy (`load_controllers`)."""
     from fcemu.sim_bridge.link import InProcessLink, UdpTwinClient
     from fcemu.sim_bridge.twin import Twin
 
     af, spec = firmware_airframe(airframe)
-    controllers, selected = load_controllers(controller, rate_hz, spec)
+    controllers, selected = load_controllers(controller, rate_hz, spec, fallback)
     if twin_address is None:
         twin = Twin(af, rig=rig, dt=1.0 / rate_hz)  # type: ignore[arg-type]
         link = InProcessLink(twin)
@@ -233,14 +237,14 @@ class VehicleSitl:
 
 def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float | None, config,
                        explicit_controller: bool = True, spin_us: int | None = None,
-                       airframe: str | object = DEFAULT_AIRFRAME) -> VehicleSitl:
+                       airframe: str | object = DEFAULT_AIRFRAME, fallback: str = FALLBACK) -> VehicleSitl:
     """Build the loop with a `Vehicle` commander and start its MAVLink process (`config`)."""
     from fcemu.firmware.mavlink.bridge import LinkedVehicle, start_mavlink
     from fcemu.firmware.params import ParamTable
     from fcemu.firmware.vehicle import Vehicle, param_adapter
 
     sitl = build_sitl(controller, rig, rate_hz, realtime=speed is not None, speed=speed or 1.0,
-                      spin_us=spin_us, airframe=airframe)
+                      spin_us=spin_us, airframe=airframe, fallback=fallback)
     assert sitl.airframe is not None
     params = ParamTable()
     for pid in param_adapter.tunable_pids(sitl.loop.controllers):
@@ -324,11 +328,11 @@ def sitl_command(args) -> int:
 
         refuse_mavlink_options(args)
         sitl = build_sitl(controller, args.rig, args.rate, realtime=speed is not None, speed=speed or 1.0,
-                          spin_us=spin_us, airframe=args.airframe)
+                          spin_us=spin_us, airframe=args.airframe, fallback=args.fallback)
     else:
         vs = start_vehicle_sitl(controller, args.rig, args.rate, speed, mavlink_config_from_args(args),
                                 explicit_controller=args.controller is not None, spin_us=spin_us,
-                                airframe=args.airframe)
+                                airframe=args.airframe, fallback=args.fallback)
         sitl = vs.sitl
         if vs.param_problems:
             from fcemu.firmware.params import load_warning

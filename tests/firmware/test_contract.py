@@ -154,8 +154,10 @@ def test_pid_is_the_airframe_s_own_tune() -> None:
 
     assert load_controller("pid", airframe=_airframe("iris")).name == "pid_iris"
     assert load_controller("pid", airframe=_airframe("iris_realistic")).name == "pid_iris"  # its base's
-    refusal = r"^no PID tuned for crazyflie: `fcemu tune --airframe crazyflie --out DIR`, then --controller "
-    with pytest.raises(ControllerSpecError, match=refusal + r"pid:DIR/pid\.json$"):
+    refusal = (r"^no PID tuned for crazyflie: `fcemu tune --airframe crazyflie --out DIR` "
+               r"\(or `fcemu fit`\), then pid:DIR/pid\.json as --controller, or as --fallback under a "
+               r"policy$")
+    with pytest.raises(ControllerSpecError, match=refusal):
         load_controller("pid", airframe=_airframe("crazyflie"))
     for named in ("pid:iris", "pid:paper"):
         load_controller(named, airframe=_airframe("crazyflie"))

@@ -1,4 +1,6 @@
 import json
+import subprocess
+import sys
 
 import numpy as np
 
@@ -6,8 +8,11 @@ from fcemu.cli import main
 from fcemu.evaluation.bar import SMOOTHNESS_BAR, airframe_bar_verdict
 from fcemu.evaluation.metrics import compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
+from fcemu.firmware.controllers import load_controller
 from fcemu.firmware.neural import NeuralRateController
+from fcemu.firmware.pid_controller import PIDRateController
 from fcemu.sim_bridge.airframe_spec import airframe_spec
+from fcemu.sitl.sitl import build_sitl
 from fcemu.training.fit import STUDENT_SMOOTHING
 
 
@@ -47,6 +52,19 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     # the policy carries its airframe: flown on it by the firmware, refused on another's envelope
     policy = NeuralRateController(out / "policy.onnx", airframe=airframe_spec("racer5"))
     assert policy.spec.fields == ("rate_error", "rotor_speed", "rate")
+    # and the SITL flies it over the fit's own PID, not the shipped racer tune
+    fitted = PIDRateController.from_dict(json.loads((out / "pid.json").read_text())).gains
+    assert fitted != load_controller("pid:racer5").gains
+    sitl = build_sitl(str(out / "policy.onnx"), rig="rig", realtime=False, airframe="racer5",
+                      fallback=f"pid:{out / 'pid.json'}")
+    assert sitl.selected == "neural" and sitl.loop.controllers["pid"].gains == fitted
+    for fallback, code in ((f"pid:{out / 'pid.json'}", 0), (f"pid:{out / 'missing.json'}", 2)):
+        done = subprocess.run([sys.executable, "-m", "fcemu", "sitl", "--airframe", "racer5", "--rig", "rig",
+                               "--controller", str(out / "policy.onnx"), "--fallback", fallback,
+                               "--no-mavlink", "--speed", "max", "--duration", "0.3", "--quiet"],
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == code, done.stderr
+        assert code == 0 or (done.stderr.startswith("fcemu: error: ") and done.stderr.count("\n") == 1)
 
 
 def test_the_airframe_bar_takes_the_pids_own_success_and_the_bound():
