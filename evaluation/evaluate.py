@@ -115,7 +115,7 @@ def eval_command(args) -> int:
     if args.report:
         command = "fcemu " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         md = write_report(args.report, results, command=command, seed=cfg.seed, task=cfg.task,
-                          episodes=cfg.episodes, airframe=cfg.airframe)
+                          episodes=cfg.episodes, airframe=cfg.airframe, twin=cfg.twin)
         print(f"report: {md}", file=sys.stderr)
     if args.json:
         print(json.dumps(payload[0] if len(payload) == 1 else {"results": payload}))

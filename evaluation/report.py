@@ -296,10 +296,12 @@ def write_report(
     step_episode: int = 0,
     title: str = "fcemu evaluation",
     airframe: str = DEFAULT_AIRFRAME,
+    twin: str | None = None,
 ) -> Path:
     """Write `report.md` and its PNGs into out_dir (created); returns the Markdown path.
 
-    `airframe`: the airframe flown (a name under sim_bridge/airframes or a path).
+    `airframe`: the airframe the firmware is set up for (a name under sim_bridge/airframes or a
+    path); `twin`: the one the twin flies where it is another (`fcemu eval --twin`).
     """
     if not results:
         raise ValueError("write_report: no results")
@@ -313,7 +315,9 @@ def write_report(
         command,
         "```",
         "",
-        f"Seed {seed}, task {task}, airframe `{airframe}`, {n_text} evaluation {results[0].metrics.unit}s "
+        f"Seed {seed}, task {task}, airframe `{airframe}`"
+        + (f" (the twin flies `{twin}`)" if twin else "")
+        + f", {n_text} evaluation {results[0].metrics.unit}s "
         "per controller. "
         "Controllers evaluated with the same seed see the same commands.",
         "",

@@ -182,3 +182,7 @@ def test_the_twin_can_fly_another_airframe_than_the_firmware_is_set_up_for(tmp_p
     assert not np.array_equal(on_heavy.pwm, iris.pwm)
     refused = fcemu("eval", "--twin", str(heavy), "--perturb", "1", "--episodes", "1")
     assert refused.returncode == 2 and refused.stderr.count("\n") == 1 and "--twin" in refused.stderr
+    reported = fcemu("eval", "--twin", str(heavy), "--episodes", "1", "--controller", "pid:iris",
+                     "--report", str(tmp_path / "report"))
+    assert reported.returncode == 0, reported.stderr
+    assert f"airframe `iris` (the twin flies `{heavy}`)" in (tmp_path / "report" / "report.md").read_text()
