@@ -79,5 +79,11 @@ def write_report(summary: dict[str, Any], path: Path) -> None:
     lines += ["## Time", "", "| tune (bound included) | teacher's speed | policy | check | total |",
               "|---:|---:|---:|---:|---:|",
               f"| {times['tune']:.0f} s | {times.get('teacher', 0.0):.0f} s | {times['policy']:.0f} s | "
-              f"{times['check']:.0f} s | {times['total']:.0f} s |", ""]
+              f"{times['check']:.0f} s | {times['total']:.0f} s |", "",
+              "## Fly it", "", "```",
+              f"fcemu sitl --airframe {summary['airframe']} --controller {summary['policy']} "
+              f"--fallback pid:{summary['pid']}",
+              f"fcemu eval --airframe {summary['airframe']} --controller {summary['policy']} "
+              f"--fallback pid:{summary['pid']} --controller pid:{summary['pid']}",
+              "```", ""]
     path.write_text("\n".join(lines))

@@ -49,6 +49,7 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     report = (out / "report.md").read_text()
     assert "fcemu fit --airframe racer5" in report and "Success %" in report
     assert "fcemu bench mcu" in report and "not measured" in report and "motor lags" in report
+    assert f"--controller {out / 'policy.onnx'} --fallback pid:{out / 'pid.json'}" in report
     # the policy carries its airframe: flown on it by the firmware, refused on another's envelope
     policy = NeuralRateController(out / "policy.onnx", airframe=airframe_spec("racer5"))
     assert policy.spec.fields == ("rate_error", "rotor_speed", "rate")
