@@ -100,8 +100,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     sitl.add_argument("--controller", default=None,
                       help="pid, pid:<preset> or a policy .onnx (default: the shipped policy)")
     sitl.add_argument("--fallback", default="pid",
-                      help="the PID a policy hands over to, and CTRL_SEL=0 flies: pid (the airframe's own "
-                           "tune) or pid:<preset|FILE>, e.g. `fcemu fit`'s DIR/pid.json")
+                      help="under a policy, the PID it hands over to and CTRL_SEL=0 selects: pid (the "
+                           "airframe's own tune) or pid:<preset|FILE>, e.g. `fcemu fit`'s DIR/pid.json")
     sitl.add_argument("--rig", choices=("free", "rig"), default="free")
     sitl.add_argument("--speed", type=_speed, default="realtime",
                       help="realtime, max (lockstep, as fast as it goes) or N for N× real time")
