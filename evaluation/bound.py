@@ -212,6 +212,7 @@ class ErrorBound:
             for k in range(K - 2):
                 add([(self.o(j, k), -1.0), (self.s(j, k + 2), -1.0)], 0.0)  # Ω* − Ω ≤ s (bound set later)
                 add([(self.o(j, k), 1.0), (self.s(j, k + 2), -1.0)], 0.0)  # Ω − Ω* ≤ s
+        self.slack_rows = slice(self.n_motor_rows, r)
         # The tail: τ_j ≥ n·s_j(K−1) − dt·A_j·n(n+1)/2 for every n, the pieces of Σₙ max(0, s − n·dt·A_j).
         for j in self.tail_axes:
             reach = c.dt * t_max * max(c.B[j][c.B[j] > 0].sum(), -c.B[j][c.B[j] < 0].sum())
@@ -259,7 +260,7 @@ class ErrorBound:
         command = np.asarray(command, dtype=float)
         b_ub = self.b_ub.copy()
         # Slack rows come in pairs per (axis, sample): Ω* − Ω ≤ s, then Ω − Ω* ≤ s.
-        pairs = b_ub[self.n_motor_rows:self.n_motor_rows + 6 * (K - 2)].reshape(3, K - 2, 2)
+        pairs = b_ub[self.slack_rows].reshape(3, K - 2, 2)
         pairs[..., 0] = -command[:, None]
         pairs[..., 1] = command[:, None]
         A_ub, bounds = self.A_ub, self.bounds.copy()

@@ -84,7 +84,7 @@ def test_the_tail_holds_for_what_the_twin_flies_on_a_symmetric_frame(seed):
     x = np.zeros(lp.n)
     x[lp.s(2, K - 1)] = abs(command[2] - rate[K - 1, 2])
     x[lp.off_tail + 2] = np.abs(command[2] - rate[K:, 2]).sum()
-    rows = slice(lp.n_motor_rows + 6 * (K - 2), None)
+    rows = slice(lp.slack_rows.stop, None)
     assert lp.A_ub[rows].shape[0] == episode - K
     assert (lp.A_ub[rows] @ x - lp.b_ub[rows]).max() <= 1e-9
     tail_floor = (lp.A_ub[rows] @ x - lp.b_ub[rows]).max() + x[lp.off_tail + 2]  # the most any cut asks
