@@ -48,9 +48,12 @@ def teacher_speed(student: dict[str, Any]) -> str:
         return f"`{student['teacher']}`, its time constant given."
     flown = ", ".join(f"{f['lag_multiple']:g} lags: Error {f['error_sum']:.1f}, motors {f['smoothness']:.2f}"
                       for f in speed["flown"])
-    return (f"time constant {speed['lag_multiple']:g} motor lags, the fastest-tracking of those flown alone "
-            f"on {speed['commands']} tuning commands whose motors stay within 1.5 × the PID's "
-            f"({speed['pid_smoothness']:.2f} µs/step, Error {speed['pid_error_sum']:.1f}): {flown}.")
+    students = "; ".join(f"the student of {f['lag_multiple']:g} lags: motors {f['student_smoothness']:.2f}"
+                         for f in speed.get("tried", []))
+    return (f"time constant {speed['lag_multiple']:g} motor lags: of the teachers flown alone on "
+            f"{speed['commands']} tuning commands ({flown}; the PID {speed['pid_smoothness']:.2f} µs/step, "
+            f"Error {speed['pid_error_sum']:.1f}), the fastest-tracking whose student's motors stay within "
+            f"1.5 × the PID's there ({students}).")
 
 
 def write_report(summary: dict[str, Any], path: Path) -> None:

@@ -70,7 +70,22 @@ def test_pwm_to_action_inverts_each_mapping():
     pwm = 1000.0 + 1000.0 * (t[:, None] + diff)  # a mix that fits the output range
     np.testing.assert_allclose(throttle_pwm(pwm_to_action("throttle", pwm), t), pwm, atol=1e-9)
     np.testing.assert_allclose(gymfc_pwm(pwm_to_action("gymfc", pwm)), pwm, atol=1e-9)
-    wide = np.array([1000.0, 2000.0, 1000.0, 2000.0])  # no action gives it: the nearest one in range
-    assert np.abs(pwm_to_action("throttle", wide)).max() == 1.0
+    beyond = np.array([900.0, 2100.0, 1000.0, 2000.0])  # no action gives it: the nearest one in range
+    np.testing.assert_array_equal(pwm_to_action("gymfc", beyond), [-1.0, 1.0, -1.0, 1.0])
+
+
+def test_every_throttle_mix_in_the_output_range_has_its_exact_action():
+    """One motor far from the other three (roll, pitch and yaw all large) is 0.75 of the range from
+    their mean, past the 0.5 a zero-mean action reaches: the action's range is centred instead."""
+    rng = np.random.default_rng(1)
+    u = rng.uniform(0.0, 1.0, (500, 4))
+    u[:100] = [1.0, 0.0, 0.0, 0.0]
+    u[100:200, 1:] *= 0.1
+    pwm = 1000.0 + 1000.0 * u
+    action = pwm_to_action("throttle", pwm)
+    assert np.abs(action).max() <= 1.0
+    np.testing.assert_allclose(throttle_pwm(action, u.mean(axis=1)), pwm, atol=1e-9)
+    zero_mean = (u - u.mean(axis=1, keepdims=True)) / 0.5
+    assert np.abs(zero_mean).max() > 1.4  # what the old label clipped
     with pytest.raises(ValueError, match="unknown action mapping"):
         pwm_to_action("bogus", pwm)

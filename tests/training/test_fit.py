@@ -13,7 +13,7 @@ from fcemu.firmware.neural import NeuralRateController
 from fcemu.firmware.pid_controller import PIDRateController
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sitl.sitl import build_sitl
-from fcemu.training.fit import STUDENT_SMOOTHING
+from fcemu.training.fit import STUDENT_SMOOTHING, FitOptions, taught_student
 
 
 def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, monkeypatch):
@@ -33,11 +33,17 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     assert set(summary["time_s"]) == {"tune", "teacher", "policy", "check", "total"}
     speed = summary["student"]["speed"]
     assert speed["commands"] == 2 and [f["lag_multiple"] for f in speed["flown"]] == [0.5, 0.35, 0.25]
-    chosen = next(f for f in speed["flown"] if f["lag_multiple"] == speed["lag_multiple"])
-    # the lowest Error among the teachers whose student the bar's motors line would pass
+    # taught first: the lowest Error among the admitted teachers; then slower ones while the student is rough
     limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING * speed["pid_smoothness"]
     admitted = [f for f in speed["flown"] if f["smoothness"] <= limit] or speed["flown"][:1]
-    assert chosen == min(admitted, key=lambda f: f["error_sum"])
+    first = min(admitted, key=lambda f: f["error_sum"])["lag_multiple"]
+    slower = sorted(f["lag_multiple"] for f in admitted if f["lag_multiple"] > first)
+    assert speed["order"] == [first, *slower]
+    tried = speed["tried"]
+    assert [f["lag_multiple"] for f in tried] == speed["order"][:len(tried)]
+    assert speed["lag_multiple"] == tried[-1]["lag_multiple"]
+    rough = [f["student_smoothness"] > SMOOTHNESS_BAR * speed["pid_smoothness"] for f in tried]
+    assert all(rough[:-1]) and (not rough[-1] or len(tried) == len(speed["order"]))
     assert summary["student"]["teacher"] == f"inversion:{speed['lag_multiple']:g}"
     check = summary["check"]
     assert check["seed"] == 6 and check["bound_sum"] > 0.0 and check["mcu_us_f405"] is None
@@ -86,3 +92,18 @@ def test_fit_refuses_a_bad_airframe_and_a_bad_budget_in_one_line(tmp_path, capsy
     assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--tune-budget-s", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith("fcemu: error: fit:") for line in err)
+
+
+def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teacher(tmp_path):
+    out = tmp_path / "fit"
+    out.mkdir()
+    (out / "pid.json").write_text(json.dumps(load_controller("pid:racer5").to_dict()))
+    opts = FitOptions("racer5", str(out), seed=5, episodes=2, rounds=1, steps=40, envs=4, fit_steps=20,
+                      net_arch=(8,), jobs=1, mcu=False, progress=False)
+    speed = {"lag_multiple": 0.35, "order": [0.35, 0.5], "pid_smoothness": 1e-6}  # every student too rough
+    lines: list[str] = []
+    student = taught_student(opts, speed, out, lines.append)
+    assert [f["lag_multiple"] for f in speed["tried"]] == [0.35, 0.5] and speed["lag_multiple"] == 0.5
+    assert all(f["student_smoothness"] > 0.0 for f in speed["tried"])
+    assert student["teacher"] == "inversion:0.5" and student["speed"] is speed
+    assert "the next slower teacher" in lines[0] and "next slower" not in lines[1]
