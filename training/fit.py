@@ -43,7 +43,7 @@ class FitOptions:
     tune_budget_s: float = 540.0
     lag_multiple: float | None = None  # the teacher's time constant in motor lags (None: its default)
     rounds: int = 6
-    steps: int = 1000  # per twin and DAgger round
+    steps: int | None = None  # per twin and DAgger round (None: STUDENT_STEPS, more where sensed)
     envs: int = 64
     fit_steps: int = 3000  # Adam steps after each round
     net_arch: tuple[int, ...] = (48, 48)  # the largest two layers of 10 inputs well inside an F405's budget
@@ -67,6 +67,10 @@ STUDENT_RECIPE = {"learning_rate": 3e-3, "gain_weight": 0.0, "inflight_share": 0
 # one-tick student of the same view (docs/training_notes.md, 2026-11-27, a teacher for real sensors).
 # Four ticks fit an F405's budget with the 48-48 network (231 µs); eight do not (318 µs).
 SENSED_MEMORY = 4
+# Steps per twin and DAgger round: 1000, one 1 s episode. A student of SENSED_MEMORY ticks (40 inputs,
+# noise to average) needs twice the transients: on an identified Iris with every effect on, 1.011 × its
+# PID with 1000 steps, 0.968 × with 2000 (docs/training_notes.md, 2026-11-28, the exact label).
+STUDENT_STEPS = {"exact": 1000, "sensed": 2000}
 
 
 # The teacher's speed is the airframe's: a slow-motored one (a Crazyflie's motors lag 72 ms) rises
@@ -206,7 +210,8 @@ def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
     airframe = load_airframe(opts.airframe)
     sensed = airframe.gyro_effects or airframe.telemetry_effects
     cfg = DistillConfig(teacher=teacher, out=str(out / "student"), airframe=opts.airframe,
-                        net_arch=opts.net_arch, rounds=opts.rounds, steps=opts.steps, envs=opts.envs,
+                        net_arch=opts.net_arch, rounds=opts.rounds, envs=opts.envs,
+                        steps=opts.steps or STUDENT_STEPS["sensed" if sensed else "exact"],
                         fit_steps=opts.fit_steps, seed=opts.seed, threads=opts.jobs, progress=opts.progress,
                         privileged=sensed, memory=SENSED_MEMORY if sensed else None, **STUDENT_RECIPE)
     summary = distill(cfg)
@@ -214,7 +219,7 @@ def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
     policy.write_bytes(Path(summary["export"]["out"]).read_bytes())
     return {"teacher": teacher, "rounds": opts.rounds, "net_arch": list(opts.net_arch),
             "teacher_reads_truth": sensed, "memory": cfg.memory or 1,
-            "inputs": summary["inputs"], "env_steps": summary["env_steps"],
+            "inputs": summary["inputs"], "steps": cfg.steps, "env_steps": summary["env_steps"],
             "imitation_mse": summary["history"][-1]["imitation_mse"], "policy": str(policy)}
 
 
@@ -304,9 +309,10 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
 def command_line(opts: FitOptions) -> str:
     teacher = "" if opts.lag_multiple is None else f" --lag-multiple {opts.lag_multiple:g}"
     teacher += "" if opts.pid is None else f" --pid {opts.pid}"
+    steps = "" if opts.steps is None else f"--steps {opts.steps} "
     return (f"fcemu fit --airframe {opts.airframe} --out {opts.out} --seed {opts.seed} --episodes "
             f"{opts.episodes} --tune-budget-s {opts.tune_budget_s:g} --rounds {opts.rounds} "
-            f"--steps {opts.steps} --envs {opts.envs} --fit-steps {opts.fit_steps} --net-arch "
+            f"{steps}--envs {opts.envs} --fit-steps {opts.fit_steps} --net-arch "
             f"{' '.join(map(str, opts.net_arch))}{teacher}")
 
 
@@ -314,7 +320,7 @@ def fit_command(args: Any) -> int:
     from fcemu.firmware.timing import available_cpus
     from fcemu.training.pid_tune_cli import checked_airframe_and_out
 
-    if args.tune_budget_s <= 0 or min(args.episodes, args.rounds, args.steps, args.envs, args.fit_steps,
+    if args.tune_budget_s <= 0 or min(args.episodes, args.rounds, args.steps or 1, args.envs, args.fit_steps,
                                       *args.net_arch) < 1:
         raise UserError("fit: --tune-budget-s must be > 0; --episodes, --rounds, --steps, --envs, "
                         "--fit-steps and --net-arch ≥ 1")
@@ -342,7 +348,9 @@ def register(sub: Any) -> None:
     p.add_argument("--lag-multiple", type=float, default=None,
                    help="the teacher's time constant in motor lags (default: the teacher's)")
     p.add_argument("--rounds", type=int, default=6, help="DAgger rounds of the policy's fit")
-    p.add_argument("--steps", type=int, default=1000, help="steps per twin and DAgger round")
+    p.add_argument("--steps", type=int, default=None,
+                   help="steps per twin and DAgger round (default: 1000, 2000 where the sensors are not "
+                        "the truth)")
     p.add_argument("--envs", type=int, default=64, help="twins flown together in the policy's fit")
     p.add_argument("--fit-steps", type=int, default=FitOptions.fit_steps,
                    help="Adam steps after each DAgger round")
