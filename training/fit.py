@@ -248,6 +248,7 @@ def check_stage(opts: FitOptions, policy: Path, pid: Path, bound_sum: float | No
         else:
             try:
                 mcu_us = float(bench_mcu(str(policy), str(out / "mcu"))["est_us_at_168mhz"])
+                mcu_note = "fcemu bench mcu: the cycle-level estimate at 168 MHz"
             except CExportError as exc:
                 mcu_note = f"not measured: {exc}"
     tasks = {}
