@@ -270,10 +270,12 @@ class BetaflightMsp:
 
 
 class BetaflightSitl:
-    """The SITL process in `run_dir`; `start()` waits until its CLI port answers."""
+    """The SITL process in `run_dir`; `start()` waits until its CLI port answers. A first start
+    writes a fresh EEPROM word by word to its log before it listens: 10 s on two loaded cores
+    was seen not to be enough, hence 30."""
 
     def __init__(self, run_dir: str | Path, binary: Path | None = None, host: str = "127.0.0.1",
-                 start_timeout_s: float = 10.0) -> None:
+                 start_timeout_s: float = 30.0) -> None:
         self.run_dir = Path(run_dir)
         self.binary = binary or sitl_binary()
         self.host = host
