@@ -133,26 +133,35 @@ def given_pid_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
             "given": opts.pid}
 
 
+def tuning_flight(opts: FitOptions, spec: str, controller: Any = None, fallback: str | None = None) -> Any:
+    """`spec` (or the `controller` object) flown on the speed stage's tuning commands (seed S) on
+    the nominal twin: its `EvalMetrics`."""
+    from fcemu.evaluation.metrics import compute_metrics
+    from fcemu.evaluation.runner import EvalConfig, run_controller
+    from fcemu.sim_bridge.airframe import load_airframe
+    from fcemu.training.pid_tune import nominal
+
+    cfg = EvalConfig(episodes=min(SPEED_COMMANDS, opts.episodes), seed=opts.seed, airframe=opts.airframe)
+    cfg = replace(cfg, fallback=fallback) if fallback else cfg
+    return compute_metrics(run_controller(spec, cfg, progress=False, controller=controller,
+                                          airframe=nominal(load_airframe(opts.airframe))))
+
+
 def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]:
     """The teacher's time constant in motor lags (`TEACHER_SPEEDS`), chosen on the tuning commands."""
     from fcemu.evaluation.bar import SMOOTHNESS_BAR, error_sum
-    from fcemu.evaluation.metrics import compute_metrics
-    from fcemu.evaluation.runner import EvalConfig, run_controller
     from fcemu.sim_bridge.airframe import load_airframe
     from fcemu.training.inversion_teacher import InversionController, InversionTeacher
     from fcemu.training.pid_tune import nominal
 
     airframe = nominal(load_airframe(opts.airframe))
-    n = min(SPEED_COMMANDS, opts.episodes)
-    cfg = EvalConfig(episodes=n, seed=opts.seed, airframe=opts.airframe)
-    ref = compute_metrics(run_controller(f"pid:{pid}", cfg, progress=False, airframe=airframe))
+    ref = tuning_flight(opts, f"pid:{pid}")
     pid_rough = ref.stat("smoothness", "roll").mean
     limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING * pid_rough
     flown = []
     for multiple in TEACHER_SPEEDS:
         teacher = InversionController(InversionTeacher(airframe, multiple), mapped=True)
-        m = compute_metrics(run_controller("inversion", cfg, progress=False, airframe=airframe,
-                                           controller=teacher))
+        m = tuning_flight(opts, "inversion", controller=teacher)
         flown.append({"lag_multiple": multiple, "error_sum": round(error_sum(m), 2),
                       "smoothness": round(m.stat("smoothness", "roll").mean, 3)})
         log(f"  teacher at {multiple:g} motor lags: Error {flown[-1]['error_sum']:.1f}, motors "
@@ -162,42 +171,34 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
     slower = [f["lag_multiple"] for f in admitted if f["lag_multiple"] > first["lag_multiple"]]
     return {"lag_multiple": first["lag_multiple"], "order": [first["lag_multiple"], *sorted(slower)],
             "flown": flown, "pid_error_sum": round(error_sum(ref), 2), "pid_smoothness": round(pid_rough, 3),
-            "commands": n}
+            "commands": min(SPEED_COMMANDS, opts.episodes)}
 
 
 def student_smoothness(opts: FitOptions, policy: Path, pid: Path) -> float:
     """The policy's motor roughness (µs/step) on the speed stage's tuning commands, nominal twin."""
-    from fcemu.evaluation.metrics import compute_metrics
-    from fcemu.evaluation.runner import EvalConfig, run_controller
-    from fcemu.sim_bridge.airframe import load_airframe
-    from fcemu.training.pid_tune import nominal
-
-    cfg = EvalConfig(episodes=min(SPEED_COMMANDS, opts.episodes), seed=opts.seed, airframe=opts.airframe,
-                     fallback=f"pid:{pid}")
-    m = compute_metrics(run_controller(str(policy), cfg, progress=False,
-                                       airframe=nominal(load_airframe(opts.airframe))))
+    m = tuning_flight(opts, str(policy), fallback=f"pid:{pid}")
     return round(m.stat("smoothness", "roll").mean, 3)
 
 
 def taught_student(opts: FitOptions, speed: dict[str, Any] | None, out: Path, log: Any) -> dict[str, Any]:
     """The student of the first teacher in the speed stage's order whose student's motors pass the bar
-    on the tuning commands (the last one tried otherwise); with the speed given, that teacher's."""
+    on the tuning commands (the last one tried otherwise); with the speed given, that teacher's. Its
+    `speed` is the speed stage's, with the time constant taught and every student tried."""
     from fcemu.evaluation.bar import SMOOTHNESS_BAR
 
     if speed is None:
         return {**distill_stage(opts, out), "speed": None}
     limit = SMOOTHNESS_BAR * speed["pid_smoothness"]
-    speed["tried"] = []
+    tried = []
     for multiple in speed["order"]:
         student = distill_stage(replace(opts, lag_multiple=multiple), out)
         rough = student_smoothness(opts, Path(student["policy"]), out / "pid.json")
-        speed["tried"].append({"lag_multiple": multiple, "student_smoothness": rough})
-        speed["lag_multiple"] = multiple
+        tried.append({"lag_multiple": multiple, "student_smoothness": rough})
         if rough <= limit:
             break
         log(f"  the student of {multiple:g} motor lags: motors {rough:.2f}, over {limit:.2f}"
             + ("; the next slower teacher" if multiple != speed["order"][-1] else ""))
-    student["speed"] = speed
+    student["speed"] = {**speed, "lag_multiple": tried[-1]["lag_multiple"], "tried": tried}
     return student
 
 
@@ -290,7 +291,7 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
     _stage(log, t0, f"fitting the policy to the model-based teacher ({first:g} motor lags)")
     t = time.monotonic()
     student = taught_student(opts, speed, out, log)
-    opts = replace(opts, lag_multiple=speed["lag_multiple"]) if speed else opts
+    opts = replace(opts, lag_multiple=student["speed"]["lag_multiple"]) if speed else opts
     times["policy"] = round(time.monotonic() - t, 1)
     _stage(log, t0, f"policy written ({student['inputs']} inputs); checking it against the PID")
     t = time.monotonic()

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from fcemu.evaluation.bar import SMOOTHNESS_BAR
 from fcemu.evaluation.metrics import AXES
 
 
@@ -37,7 +38,8 @@ def task_table(name: str, task: dict[str, Any]) -> list[str]:
         f"{_mark(checks['peak'])} |",
         f"| Success % (≥ 99.8, or the PID's) | {_axes(pol['success_pct'])} | {_axes(pid['success_pct'])} | "
         f"{_mark(checks['success'])} |",
-        f"| motors µs/step (≤ 1.5 × PID) | {pol['smoothness']:.2f} ({bar['smoothness_ratio']:.2f} ×) | "
+        f"| motors µs/step (≤ {SMOOTHNESS_BAR:g} × PID) | {pol['smoothness']:.2f} "
+        f"({bar['smoothness_ratio']:.2f} ×) | "
         f"{pid['smoothness']:.2f} | {_mark(checks['smoothness'])} |", ""]
 
 
@@ -53,7 +55,7 @@ def teacher_speed(student: dict[str, Any]) -> str:
     return (f"time constant {speed['lag_multiple']:g} motor lags: of the teachers flown alone on "
             f"{speed['commands']} tuning commands ({flown}; the PID {speed['pid_smoothness']:.2f} µs/step, "
             f"Error {speed['pid_error_sum']:.1f}), the fastest-tracking whose student's motors stay within "
-            f"1.5 × the PID's there ({students}).")
+            f"{SMOOTHNESS_BAR:g} × the PID's there ({students}).")
 
 
 def write_report(summary: dict[str, Any], path: Path) -> None:

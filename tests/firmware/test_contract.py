@@ -154,13 +154,14 @@ def test_pid_is_the_airframe_s_own_tune() -> None:
 
     assert load_controller("pid", airframe=_airframe("iris")).name == "pid_iris"
     assert load_controller("pid", airframe=_airframe("iris_realistic")).name == "pid_iris"  # its base's
-    refusal = (r"^no PID tuned for crazyflie: `fcemu tune --airframe crazyflie --out DIR` "
+    assert load_controller("pid", airframe=_airframe("crazyflie")).name == "pid_crazyflie"
+    refusal = (r"^no PID tuned for x500: `fcemu tune --airframe x500 --out DIR` "
                r"\(or `fcemu fit`\), then pid:DIR/pid\.json as --controller, or as --fallback under a "
                r"policy$")
     with pytest.raises(ControllerSpecError, match=refusal):
-        load_controller("pid", airframe=_airframe("crazyflie"))
+        load_controller("pid", airframe=_airframe("x500"))
     for named in ("pid:iris", "pid:paper"):
-        load_controller(named, airframe=_airframe("crazyflie"))
+        load_controller(named, airframe=_airframe("x500"))
 
 
 def test_a_variant_flies_its_bases_tune_only_when_it_changes_no_physics(tmp_path) -> None:

@@ -71,9 +71,9 @@ def test_the_twin_health_rules_hover_and_controllers_are_the_airframe_s() -> Non
 
 def test_a_policy_or_pid_not_made_for_the_airframe_is_refused_in_one_line() -> None:
     for controller in ([], ["--controller", "pid"]):
-        done = subprocess.run([sys.executable, "-m", "fcemu", "sitl", "--airframe", "crazyflie",
+        done = subprocess.run([sys.executable, "-m", "fcemu", "sitl", "--airframe", "x500",
                                "--no-mavlink", "--speed", "max", "--duration", "1", *controller],
                               capture_output=True, text=True, timeout=60)
         assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
         assert done.stderr.startswith("fcemu: error: ")
-        assert "crazyflie" in done.stderr
+        assert "x500" in done.stderr

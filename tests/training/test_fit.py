@@ -103,7 +103,9 @@ def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teach
     speed = {"lag_multiple": 0.35, "order": [0.35, 0.5], "pid_smoothness": 1e-6}  # every student too rough
     lines: list[str] = []
     student = taught_student(opts, speed, out, lines.append)
-    assert [f["lag_multiple"] for f in speed["tried"]] == [0.35, 0.5] and speed["lag_multiple"] == 0.5
-    assert all(f["student_smoothness"] > 0.0 for f in speed["tried"])
-    assert student["teacher"] == "inversion:0.5" and student["speed"] is speed
+    taught = student["speed"]
+    assert [f["lag_multiple"] for f in taught["tried"]] == [0.35, 0.5] and taught["lag_multiple"] == 0.5
+    assert all(f["student_smoothness"] > 0.0 for f in taught["tried"])
+    assert student["teacher"] == "inversion:0.5" and taught["order"] == [0.35, 0.5]
+    assert speed == {"lag_multiple": 0.35, "order": [0.35, 0.5], "pid_smoothness": 1e-6}  # as given
     assert "the next slower teacher" in lines[0] and "next slower" not in lines[1]
