@@ -92,7 +92,7 @@ class StickTask:
         self.landed_state = ON_GROUND
 
     def activate(self, t_us: int, on_ground: bool, failsafe: bool) -> None:
-        pass
+        self.landed_state = ON_GROUND if on_ground else IN_AIR
 
     def update(self, t_us: int) -> RateSetpoint:
         inp = self.inp
@@ -103,7 +103,7 @@ class StickTask:
         else:
             tilt = s.stab_tilt_max
             rates = level_rates(inp, roll * tilt, pitch_up * tilt, s.rates.yaw.rate(yaw))
-        self.landed_state = inp.detector.from_thrust(thr, inp.frame, s.hover_throttle)
+        self.landed_state = inp.detector.from_thrust(thr, inp.frame, s.hover_throttle, self.landed_state)
         return RateSetpoint(np.array(rates), thr)
 
 
@@ -115,7 +115,7 @@ class OffboardTask:
         self.landed_state = ON_GROUND
 
     def activate(self, t_us: int, on_ground: bool, failsafe: bool) -> None:
-        pass
+        self.landed_state = ON_GROUND if on_ground else IN_AIR
 
     def update(self, t_us: int) -> RateSetpoint:
         inp = self.inp
@@ -123,7 +123,7 @@ class OffboardTask:
         hover = inp.settings.hover_throttle
         # Flying thrust (most ticks) is decided here without a call into the land detector.
         self.landed_state = (IN_AIR if sp.throttle >= LOW_THRUST * hover
-                             else inp.detector.from_thrust(sp.throttle, inp.frame, hover))
+                             else inp.detector.from_thrust(sp.throttle, inp.frame, hover, self.landed_state))
         return sp
 
 

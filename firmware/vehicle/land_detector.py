@@ -33,9 +33,14 @@ class LandDetector:
         return (abs(a / GRAVITY - 1.0) < REST_ACCEL_TOL
                 and max(abs(v) for v in frame.gyro.tolist()) < REST_GYRO_MAX)
 
-    def from_thrust(self, throttle: float, frame: SensorFrame | None, hover: float) -> int:
-        """Thrust well below hover and the airframe at rest: on the ground."""
-        return ON_GROUND if throttle < LOW_THRUST * hover and self.at_rest(frame) else IN_AIR
+    def from_thrust(self, throttle: float, frame: SensorFrame | None, hover: float,
+                    before: int = IN_AIR) -> int:
+        """Thrust well below hover and the airframe at rest: on the ground. Once on the ground
+        (`before`), it stays there until the thrust rises, as PX4's landed state does: a jolt of the
+        idling motors on one tick would otherwise refuse a disarm the vehicle had just invited."""
+        if throttle >= LOW_THRUST * hover:
+            return IN_AIR
+        return ON_GROUND if before == ON_GROUND or self.at_rest(frame) else IN_AIR
 
     def touchdown(self, t_us: int, descent_us: float, vz: float) -> bool:
         """During a descent: vertical speed near zero for LANDED_HOLD_US after DESCENT_MIN_US."""

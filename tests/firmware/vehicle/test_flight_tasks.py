@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.estimator import AttitudeEstimator
 from fcemu.firmware.loop import FlightLoop, TickSample
 from fcemu.firmware.params import ParamTable
@@ -18,6 +19,7 @@ from fcemu.firmware.vehicle.flight_tasks import (
     FlightInputs,
     HoldTask,
     LandTask,
+    OffboardTask,
     PositionFix,
     tilt_for_acceleration,
 )
@@ -89,6 +91,32 @@ def test_hold_entered_on_the_ground_stays_there_at_idle() -> None:
     hold.activate(0, on_ground=True, failsafe=False)
     inp.fix = fix(0, position=(0.0, 0.0, 0.0))
     assert hold.update(1000).throttle == 0.0 and hold.landed_state == ON_GROUND
+
+
+def test_offboard_on_the_ground_stays_there_through_a_jolt_until_the_thrust_rises() -> None:
+    """Disarm is allowed once ON_GROUND is reported: a jolt on one tick must not take it back."""
+    inp = inputs()
+    task = OffboardTask(inp)
+    task.activate(0, on_ground=False, failsafe=False)
+    inp.offboard = RateSetpoint(np.zeros(3), 0.0)
+    jolt = SensorFrame(0, np.array([0.5, 0.0, 0.0]), np.array([0.0, 0.0, -11.0]), np.zeros(4))
+    inp.frame = jolt  # at idle but bouncing: not yet landed
+    task.update(1000)
+    assert task.landed_state == IN_AIR
+    inp.frame = REST
+    task.update(2000)
+    assert task.landed_state == ON_GROUND
+    inp.frame = jolt
+    task.update(3000)
+    assert task.landed_state == ON_GROUND
+    inp.offboard = RateSetpoint(np.zeros(3), HOVER)
+    task.update(4000)
+    assert task.landed_state == IN_AIR
+    inp.offboard = RateSetpoint(np.zeros(3), 0.0)
+    task.update(5000)
+    assert task.landed_state == IN_AIR  # still jolting: the latch was released by the thrust
+    task.activate(6000, on_ground=True, failsafe=False)
+    assert task.landed_state == ON_GROUND
 
 
 def test_land_task_holds_for_a_failsafe_then_descends_and_sees_touchdown() -> None:
