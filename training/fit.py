@@ -4,9 +4,12 @@
 
 Top to bottom, one stage each:
 
-1. **The PID**: `fcemu tune` (`training.pid_tune`) on the tuning commands (seed S), with the
-   `--tune-budget-s` share of the time: DIR/pid.json and DIR/tune.json. It also solves, or reads
-   from its cache, `fcemu bound`'s lower bound on the held-out commands (seed S + 1).
+1. **The PID**: a shipped airframe named by name has its shipped tune (`firmware/presets/`), the
+   PID `--controller pid` flies on it, so the policy meets the opponent a user has; `--pid` names
+   another. Otherwise (an airframe file, or `--tune`) `fcemu tune` (`training.pid_tune`) on the
+   tuning commands (seed S), with the `--tune-budget-s` share of the time: DIR/pid.json and
+   DIR/tune.json. Either way `fcemu bound`'s lower bound on the held-out commands (seed S + 1) is
+   solved, or read from its cache.
 2. **The teacher**: the airframe's model inverted tick by tick (`training.inversion_teacher`);
    nothing to train. Its speed (`TEACHER_SPEEDS`) is chosen on the tuning commands, each flown
    alone through the action mapping against the tuned PID, and its student's motors judged there.
@@ -278,7 +281,7 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
         tuned = tune_stage(opts, out, log)
         _stage(log, t0, f"PID: {tuned['held_out']['tuned']['error_sum']:.1f} on the held-out commands")
     else:
-        _stage(log, t0, f"the PID given: {opts.pid}")
+        _stage(log, t0, f"the PID: {opts.pid} (--tune to tune one anew)")
         tuned = given_pid_stage(opts, out, log)
     times["tune"] = round(time.monotonic() - t0, 1)
     speed = None
@@ -310,12 +313,29 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
 
 def command_line(opts: FitOptions) -> str:
     teacher = "" if opts.lag_multiple is None else f" --lag-multiple {opts.lag_multiple:g}"
-    teacher += "" if opts.pid is None else f" --pid {opts.pid}"
+    if opts.pid is not None:
+        teacher += f" --pid {opts.pid}"
+    elif shipped_pid(opts.airframe) is not None:
+        teacher += " --tune"
     steps = "" if opts.steps is None else f"--steps {opts.steps} "
     return (f"fcemu fit --airframe {opts.airframe} --out {opts.out} --seed {opts.seed} --episodes "
             f"{opts.episodes} --tune-budget-s {opts.tune_budget_s:g} --rounds {opts.rounds} "
             f"{steps}--envs {opts.envs} --fit-steps {opts.fit_steps} --net-arch "
             f"{' '.join(map(str, opts.net_arch))}{teacher}")
+
+
+def shipped_pid(airframe: str) -> str | None:
+    """The shipped tune of a shipped airframe named by name (`firmware/presets/pid_<name>.json`), or
+    None. An airframe file is tuned anew, whatever name it gives itself."""
+    from fcemu.firmware.controllers import ControllerSpecError, airframe_preset
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    if airframe.endswith(".json") or "/" in airframe:
+        return None
+    try:
+        return str(airframe_preset(airframe_spec(airframe)))
+    except ControllerSpecError:
+        return None
 
 
 def fit_command(args: Any) -> int:
@@ -326,11 +346,14 @@ def fit_command(args: Any) -> int:
                                       *args.net_arch) < 1:
         raise UserError("fit: --tune-budget-s must be > 0; --episodes, --rounds, --steps, --envs, "
                         "--fit-steps and --net-arch ≥ 1")
+    if args.pid and args.tune:
+        raise UserError("fit: --pid or --tune, not both")
     out = checked_airframe_and_out("fit", args.airframe, args.out)
+    pid = args.pid or (None if args.tune else shipped_pid(args.airframe))
     opts = FitOptions(args.airframe, str(out), args.seed, args.episodes, args.tune_budget_s,
                       args.lag_multiple, args.rounds, args.steps, args.envs, args.fit_steps,
                       tuple(args.net_arch), args.jobs or available_cpus(), not args.no_mcu,
-                      progress=sys.stderr.isatty(), pid=args.pid)
+                      progress=sys.stderr.isatty(), pid=pid)
     summary = fit(opts, log=lambda line: print(line, file=sys.stderr, flush=True))
     verdict = "meets the bar" if summary["meets_bar"] else "does not meet the bar (see report.md)"
     print(f"wrote {summary['pid']}, {summary['policy']} and {out / 'report.md'} in "
@@ -360,7 +383,8 @@ def register(sub: Any) -> None:
                    help="the policy's hidden layers, tanh")
     p.add_argument("--jobs", type=int, default=0, help="worker processes and torch threads (0: the CPUs)")
     p.add_argument("--pid", metavar="PRESET", help="a PID already tuned for this airframe (a preset name or "
-                                                   "file): no tune")
+                                                   "file): no tune (default: a shipped airframe's own)")
+    p.add_argument("--tune", action="store_true", help="tune a PID anew even where the airframe's ships")
     p.add_argument("--no-mcu", action="store_true", help="skip the STM32F405 time (fcemu bench mcu)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.set_defaults(handler="fcemu.training.fit:fit_command")

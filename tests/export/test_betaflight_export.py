@@ -19,7 +19,6 @@ from fcemu.export.betaflight.build import (
     apply_patch,
     betaflight_source,
     check_contract,
-    export_betaflight,
     health_header,
     motor_model_of,
     motors_of,
@@ -27,6 +26,7 @@ from fcemu.export.betaflight.build import (
 )
 from fcemu.firmware.health import HealthRules
 from fcemu.sim_bridge.airframe_spec import airframe_spec
+from tests.export import stm32_build
 from tests.export.mcu_tools import SHIPPED, _missing, require_codegen
 
 try:
@@ -134,16 +134,16 @@ def test_the_lag_rule_s_motor_model_is_the_policy_airframe_s_and_none_without_on
 
 
 @pytest.fixture(scope="module")
-def stm32_export(tmp_path_factory):
+def stm32_export():
+    """Both images, built by `fcemu export` in the background since collection (stm32_build)."""
     require_codegen()
     if shutil.which("arm-none-eabi-gcc") is None or shutil.which("arm-none-eabi-size") is None:
         _missing("arm-none-eabi-gcc")
-    out = tmp_path_factory.mktemp("betaflight_neural")
-    return out, export_betaflight(SHIPPED, out, [c.target for c in CHIPS], parity_samples=1000)
+    return stm32_build.result(timeout_s=460)
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(480)  # the first one builds both images: 270 s on two busy cores
+@pytest.mark.timeout(480)  # the first may wait for the build: 270 s on two busy cores
 @pytest.mark.parametrize("chip", CHIPS, ids=lambda c: c.target)
 def test_the_stm32_image_builds_with_the_policy_in_it_and_fits_the_chip(stm32_export, chip):
     out, manifest = stm32_export

@@ -10,18 +10,19 @@ from fcemu.evaluation.metrics import compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.controllers import load_controller
 from fcemu.firmware.neural import NeuralRateController
-from fcemu.firmware.pid_controller import PIDRateController
+from fcemu.firmware.pid_controller import PRESET_DIR, PIDRateController
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sitl.sitl import build_sitl
-from fcemu.training.fit import STUDENT_SMOOTHING, FitOptions, taught_student
+from fcemu.training.fit import STUDENT_SMOOTHING, FitOptions, shipped_pid, taught_student
 
 
 def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     out = tmp_path / "fit"
-    code = main(["fit", "--airframe", "racer5", "--out", str(out), "--episodes", "2", "--tune-budget-s", "10",
-                 "--rounds", "1", "--steps", "40", "--envs", "4", "--fit-steps", "20", "--net-arch", "8",
-                 "--jobs", "1", "--no-mcu", "--seed", "5", "--json"])
+    code = main(["fit", "--airframe", "racer5", "--tune", "--out", str(out), "--episodes", "2",
+                 "--tune-budget-s", "10", "--rounds", "1", "--steps", "40", "--envs", "4", "--fit-steps",
+                 "20", "--net-arch", "8", "--jobs", "1", "--no-mcu", "--seed", "5", "--json"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
     summary = json.loads(captured.out)
@@ -85,6 +86,13 @@ def test_the_airframe_bar_takes_the_pids_own_success_and_the_bound():
     assert airframe_bar_verdict(pid, pid, bound_sum=error / 1.15)["checks"]["times_bound"] is True
     assert airframe_bar_verdict(pid, pid, None, mcu_us=260.0)["checks"]["mcu"] is False
     assert np.isclose(same["error_ratio"], 1.0)
+
+
+def test_a_shipped_airframe_is_fitted_against_its_shipped_pid_and_a_file_is_tuned():
+    assert shipped_pid("racer5") == str(PRESET_DIR / "pid_racer5.json")
+    assert shipped_pid("iris_realistic") == str(PRESET_DIR / "pid_iris.json")  # a variant flies its base's
+    assert shipped_pid("x500") is None  # none ships: the fit tunes one
+    assert shipped_pid(str(AIRFRAME_DIR / "racer5.json")) is None  # a file is tuned, whatever its name
 
 
 def test_fit_refuses_a_bad_airframe_and_a_bad_budget_in_one_line(tmp_path, capsys):
