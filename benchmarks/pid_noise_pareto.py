@@ -3,8 +3,9 @@
     .venv/bin/python benchmarks/pid_noise_pareto.py --airframe crazyflie --start runs/tune_cf/pid.json \
         --clean-minutes 14 --noisy-minutes 20 --caps 1.2 4.35 --jobs 2 --out runs/pareto_cf
 
-`fcemu tune` holds the motors on a noisy gyro within `SMOOTHNESS_CAP` × its physics start's
-roughness, in a budget of minutes. This is the longer search that says what that rule costs: a
+`fcemu tune` holds the motors on a noisy gyro within `SMOOTHNESS_CAP` × its noise allowance (the
+physics start's roughness, at least the Iris tune's), in a budget of minutes. This is the longer
+search that says what such a rule costs, with caps stated against the start alone: a
 pattern search on the Error alone (3·ΣError/ΣError_start, plus a point per % of Success below
 99.8 on an axis), first on the noise-free twin, where only the PID's structure and the physics
 limit it, then from that optimum on the 0.01 rad/s noisy gyro once per cap, with the tune's wall

@@ -69,6 +69,10 @@ def test_cost_rewards_error_and_caps_motor_roughness_on_the_noisy_gyro():
     assert cost(_score(success=98.0), ref, True) > cost(ref, ref, True) + 1.0
     rough = _score(smoothness=2.0 * (SMOOTHNESS_CAP + 0.1))
     assert cost(rough, ref, True) - cost(rough, ref, False) == pytest.approx(100.0 * 0.1)
+    # a start quieter than the reference tune is allowed the reference's roughness, and only on the noisy gyro
+    assert cost(rough, ref, True, floor_us=10.0) == cost(rough, ref, False, floor_us=10.0) - 0.25 * (
+        rough.smoothness / ref.smoothness - rough.smoothness / 10.0)
+    assert cost(rough, ref, True, floor_us=1.0) == cost(rough, ref, True)
     never = Score(ref.error, ref.rise_ms, ref.peak_pct, ref.success_pct, np.array([0, 1, 0]), 2.0,
                   ref.worst_settle_pct)
     assert cost(never, ref, False) == float("inf")
@@ -96,7 +100,9 @@ def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp
     assert held["tuned"]["smoothness_us"] > 0.0 and held["tuned_noisy_gyro"]["smoothness_us"] > 0.0
     times = held["tuned"]["error_sum"] / held["bound"]["sum"]
     assert held["tuned"]["times_bound"] == pytest.approx(times, 1e-3)
-    assert set(held["lines"]) == {"error_times_bound", "success_pct", "smoothness_noisy_gyro_vs_start"}
+    assert set(held["lines"]) == {"error_times_bound", "success_pct", "smoothness_noisy_gyro_vs_allowance"}
+    # the Iris is its own reference: its allowance is its start's roughness, the reference's own
+    assert held["noise_allowance_us"] == pytest.approx(held["start_noisy_gyro"]["smoothness_us"], abs=0.002)
     preset = json.loads((out / "pid.json").read_text())
     assert preset["name"] == "pid_iris" and preset["tuning"]["cost_version"] == summary["cost_version"]
     assert json.loads((out / "tune.json").read_text())["held_out"] == held
