@@ -50,15 +50,18 @@ def is_model_based(name: str) -> bool:
 
 
 def make_teacher(name: str, airframe: str, privileged: bool = False) -> Any:
-    """`inversion` (or `inversion:K`, its time constant in motor lags) for the model-based teacher
-    of `airframe` (`privileged`: reading the truth), else an exported policy's path."""
+    """`inversion` (or `inversion:K`, its time constant in motor lags, or `inversion:K:Z`, and its
+    damping ratio) for the model-based teacher of `airframe` (`privileged`: reading the truth), else
+    an exported policy's path."""
     if is_model_based(name):
-        from fcemu.training.inversion_teacher import LAG_MULTIPLE, InversionTeacher
+        from fcemu.training.inversion_teacher import DAMPING, LAG_MULTIPLE, InversionTeacher
 
-        multiple = name.partition(":")[2]
+        multiple, _, damping = name.partition(":")[2].partition(":")
         try:
+            if damping and not float(damping) > 0.0:
+                raise ValueError(f"the damping ratio must be > 0, got {damping}")
             return InversionTeacher(airframe, float(multiple) if multiple else LAG_MULTIPLE,
-                                    reads_truth=privileged)
+                                    damping=float(damping) if damping else DAMPING, reads_truth=privileged)
         except ValueError as exc:
             raise DistillError(f"teacher {name!r}: {exc}") from None
     return Teacher(name)

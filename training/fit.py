@@ -54,6 +54,7 @@ class FitOptions:
     mcu: bool = True
     progress: bool = True
     pid: str | None = None  # a preset already tuned for the airframe: no tune
+    damping: float | None = None  # the teacher's damping ratio (None: the teacher's)
 
 
 # The student's recipe for the inversion teacher (docs/training_notes.md, 2026-11-27, fitting the
@@ -163,7 +164,8 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
     limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING * pid_rough
     flown = []
     for multiple in TEACHER_SPEEDS:
-        teacher = InversionController(InversionTeacher(airframe, multiple), mapped=True)
+        damping = {} if opts.damping is None else {"damping": opts.damping}
+        teacher = InversionController(InversionTeacher(airframe, multiple, **damping), mapped=True)
         m = tuning_flight(opts, "inversion", controller=teacher)
         flown.append({"lag_multiple": multiple, "error_sum": round(error_sum(m), 2),
                       "smoothness": round(m.stat("smoothness", "roll").mean, 3)})
@@ -209,8 +211,11 @@ def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
     from fcemu.sim_bridge.airframe import load_airframe
     from fcemu.training.distill import INVERSION, distill
     from fcemu.training.distill_config import DistillConfig
+    from fcemu.training.inversion_teacher import LAG_MULTIPLE
 
     teacher = INVERSION if opts.lag_multiple is None else f"{INVERSION}:{opts.lag_multiple:g}"
+    if opts.damping is not None:
+        teacher = f"{INVERSION}:{opts.lag_multiple or LAG_MULTIPLE:g}:{opts.damping:g}"
     airframe = load_airframe(opts.airframe)
     sensed = airframe.gyro_effects or airframe.telemetry_effects
     cfg = DistillConfig(teacher=teacher, out=str(out / "student"), airframe=opts.airframe,
@@ -313,6 +318,7 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
 
 def command_line(opts: FitOptions) -> str:
     teacher = "" if opts.lag_multiple is None else f" --lag-multiple {opts.lag_multiple:g}"
+    teacher += "" if opts.damping is None else f" --damping {opts.damping:g}"
     if opts.pid is not None:
         teacher += f" --pid {opts.pid}"
     elif shipped_pid(opts.airframe) is not None:
@@ -346,6 +352,8 @@ def fit_command(args: Any) -> int:
                                       *args.net_arch) < 1:
         raise UserError("fit: --tune-budget-s must be > 0; --episodes, --rounds, --steps, --envs, "
                         "--fit-steps and --net-arch ≥ 1")
+    if args.damping is not None and not args.damping > 0.0:
+        raise UserError("fit: --damping must be > 0")
     if args.pid and args.tune:
         raise UserError("fit: --pid or --tune, not both")
     out = checked_airframe_and_out("fit", args.airframe, args.out)
@@ -353,7 +361,7 @@ def fit_command(args: Any) -> int:
     opts = FitOptions(args.airframe, str(out), args.seed, args.episodes, args.tune_budget_s,
                       args.lag_multiple, args.rounds, args.steps, args.envs, args.fit_steps,
                       tuple(args.net_arch), args.jobs or available_cpus(), not args.no_mcu,
-                      progress=sys.stderr.isatty(), pid=pid)
+                      progress=sys.stderr.isatty(), pid=pid, damping=args.damping)
     summary = fit(opts, log=lambda line: print(line, file=sys.stderr, flush=True))
     verdict = "meets the bar" if summary["meets_bar"] else "does not meet the bar (see report.md)"
     print(f"wrote {summary['pid']}, {summary['policy']} and {out / 'report.md'} in "
@@ -372,6 +380,8 @@ def register(sub: Any) -> None:
     p.add_argument("--tune-budget-s", type=float, default=540.0, help="the PID tune's time, bound included")
     p.add_argument("--lag-multiple", type=float, default=None,
                    help="the teacher's time constant in motor lags (default: the teacher's)")
+    p.add_argument("--damping", type=float, default=None,
+                   help="the teacher's damping ratio (default 0.7: about 4 %% of overshoot)")
     p.add_argument("--rounds", type=int, default=6, help="DAgger rounds of the policy's fit")
     p.add_argument("--steps", type=int, default=None,
                    help="steps per twin and DAgger round (default: 1000, 2000 where the sensors are not "

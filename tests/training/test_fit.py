@@ -3,6 +3,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from fcemu.cli import main
 from fcemu.evaluation.bar import SMOOTHNESS_BAR, airframe_bar_verdict
@@ -14,7 +15,9 @@ from fcemu.firmware.pid_controller import PRESET_DIR, PIDRateController
 from fcemu.sim_bridge.airframe import AIRFRAME_DIR
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sitl.sitl import build_sitl
-from fcemu.training.fit import STUDENT_SMOOTHING, FitOptions, shipped_pid, taught_student
+from fcemu.training.distill_teacher import DistillError, make_teacher
+from fcemu.training.fit import STUDENT_SMOOTHING, FitOptions, command_line, shipped_pid, taught_student
+from fcemu.training.inversion_teacher import DAMPING
 
 
 def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, monkeypatch):
@@ -98,8 +101,21 @@ def test_a_shipped_airframe_is_fitted_against_its_shipped_pid_and_a_file_is_tune
 def test_fit_refuses_a_bad_airframe_and_a_bad_budget_in_one_line(tmp_path, capsys):
     assert main(["fit", "--airframe", "no_such_quad", "--out", str(tmp_path / "x")]) == 2
     assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--tune-budget-s", "0"]) == 2
+    assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--damping", "0"]) == 2
+    assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--pid", "iris", "--tune"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and all(line.startswith("fcemu: error: fit:") for line in err)
+    assert len(err) == 4 and all(line.startswith("fcemu: error: fit:") for line in err)
+    assert not (tmp_path / "x").exists()
+
+
+def test_the_teacher_s_damping_reaches_the_teacher_and_the_command_line():
+    teacher = make_teacher("inversion:0.2:0.4", "crazyflie")
+    assert teacher.damping == 0.4 and teacher.time_constant == pytest.approx(0.2 * teacher.model.lag_s)
+    assert make_teacher("inversion:0.2", "crazyflie").damping == DAMPING
+    with pytest.raises(DistillError, match="damping ratio must be > 0"):
+        make_teacher("inversion:0.2:-1", "crazyflie")
+    opts = FitOptions("crazyflie", "runs/x", lag_multiple=0.2, damping=0.4)
+    assert command_line(opts).endswith("--lag-multiple 0.2 --damping 0.4 --tune")  # no --pid: it tuned
 
 
 def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teacher(tmp_path):
