@@ -163,8 +163,8 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
     pid_rough = ref.stat("smoothness", "roll").mean
     limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING * pid_rough
     flown = []
+    damping = {} if opts.damping is None else {"damping": opts.damping}
     for multiple in TEACHER_SPEEDS:
-        damping = {} if opts.damping is None else {"damping": opts.damping}
         teacher = InversionController(InversionTeacher(airframe, multiple, **damping), mapped=True)
         m = tuning_flight(opts, "inversion", controller=teacher)
         flown.append({"lag_multiple": multiple, "error_sum": round(error_sum(m), 2),
