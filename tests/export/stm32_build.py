@@ -49,8 +49,8 @@ def start() -> bool:
 def result(timeout_s: float) -> tuple[Path, dict]:
     """(the export directory, its manifest) once the build has ended; an AssertionError with its
     log's tail if it failed."""
-    if not _build:
-        start()
+    if not _build and not start():
+        raise AssertionError("the STM32 build cannot start: no arm-none-eabi-gcc or arm-none-eabi-size")
     proc = _build["proc"]
     try:
         proc.wait(timeout=max(1.0, timeout_s))
