@@ -9,8 +9,8 @@ search that says what such a rule costs, with caps stated against the start alon
 pattern search on the Error alone (3·ΣError/ΣError_start, plus a point per % of Success below
 99.8 on an axis), first on the noise-free twin, where only the PID's structure and the physics
 limit it, then from that optimum on the 0.01 rad/s noisy gyro once per cap, with the tune's wall
-(100 per unit of roughness above the cap × the start's). Its knobs are the tune's with wider bounds
-(`wider`), and a yaw D (Betaflight's yaw has none; its search starts at `--yaw-d`). Each result
+(100 per unit of roughness above the cap × the start's). Its moves are the tune's, with the filters'
+bounds wider (`wider`); a yaw D the start lacks starts at `--yaw-d`. Each result
 is flown on the held-out commands (seed S + 1) against the bound: DIR/pareto.json has one row per
 cap (and the noise-free one), DIR/pid_cap<C>.json each preset. The search stops at its deadline,
 so a rerun on another machine may end elsewhere.
@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from fcemu.evaluation.bound import rig_constants
-from fcemu.training.pid_search import CandidatePool, Knob, Score, SearchState, pattern_search
+from fcemu.training.pid_search import CandidatePool, Knob, Move, Score, SearchState, pattern_search
 from fcemu.training.pid_tune import SUCCESS_LINE, TuneOptions, Tuner, cached_bounds
 
 
@@ -40,17 +40,15 @@ def error_cost(s: Score, start: Score, cap: float | None) -> float:
     return float(3.0 * s.error.sum() / start.error.sum() + failed + wall)
 
 
-def wider(knobs: list[Knob], yaw_d: bool) -> list[Knob]:
-    """The tune's knobs, gains within ten times wider bounds and filters within 5–1000 Hz (Betaflight's
-    gyro_lpf1 reaches 1000), so that what the search finds is not where the tune's box ends."""
-    def widened(k: Knob) -> Knob:
-        if k.setting in ("kp", "ki", "kd", "kff"):
-            return Knob(k.name, k.setting, k.axis, k.step, k.lowest / 10.0, k.highest * 10.0)
-        if k.setting.endswith("lowpass_hz"):
+def wider(knobs: list[Move]) -> list[Move]:
+    """The tune's moves, the filters' cut-offs within 5–1000 Hz (Betaflight's gyro_lpf1 reaches 1000),
+    so that what the search finds is not where the tune's box ends (its gains' box is already wide)."""
+    def widened(k: Move) -> Move:
+        if isinstance(k, Knob) and k.setting.endswith("lowpass_hz"):
             return Knob(k.name, k.setting, k.axis, k.step, 5.0, 1000.0)
         return k
 
-    return [widened(k) for k in knobs] + ([Knob("kd_yaw", "kd", 2, 1.4, 1e-4, 1.0)] if yaw_d else [])
+    return [widened(k) for k in knobs]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     start = json.loads(Path(args.start).read_text()) if args.start else tuner.start
     if start["pid"]["kd"][2] <= 0.0:
         start["pid"]["kd"][2] = args.yaw_d
-    knobs = wider(tuner.knobs, yaw_d=True)
+    knobs = wider(tuner.knobs)
     args.out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
     with CandidatePool(tuner.airframe, tuner.opts.gyro_noise, args.jobs) as pool:

@@ -14,7 +14,9 @@ crossover kp·B, which a lag τ limits to ∝ 1/τ; so from the reference airfra
 (D and feedforward add an acceleration per rate change: dimensionless, so only B scales
 them.) An axis of less authority than the reference's gets its pidsum limit raised (up to the
 whole output range) to keep the reference's angular acceleration at the limit. The search
-bounds move with the gains. Then `pid_search.pattern_search` refines the start in two stages
+bounds move with the gains, ten times wider either way: the carry-over is good to a factor of
+several, not better. Then `pid_search.pattern_search` refines the start in two stages, each
+axis's gains moved together first (its loop gain) and then each knob alone,
 on the tuning commands (seed S): on the noise-free twin, then with a gyro of 0.01 rad/s white
 noise, where the cost caps the motors' roughness (mean |Δpwm|) at `SMOOTHNESS_CAP` × the noise
 allowance: the start's roughness on the same noisy gyro, or the reference tune's on its own airframe
@@ -41,7 +43,16 @@ from fcemu.firmware.mixer import QuadXMixer
 from fcemu.firmware.pid_controller import load_preset
 from fcemu.sim_bridge.airframe import Airframe, effect_fields, load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
-from fcemu.training.pid_search import AXES, CandidatePool, Knob, Score, SearchState, pattern_search
+from fcemu.training.pid_search import (
+    AXES,
+    AxisGains,
+    CandidatePool,
+    Knob,
+    Move,
+    Score,
+    SearchState,
+    pattern_search,
+)
 
 COST_VERSION = "fcemu-pid-tune/3"
 REFERENCE = ("iris", "iris")  # (airframe, preset) the start is carried over from
@@ -58,7 +69,12 @@ SUCCESS_LINE = 99.8
 # Searched knobs: (setting, axes, step, (lowest, highest) for the reference airframe). Gains
 # bounds scale with the gains (module doc); cut-offs with τ, within what a 1 kHz loop can run.
 GAIN_KNOBS = (("kp", (0, 1, 2), 1.3, (0.5, 40.0)), ("ki", (0, 1, 2), 1.5, (1.0, 100.0)),
-              ("kd", (0, 1), 1.4, (0.001, 0.1)), ("kff", (0, 1, 2), 1.4, (0.05, 5.0)))
+              ("kd", (0, 1, 2), 1.4, (0.001, 0.1)), ("kff", (0, 1, 2), 1.4, (0.05, 5.0)))
+# The carried-over gains are right to within a factor of several, not better (the Crazyflie's best
+# tune flies 3 to 7 times its start): the gains' bounds are this much wider either way, and each
+# axis's gains also move together (`AxisGains`), by AXIS_GAIN_STEP at first.
+GAIN_SLACK = 10.0
+AXIS_GAIN_STEP = 2.0
 FILTER_KNOBS = (("gyro_lowpass_hz", 1.4, (50.0, 450.0)), ("dterm_lowpass_hz", 1.4, (20.0, 250.0)),
                 ("ff_lowpass_hz", 1.4, (10.0, 250.0)))
 PIDSUM_KNOB = (1.25, (0.2, 1.0))
@@ -148,12 +164,23 @@ def carried_over(reference: dict[str, Any], ref: LoopPhysics, new: LoopPhysics) 
     return preset
 
 
-def knobs_for(ref: LoopPhysics, new: LoopPhysics) -> list[Knob]:
+def knobs_for(ref: LoopPhysics, new: LoopPhysics, reference: dict[str, Any]) -> list[Move]:
+    """The search's moves: each axis's gains together first, then every knob alone. A D term the
+    reference leaves off (Betaflight's yaw) starts, if the search turns it on, at the D to P ratio
+    of the reference's roll: D's time constant; a D worth the roll's acceleration per rate change
+    would be too much for the axis's start P to carry."""
     gain = ref.authority / new.authority
     speed = ref.lag_s / new.lag_s
     scale = {"kp": gain * speed, "ki": gain * speed**2, "kd": gain, "kff": gain}
-    knobs = [Knob(f"{key}_{AXES[i]}", key, i, step, lo * scale[key][i], hi * scale[key][i])
+    pid = reference["pid"]
+    d_time = pid["kd"][0] / pid["kp"][0]
+    first_d = d_time * np.array(pid["kp"]) * scale["kp"]
+    gains = [Knob(f"{key}_{AXES[i]}", key, i, step, lo * scale[key][i] / GAIN_SLACK,
+                  hi * scale[key][i] * GAIN_SLACK, first=float(first_d[i]) if key == "kd" else 0.0)
              for key, axes, step, (lo, hi) in GAIN_KNOBS for i in axes]
+    knobs: list[Move] = [AxisGains(f"gains_{a}", tuple(k for k in gains if k.axis == i), AXIS_GAIN_STEP)
+                         for i, a in enumerate(AXES)]
+    knobs += gains
     for key, step, (lo, hi) in FILTER_KNOBS:
         knobs.append(Knob(key, key, None, step, min(lo * speed, hi), hi))
     step, (lo, hi) = PIDSUM_KNOB
@@ -256,7 +283,7 @@ class Tuner:
         self.physics = loop_physics(self.airframe, mixer)
         self.start = carried_over(reference, self.ref_physics, self.physics)
         self.start["name"] = f"pid_{self.airframe.name}"
-        self.knobs = knobs_for(self.ref_physics, self.physics)
+        self.knobs = knobs_for(self.ref_physics, self.physics, reference)
         self.tuning = episodic_commands(opts.seed, opts.episodes)
         self.held_out = episodic_commands(opts.seed + 1, opts.check_episodes)
 

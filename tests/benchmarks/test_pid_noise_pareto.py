@@ -1,7 +1,7 @@
 import numpy as np
 
 from benchmarks.pid_noise_pareto import error_cost, wider
-from fcemu.training.pid_search import Knob, Score
+from fcemu.training.pid_search import AxisGains, Knob, Score
 
 
 def _score(error: float, success: float = 100.0, smoothness: float = 1.0) -> Score:
@@ -21,13 +21,11 @@ def test_the_cost_is_the_error_with_success_and_the_noise_wall():
     assert error_cost(_score(float("nan")), start, None) == float("inf")
 
 
-def test_the_knobs_are_wider_than_the_tunes_and_yaw_gets_a_d():
+def test_the_filters_bounds_are_wider_than_the_tunes_and_the_rest_is_the_tunes():
     knobs = [Knob("kp_roll", "kp", 0, 1.3, 0.5, 40.0),
              Knob("gyro_lowpass_hz", "gyro_lowpass_hz", None, 1.4, 50, 450),
              Knob("pidsum_roll", "pidsum_limit", 0, 1.25, 0.2, 1.0)]
-    out = {k.name: k for k in wider(knobs, yaw_d=True)}
-    assert (out["kp_roll"].lowest, out["kp_roll"].highest) == (0.05, 400.0)
+    gains = AxisGains("gains_roll", (knobs[0],), 2.0)
+    out = {k.name: k for k in wider([gains, *knobs])}
     assert (out["gyro_lowpass_hz"].lowest, out["gyro_lowpass_hz"].highest) == (5.0, 1000.0)
-    assert (out["pidsum_roll"].lowest, out["pidsum_roll"].highest) == (0.2, 1.0)  # a limit above 1 is none
-    assert out["kd_yaw"].setting == "kd" and out["kd_yaw"].axis == 2
-    assert "kd_yaw" not in {k.name for k in wider(knobs, yaw_d=False)}
+    assert out["kp_roll"] is knobs[0] and out["pidsum_roll"] is knobs[2] and out["gains_roll"] is gains

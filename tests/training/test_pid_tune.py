@@ -41,8 +41,23 @@ def test_the_reference_airframe_starts_from_the_reference_tune_and_others_scale_
     assert start["dterm_lowpass_hz"] == pytest.approx(iris_preset["pid"]["dterm_lowpass_hz"] / 2.0)
     limits = np.minimum(1.0, np.array(iris_preset["pid"]["pidsum_limit"]) * gain)
     np.testing.assert_allclose(start["pidsum_limit"], limits, rtol=1e-6)
-    knobs = {k.name: k for k in knobs_for(iris, slower)}
-    assert knobs["kp_roll"].lowest < start["kp"][0] < knobs["kp_roll"].highest
+    knobs = {k.name: k for k in knobs_for(iris, slower, iris_preset)}
+    assert knobs["kp_roll"].lowest < start["kp"][0] / 5.0 < start["kp"][0] * 5.0 < knobs["kp_roll"].highest
+
+
+def test_an_axis_gains_move_scales_its_terms_together_and_a_d_left_off_starts_where_physics_puts_it():
+    iris_preset = load_preset("iris")
+    iris = loop_physics(load_airframe("iris"), QuadXMixer(**iris_preset["mixer"]))
+    knobs = {k.name: k for k in knobs_for(iris, iris, iris_preset)}
+    up = knobs["gains_yaw"].moved(iris_preset, 2.0)["pid"]
+    for key in ("kp", "ki", "kff"):
+        assert up[key][2] == pytest.approx(2.0 * iris_preset["pid"][key][2], rel=1e-5)
+        assert up[key][:2] == iris_preset["pid"][key][:2]
+    assert up["kd"][2] == 0.0  # the axis's D is off, and moving its loop gain leaves it off
+    assert knobs["kd_yaw"].moved(iris_preset, 1.0 / 1.4) is None
+    on = knobs["kd_yaw"].moved(iris_preset, 1.4)["pid"]["kd"][2]
+    pid = iris_preset["pid"]  # the roll's D to P ratio
+    assert on == pytest.approx(pid["kp"][2] * pid["kd"][0] / pid["kp"][0], rel=1e-5)
 
 
 def test_settle_limits_say_which_commands_no_controller_settles():
