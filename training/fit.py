@@ -84,7 +84,7 @@ STUDENT_STEPS = {"exact": 1000, "sensed": 2000}
 # STUDENT_SMOOTHING × the PID's are admitted, the fastest-tracking of them taught first, and its
 # student judged on the same commands: one rougher than the bar allows is taught again by the next
 # slower admitted teacher (docs/training_notes.md, 2026-11-28, the exact label).
-TEACHER_SPEEDS = (0.5, 0.35, 0.25)  # time constants in motor lags, the default first
+TEACHER_SPEEDS = (0.5, 0.35, 0.25, 0.18, 0.13)  # time constants in motor lags, the default first
 SPEED_COMMANDS = 20
 STUDENT_SMOOTHING = 0.6  # the least a student's motor roughness was of its teacher's (0.64), rounded down
 
