@@ -145,11 +145,16 @@ def loop_physics(airframe: Airframe, mixer: QuadXMixer | None = None, dt: float 
     return LoopPhysics(authority, lag)
 
 
-def carried_over(reference: dict[str, Any], ref: LoopPhysics, new: LoopPhysics) -> dict[str, Any]:
-    """The reference preset's gains carried over to an airframe of other physics (module doc)."""
+def gain_scale(ref: LoopPhysics, new: LoopPhysics) -> tuple[np.ndarray, float, dict[str, np.ndarray]]:
+    """(B_r/B per axis, τ_r/τ, each gain's factor from the reference airframe to the new: module doc)."""
     gain = ref.authority / new.authority
     speed = ref.lag_s / new.lag_s
-    scale = {"kp": gain * speed, "ki": gain * speed**2, "kd": gain, "kff": gain}
+    return gain, speed, {"kp": gain * speed, "ki": gain * speed**2, "kd": gain, "kff": gain}
+
+
+def carried_over(reference: dict[str, Any], ref: LoopPhysics, new: LoopPhysics) -> dict[str, Any]:
+    """The reference preset's gains carried over to an airframe of other physics (module doc)."""
+    gain, speed, scale = gain_scale(ref, new)
     preset = json.loads(json.dumps(reference))
     pid = preset["pid"]
     for key, factor in scale.items():
@@ -169,9 +174,7 @@ def knobs_for(ref: LoopPhysics, new: LoopPhysics, reference: dict[str, Any]) -> 
     reference leaves off (Betaflight's yaw) starts, if the search turns it on, at the D to P ratio
     of the reference's roll: D's time constant; a D worth the roll's acceleration per rate change
     would be too much for the axis's start P to carry."""
-    gain = ref.authority / new.authority
-    speed = ref.lag_s / new.lag_s
-    scale = {"kp": gain * speed, "ki": gain * speed**2, "kd": gain, "kff": gain}
+    _, speed, scale = gain_scale(ref, new)
     pid = reference["pid"]
     d_time = pid["kd"][0] / pid["kp"][0]
     first_d = d_time * np.array(pid["kp"]) * scale["kp"]
