@@ -32,6 +32,7 @@ from fcemu.training.distill import (
     columns,
     distill,
     fly,
+    imitation_mse,
     nudge,
     student_train_config,
     union_spec,
@@ -217,3 +218,18 @@ def test_a_student_for_another_airframe_flies_its_relative_ranges_and_carries_it
         (config["env"]["airframe"], config["env"]["randomize"])
     meta = ort.InferenceSession(str(out / "policy.onnx")).get_modelmeta().custom_metadata_map
     assert meta["fcemu.airframe"] == "crazyflie"
+
+
+def test_past_a_saturated_label_the_mixer_clips_so_the_fit_sees_no_error():
+    import torch
+
+    from fcemu.firmware.action import throttle_pwm
+
+    label = torch.tensor([[1.0, -1.0, 0.5, -0.5]])
+    past = torch.tensor([[1.4, -1.3, 0.5, -0.5]])  # beyond the two saturated motors only
+    assert float(imitation_mse(past, label)) == 0.0
+    assert np.array_equal(throttle_pwm(past.numpy(), 0.5), throttle_pwm(label.numpy(), 0.5))
+    short = torch.tensor([[0.9, -1.0, 0.5, -0.5]])  # short of a saturated label is an error
+    inside = torch.tensor([[1.0, -1.0, 0.9, -0.5]])  # and so is any miss of an unsaturated one
+    beyond = torch.tensor([[1.0, -1.0, 0.5, -1.2]])
+    assert all(float(imitation_mse(p, label)) > 0.0 for p in (short, inside, beyond))
