@@ -87,6 +87,10 @@ STUDENT_STEPS = {"exact": 1000, "sensed": 2000}
 TEACHER_SPEEDS = (0.5, 0.35, 0.25, 0.18, 0.13)  # time constants in motor lags, the default first
 SPEED_COMMANDS = 20
 STUDENT_SMOOTHING = 0.6  # the least a student's motor roughness was of its teacher's (0.64), rounded down
+# A student is judged on SPEED_COMMANDS and checked on the held-out ones, where its motors' ratio to
+# the PID's moved by up to 3 % (the hummingbird's 1.48 × became 1.52 ×, over the bar's 1.5 ×): one is
+# kept only within this share of the bar's motor line.
+STUDENT_MOTOR_MARGIN = 0.95
 
 
 def _stage(log: Any, t0: float, text: str) -> None:
@@ -193,7 +197,7 @@ def taught_student(opts: FitOptions, speed: dict[str, Any] | None, out: Path, lo
 
     if speed is None:
         return {**distill_stage(opts, out), "speed": None}
-    limit = SMOOTHNESS_BAR * speed["pid_smoothness"]
+    limit = STUDENT_MOTOR_MARGIN * SMOOTHNESS_BAR * speed["pid_smoothness"]
     tried = []
     for multiple in speed["order"]:
         student = distill_stage(replace(opts, lag_multiple=multiple), out)

@@ -7,7 +7,8 @@ coefficient, the top rotor speed and the motors' first-order lags. From what the
 observes (rate error, rates, rotor speeds) it asks, per tick:
 
 1. an angular acceleration that closes the rate error e as a second-order system with natural
-   frequency ω = 1/T_c (T_c = `lag_multiple` × the motors' mean lag) and damping ζ (`damping`):
+   frequency ω = 1/T_c (T_c = `lag_multiple` × the motors' mean lag, shorter on an axis of more
+   authority: `axis_speeds`) and damping ζ (`damping`):
    α* = α_now + dt·(ω²·e − 2ζω·α_now), e predicted ahead over the loop's delay (the gyro's
    sample is a tick old, plus the airframe's gyro and ESC delays), less what the body adds by
    itself: the gyroscopic term −I⁻¹(Ω × IΩ) and, where the airframe has them, the rotors'
@@ -45,6 +46,12 @@ from fcemu.sim_bridge.plant import body_torque
 ROLL_PITCH_WEIGHT = 10.0  # the torque error's weight on roll and pitch against yaw's 1
 LAG_MULTIPLE = 0.5  # T_c = 1/ω in motor lags (docs/training_notes.md, 2026-11-27, a teacher of second order)
 DAMPING = 0.7  # ζ: about 4 % of overshoot (0.5: 15 %, more Error for a faster Rise)
+# The slowest an axis's law may be against the weaker of roll and pitch (`axis_speeds`): yaw's. Its
+# authority is a few % of theirs, so its large steps ride the motors' range whatever the law's speed,
+# and a law as fast as roll's only shakes the motors on its small ones: at half the speed the
+# hummingbird's teacher flies 721.4 against 722.0 with its motors 1.35 µs/step against 1.68
+# (docs/training_notes.md, 2026-11-28, each axis's speed from its authority).
+SLOWEST_AXIS = 0.5
 BISECTIONS = 30
 SPEC_FIELDS = (*FIELDS, RATE)
 
@@ -100,6 +107,15 @@ def max_scale(lo: np.ndarray, hi: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return np.clip(limit.min(axis=(-2, -1)), 0.0, 1.0)
 
 
+def axis_speeds(m: InversionModel) -> np.ndarray:
+    """Each axis's ω over the weaker of roll's and pitch's: √ of its authority over theirs (the largest
+    angular acceleration its thrusts give), so each axis asks the same thrust per unit error (its α
+    moves at ω²·e), floored at `SLOWEST_AXIS`. A stretched frame's long axis (the racer's pitch, 1.26 ×
+    its roll's authority) rises as early as a PID tuned for it; a square frame's roll and pitch alike."""
+    authority = np.clip(m.B, 0.0, None).sum(axis=1) * m.kf * m.w_max**2
+    return np.maximum(np.sqrt(authority / authority[:2].min()), SLOWEST_AXIS)
+
+
 class InversionTeacher:
     """The teacher for `fcemu distill`: `act(obs)` on its own observation (`spec`), batched."""
 
@@ -116,7 +132,7 @@ class InversionTeacher:
         self.airframe = af.name
         self.model = m = InversionModel.of(af, dt)
         self.dt = dt
-        self.time_constant = lag_multiple * m.lag_s
+        self.time_constant = lag_multiple * m.lag_s / axis_speeds(m)  # (3,) roll, pitch, yaw
         self.damping = damping
         self.ahead_ticks = 1 + m.esc_delay_ticks + (0 if reads_truth else m.gyro_delay_ticks)
         self.throttle = float(af.hover_throttle() if throttle is None else throttle)

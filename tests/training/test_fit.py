@@ -111,7 +111,7 @@ def test_fit_refuses_a_bad_airframe_and_a_bad_budget_in_one_line(tmp_path, capsy
 
 def test_the_teacher_s_damping_reaches_the_teacher_and_the_command_line():
     teacher = make_teacher("inversion:0.2:0.4", "crazyflie")
-    assert teacher.damping == 0.4 and teacher.time_constant == pytest.approx(0.2 * teacher.model.lag_s)
+    assert teacher.damping == 0.4 and teacher.time_constant[0] == pytest.approx(0.2 * teacher.model.lag_s)
     assert make_teacher("inversion:0.2", "crazyflie").damping == DAMPING
     with pytest.raises(DistillError, match="damping ratio must be > 0"):
         make_teacher("inversion:0.2:-1", "crazyflie")

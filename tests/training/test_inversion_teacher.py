@@ -9,7 +9,14 @@ from fcemu.firmware.action import action_to_pwm
 from fcemu.firmware.observation import observe_step
 from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.plant import body_torque
-from fcemu.training.inversion_teacher import InversionController, InversionModel, InversionTeacher, max_scale
+from fcemu.training.inversion_teacher import (
+    SLOWEST_AXIS,
+    InversionController,
+    InversionModel,
+    InversionTeacher,
+    axis_speeds,
+    max_scale,
+)
 
 
 def test_max_scale_is_the_largest_share_some_collective_keeps_inside_every_motors_reach():
@@ -63,6 +70,15 @@ def test_the_teacher_flies_the_commands_with_less_error_than_the_airframes_tuned
              for name, m in (("teacher", teacher), ("pid", pid))}
     assert error["teacher"] < 0.97 * error["pid"], error
     assert all(teacher.stat("success_pct", a).mean == 100.0 for a in AXES)
+
+
+def test_each_axis_is_as_fast_as_its_authority_allows_and_yaw_no_slower_than_the_floor():
+    square = InversionModel.of(load_airframe("x500"))
+    assert axis_speeds(square) == pytest.approx([1.0, 1.0, SLOWEST_AXIS])  # yaw's √ authority is below it
+    racer = InversionModel.of(load_airframe("racer5"))  # motors 0.085 m out in x, 0.0675 m in y
+    assert axis_speeds(racer)[:2] == pytest.approx([1.0, np.sqrt(0.085 / 0.0675)], rel=1e-3)
+    teacher = InversionTeacher("racer5", 0.5)
+    assert teacher.time_constant == pytest.approx(0.5 * teacher.model.lag_s / axis_speeds(racer))
 
 
 def test_a_time_constant_that_is_not_positive_is_refused():
