@@ -7,8 +7,8 @@ coefficient, the top rotor speed and the motors' first-order lags. From what the
 observes (rate error, rates, rotor speeds) it asks, per tick:
 
 1. an angular acceleration that closes the rate error e as a second-order system with natural
-   frequency ω = 1/T_c (T_c = `lag_multiple` × the motors' mean lag, shorter on an axis of more
-   authority: `axis_speeds`) and damping ζ (`damping`):
+   frequency ω = 1/T_c (T_c = `lag_multiple` × the motors' mean lag, shorter on the stronger of roll
+   and pitch, longer on a yaw that rides its range: `axis_speeds`) and damping ζ (`damping`):
    α* = α_now + dt·(ω²·e − 2ζω·α_now), e predicted ahead over the loop's delay (the gyro's
    sample is a tick old, plus the airframe's gyro and ESC delays), less what the body adds by
    itself: the gyroscopic term −I⁻¹(Ω × IΩ) and, where the airframe has them, the rotors'
@@ -42,16 +42,17 @@ from fcemu.firmware.action import action_to_pwm, pwm_to_action
 from fcemu.firmware.observation import FIELDS, RATE, ObservationSpec
 from fcemu.sim_bridge.airframe import Airframe, load_airframe
 from fcemu.sim_bridge.plant import body_torque
+from fcemu.sim_bridge.tasks import OMEGA_MAX
 
 ROLL_PITCH_WEIGHT = 10.0  # the torque error's weight on roll and pitch against yaw's 1
 LAG_MULTIPLE = 0.5  # T_c = 1/ω in motor lags (docs/training_notes.md, 2026-11-27, a teacher of second order)
 DAMPING = 0.7  # ζ: about 4 % of overshoot (0.5: 15 %, more Error for a faster Rise)
-# The slowest an axis's law may be against the weaker of roll and pitch (`axis_speeds`): yaw's. Its
-# authority is a few % of theirs, so its large steps ride the motors' range whatever the law's speed,
-# and a law as fast as roll's only shakes the motors on its small ones: at half the speed the
-# hummingbird's teacher flies 721.4 against 722.0 with its motors 1.35 µs/step against 1.68
-# (docs/training_notes.md, 2026-11-28, each axis's speed from its authority).
-SLOWEST_AXIS = 0.5
+# Yaw's speed where its authority cannot move its rate by a command's size within a motor lag: its
+# large steps then ride the motors' range at any speed of the law, and a fast law only shakes the
+# motors on its small ones. At half the speed the hummingbird's teacher flies 721.4 against 722.0
+# with its motors 1.35 µs/step against 1.68 (docs/training_notes.md, 2026-11-28, each axis's speed
+# from its authority). A Crazyflie's yaw moves 25 rad/s in a lag, and slowed it rose 7 ms late.
+SATURATED_YAW_SPEED = 0.5
 BISECTIONS = 30
 SPEC_FIELDS = (*FIELDS, RATE)
 
@@ -108,12 +109,14 @@ def max_scale(lo: np.ndarray, hi: np.ndarray, delta: np.ndarray) -> np.ndarray:
 
 
 def axis_speeds(m: InversionModel) -> np.ndarray:
-    """Each axis's ω over the weaker of roll's and pitch's: √ of its authority over theirs (the largest
-    angular acceleration its thrusts give), so each axis asks the same thrust per unit error (its α
-    moves at ω²·e), floored at `SLOWEST_AXIS`. A stretched frame's long axis (the racer's pitch, 1.26 ×
-    its roll's authority) rises as early as a PID tuned for it; a square frame's roll and pitch alike."""
+    """Each axis's ω over the weaker of roll's and pitch's. Roll and pitch: √ of its authority (the
+    largest angular acceleration its thrusts give) over the weaker's, so each asks the same thrust per
+    unit error (its α moves at ω²·e): a stretched frame's long axis (the racer's pitch, 1.26 × its
+    roll's authority) rises as early as a PID tuned for it. Yaw: `SATURATED_YAW_SPEED` where its
+    authority moves its rate by less than the command bound in a motor lag, else roll's and pitch's."""
     authority = np.clip(m.B, 0.0, None).sum(axis=1) * m.kf * m.w_max**2
-    return np.maximum(np.sqrt(authority / authority[:2].min()), SLOWEST_AXIS)
+    yaw = SATURATED_YAW_SPEED if authority[2] * m.lag_s < OMEGA_MAX else 1.0
+    return np.array([*np.sqrt(authority[:2] / authority[:2].min()), yaw])
 
 
 class InversionTeacher:
