@@ -31,18 +31,23 @@ def test_offboard_setpoint_loss_lands_and_disarms(sitl) -> None:
     off.mav.param_set_send(1, 1, b"COM_OF_LOSS_T", 0.5, M.MAV_PARAM_TYPE_REAL32)
     off.mav.param_set_send(1, 1, b"FS_HOLD_T", 0.5, M.MAV_PARAM_TYPE_REAL32)
 
-    def stream(seconds: float, thrust: float) -> None:
+    def stream(seconds: float, thrust: float, until_height: float | None = None) -> None:
+        """`thrust` for `seconds`, or until the vehicle is `until_height` up (a real-time SITL on a busy
+        machine climbs late)."""
         end = time.monotonic() + seconds
         while time.monotonic() < end:
             off.mav.set_attitude_target_send(0, 1, 1, 128, [1, 0, 0, 0], 0, 0, 0, thrust)
             time.sleep(0.01)
+            if until_height is not None and "LOCAL_POSITION_NED" in off.messages \
+                    and -latest(off, "LOCAL_POSITION_NED").z > until_height:
+                return
 
     stream(0.3, 0.0)
     off.set_mode_px4("OFFBOARD", None, None)
     assert wait_for(off, "COMMAND_ACK", lambda m: m.command == M.MAV_CMD_DO_SET_MODE).result == 0
     off.mav.command_long_send(1, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
     assert wait_for(off, "COMMAND_ACK", lambda m: m.command == M.MAV_CMD_COMPONENT_ARM_DISARM).result == 0
-    stream(0.8, 0.82)  # climb: some 2 m up once the failsafe has stopped it, a short LAND
+    stream(3.0, 0.82, until_height=0.6)  # climb: some 2 m up once the failsafe has stopped it, a short LAND
     assert -latest(off, "LOCAL_POSITION_NED").z > 0.5
     stopped = time.monotonic()
     text = wait_for(off, "STATUSTEXT", lambda m: "Failsafe" in m.text, timeout=3.0).text
