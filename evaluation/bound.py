@@ -89,6 +89,12 @@ def unmodelled_effects(airframe: Airframe) -> list[str]:
     return [name for name, value in on.items() if value]
 
 
+def authority(B: np.ndarray, kf: float, w_max: float) -> np.ndarray:
+    """Per axis, the largest angular acceleration (rad/s²) any motor command gives from rest: each motor
+    at full thrust where it helps the axis, off where it does not (no lag, no spin-up)."""
+    return np.clip(B, 0.0, None).sum(axis=1) * kf * w_max**2
+
+
 def rig_constants(airframe: str | Airframe = DEFAULT_AIRFRAME, dt: float = 0.001) -> RigConstants:
     af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
     effects = unmodelled_effects(af)

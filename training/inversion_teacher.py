@@ -114,9 +114,11 @@ def axis_speeds(m: InversionModel) -> np.ndarray:
     unit error (its α moves at ω²·e): a stretched frame's long axis (the racer's pitch, 1.26 × its
     roll's authority) rises as early as a PID tuned for it. Yaw: `SATURATED_YAW_SPEED` where its
     authority moves its rate by less than the command bound in a motor lag, else roll's and pitch's."""
-    authority = np.clip(m.B, 0.0, None).sum(axis=1) * m.kf * m.w_max**2
-    yaw = SATURATED_YAW_SPEED if authority[2] * m.lag_s < OMEGA_MAX else 1.0
-    return np.array([*np.sqrt(authority[:2] / authority[:2].min()), yaw])
+    from fcemu.evaluation.bound import authority
+
+    a = authority(m.B, m.kf, m.w_max)
+    yaw = SATURATED_YAW_SPEED if a[2] * m.lag_s < OMEGA_MAX else 1.0
+    return np.array([*np.sqrt(a[:2] / a[:2].min()), yaw])
 
 
 class InversionTeacher:

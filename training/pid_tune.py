@@ -107,12 +107,11 @@ def settle_limits(airframe: Airframe, commands: np.ndarray) -> dict[str, Any]:
     the largest command that could still meet Success's rule (mean |Ω* − Ω| over 0.5–1 s at most
     10 % of it) flying at that acceleration from rest, and how many of `commands` ask for more:
     no controller settles those, so they fail Success on that axis."""
-    from fcemu.evaluation.bound import rig_constants
+    from fcemu.evaluation.bound import authority, rig_constants
     from fcemu.evaluation.metrics import SETTLE_S, SUCCESS_BAND
 
     rig = rig_constants(nominal(airframe))
-    t_max = rig.kf * rig.w_max**2
-    accel = np.array([np.clip(rig.B[j], 0.0, None).sum() for j in range(3)]) * t_max
+    accel = authority(rig.B, rig.kf, rig.w_max)
     window = np.linspace(SETTLE_S, 1.0, 501)
 
     def settles(e0: float, a: float) -> bool:
