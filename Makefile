@@ -48,7 +48,7 @@ demo: $(VENV)/.runtime
 
 test: $(VENV)/.dev mcu-tools
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m tests.suite -q
 
 bench: $(VENV)/.dev
 	$(VENV)/bin/fcemu bench sim

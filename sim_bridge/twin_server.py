@@ -42,19 +42,18 @@ from fcemu.sim_bridge.protocol import (
     encode_error,
     pack_frame_into,
 )
+from fcemu.sim_bridge.sender_guard import (
+    PEER_QUEUES,
+    MutedQueues,
+    SenderBudget,
+    peer_queue,
+    reuse_port_socket,
+)
 from fcemu.sim_bridge.twin import Twin
 
 log = logging.getLogger(__name__)
 
 STATUS_INTERVAL_S = 2.0
-# What one sender may do outside the owner's in-sequence steps (RESETs, repeats, refused or bad
-# packets): far above any real client's resets and retries, far below a storm.
-SENDER_RATE_HZ = 200.0
-SENDER_BURST = 400.0
-MUTE_S = 1.0
-# Linux gives a connected UDP socket bound to the server's port (SO_REUSEPORT) the packets of
-# its peer: the session owner gets a receive queue of its own that no storm can fill.
-_OWNER_QUEUE = sys.platform.startswith("linux") and hasattr(socket, "SO_REUSEPORT")
 PUBLIC_DRAIN = 1024  # at most this many shared-queue packets are read first when a session starts
 _RIG_NAMES = {"rig": "ball-joint rig", "free": "free body"}
 
@@ -62,50 +61,6 @@ BAD_PACKET_KINDS = ("malformed", "bad_version", "unknown_type", "unexpected_repl
                     "foreign_peer", "no_session", "bad_argument", "internal_error")
 _KIND_OF_CODE = {ErrorCode.MALFORMED: "malformed", ErrorCode.BAD_VERSION: "bad_version",
                  ErrorCode.UNKNOWN_TYPE: "unknown_type", ErrorCode.BAD_ARGUMENT: "bad_argument"}
-
-
-def _reuse_port_socket() -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    if _OWNER_QUEUE:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
-    return sock
-
-
-class SenderBudget:
-    """A token bucket per sender address for the packets that cost the server work.
-
-    A sender that runs dry is muted: its packets are dropped unread until it has been quiet
-    for `mute_s`, so a storm costs the server one receive per packet and nothing else.
-    """
-
-    def __init__(self, rate_hz: float = SENDER_RATE_HZ, burst: float = SENDER_BURST, mute_s: float = MUTE_S,
-                 max_senders: int = 4096) -> None:
-        self.rate_hz, self.burst, self.mute_s, self.max_senders = rate_hz, burst, mute_s, max_senders
-        self._tokens: dict[tuple[str, int], tuple[float, float]] = {}  # addr -> (tokens, at)
-        self._muted: dict[tuple[str, int], float] = {}  # addr -> muted until
-
-    def muted(self, addr: tuple[str, int], now: float) -> bool:
-        until = self._muted.get(addr)
-        if until is None:
-            return False
-        if now < until:
-            self._muted[addr] = now + self.mute_s  # a storm that goes on stays muted
-            return True
-        del self._muted[addr]
-        return False
-
-    def spend(self, addr: tuple[str, int], now: float) -> bool:
-        """Take one token; False (and the sender muted) when it has none left."""
-        tokens, at = self._tokens.get(addr, (self.burst, now))
-        tokens = min(self.burst, tokens + (now - at) * self.rate_hz) - 1.0
-        if tokens < 0.0:
-            self._tokens.pop(addr, None)
-            self._muted[addr] = now + self.mute_s
-            return False
-        if len(self._tokens) >= self.max_senders and addr not in self._tokens:
-            self._tokens.clear()  # many senders (or forged ports): forget the ones with full buckets
-        self._tokens[addr] = (tokens, now)
-        return True
 
 
 class UdpTwinServer:
@@ -121,12 +76,13 @@ class UdpTwinServer:
             ("received", "steps", "resets", "duplicates", "byes", "takeovers", "errors_sent", "shed",
              "muted_senders", "revoked", *BAD_PACKET_KINDS), 0)
         self.budget = SenderBudget()
-        if _OWNER_QUEUE:  # SO_REUSEPORT would share a taken port; a plain bind refuses it
+        if PEER_QUEUES:  # SO_REUSEPORT would share a taken port; a plain bind refuses it
             with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
                 probe.bind((host, port))
                 port = probe.getsockname()[1]
-        self._sock = _reuse_port_socket()
+        self._sock = reuse_port_socket()
         self._sock.bind((host, port))
+        self._muted_queues = MutedQueues(self._sock.getsockname(), self.budget.mute_s)
         self._owner_sock: socket.socket | None = None
         self._public_first = 0
         self._poll = select.poll()
@@ -164,6 +120,7 @@ class UdpTwinServer:
             self._thread.join(timeout=5.0)
             self._thread = None
         self._set_owner(None)
+        self._muted_queues.close()
         self._sock.close()
 
     def __enter__(self) -> UdpTwinServer:
@@ -190,6 +147,8 @@ class UdpTwinServer:
                 break
             counters["received"] += 1
             now = monotonic()
+            if now >= self._muted_queues.due:
+                self._muted_queues.review(now)
             if n == _PWM_SIZE and addr == self._owner:
                 magic, version, msg_type, _, seq, *pwm = unpack_pwm(buf)
                 if (seq == self._last_seq + 1 and msg_type == _PWM and magic == MAGIC
@@ -210,6 +169,7 @@ class UdpTwinServer:
             if not self.budget.spend(addr, now):
                 counters["shed"] += 1
                 self._mute(addr)
+                self._muted_queues.hold(addr, now)
                 continue
             try:
                 self._handle(view[:n], addr, now)
@@ -232,10 +192,7 @@ class UdpTwinServer:
                         self.counters["muted_senders"])
 
     def _receive(self) -> tuple[int, tuple[str, int]]:
-        owner = self._owner_sock
-        if owner is None:
-            return self._spin.receive(self._sock.recvfrom_into, self._rx)
-        rx, public, addr = self._rx, self._sock, self._owner
+        owner, rx, public, addr = self._owner_sock, self._rx, self._sock, self._owner
         while self._public_first > 0:  # what the owner sent before it had its own queue comes first
             self._public_first -= 1
             try:
@@ -244,18 +201,24 @@ class UdpTwinServer:
                 self._public_first = 0
         while True:  # the owner's queue first, then one packet from everyone else, then again
             for _ in range(max(1, self._spin.budget)):
+                if owner is not None:
+                    try:
+                        n = owner.recv_into(rx, 0, _DONTWAIT)
+                        self._spin.hit()
+                        return n, addr  # type: ignore[return-value]
+                    except (BlockingIOError, ConnectionRefusedError):  # refused: ICMP from the owner's port
+                        pass
                 try:
-                    n = owner.recv_into(rx, 0, _DONTWAIT)
-                    self._spin.hit()
-                    return n, addr  # type: ignore[return-value]
-                except (BlockingIOError, ConnectionRefusedError):  # refused: ICMP from the owner's port
-                    pass
-                try:
-                    return public.recvfrom_into(rx, 0, _DONTWAIT)
+                    received = public.recvfrom_into(rx, 0, _DONTWAIT)
+                    if owner is None:
+                        self._spin.hit()
+                    return received
                 except BlockingIOError:
                     pass
             self._spin.miss()
-            self._poll.poll()
+            self._poll.poll(self._muted_queues.wait_ms(time.monotonic()))
+            if self._muted_queues:
+                self._muted_queues.review(time.monotonic())
 
     def _set_owner(self, addr: tuple[str, int] | None) -> None:
         """Give the session to `addr` (None: to nobody), with a receive queue of its own."""
@@ -265,15 +228,11 @@ class UdpTwinServer:
             self._owner_sock.close()
             self._owner_sock = None
         self._owner = addr
-        if addr is None or not _OWNER_QUEUE:
+        if addr is None or not PEER_QUEUES:
             return
-        sock = _reuse_port_socket()
-        try:
-            sock.bind(self._sock.getsockname())
-            sock.connect(addr)
-        except OSError as exc:  # the shared queue still works, only without the isolation
-            sock.close()
-            log.warning("twin server: no separate queue for %s:%d (%s)", *addr, exc)
+        sock = peer_queue(self._sock.getsockname(), addr)
+        if sock is None:  # the shared queue still works, only without the isolation
+            log.warning("twin server: no separate queue for %s:%d", *addr)
             return
         self._owner_sock = sock
         self._poll.register(sock, select.POLLIN)

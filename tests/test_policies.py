@@ -10,6 +10,8 @@ from fcemu.evaluation.metrics import AXES, compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.controllers import DEFAULT_POLICY, load_controller
 
+pytestmark = pytest.mark.no_wall_clock
+
 POLICY_DIR = Path(__file__).parents[1] / "policies"
 POLICIES = sorted(POLICY_DIR.glob("*.onnx"))
 DEFAULT_MEMORY, DEFAULT_HIDDEN = 16, [8, 32, 32]  # policies/README.md: the distilled default

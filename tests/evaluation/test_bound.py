@@ -18,6 +18,8 @@ from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.sim_bridge.twin import Twin
 
+pytestmark = pytest.mark.no_wall_clock
+
 K = 150  # a short horizon keeps each programme well under a second; the bound holds for any horizon
 
 

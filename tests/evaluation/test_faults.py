@@ -21,6 +21,8 @@ from fcemu.evaluation.faults import (
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.sim_bridge.faults import Fault, FaultSpecError
 
+pytestmark = pytest.mark.no_wall_clock
+
 
 def fcemu(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "fcemu", *args], capture_output=True, text=True,

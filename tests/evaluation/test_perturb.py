@@ -25,6 +25,8 @@ from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
 from fcemu.sim_bridge.env import EnvConfig, draw_episode
 from fcemu.sim_bridge.randomization import load_randomization
 
+pytestmark = pytest.mark.no_wall_clock
+
 FAST = ("--controller", "pid", "--episodes", "2", "--episode-s", "0.6", "--perturb", "2", "--json")
 
 

@@ -11,6 +11,8 @@ from fcemu.evaluation.rate_boxes import Boxes, exit_error, gyro_coefficients, pr
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.sim_bridge.tasks import episodic_commands
 
+pytestmark = pytest.mark.no_wall_clock
+
 K = 150
 INDEX = 2  # seed 7's command 2, where the gyroscopic term matters most of the first five
 

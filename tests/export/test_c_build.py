@@ -17,6 +17,8 @@ from fcemu.export.c.build import CExportError, export_c, ulp_distance
 from fcemu.firmware.observation import ObservationSpec
 from tests.export.mcu_tools import SHIPPED, require_codegen
 
+pytestmark = pytest.mark.no_wall_clock
+
 ALLOWED_INCLUDES = {"<math.h>", "<stdint.h>", "<float.h>", '"fcemu_policy.h"', '"fcemu_tanh.h"'}
 
 

@@ -32,6 +32,8 @@ from fcemu.firmware.observation import (
 from fcemu.firmware.sensors import SensorFrame
 from tests.export.mcu_tools import require_codegen
 
+pytestmark = pytest.mark.no_wall_clock
+
 TOP = 1100.0  # rad/s: the top rotor speed the tests' observations are scaled for
 Spec = partial(ObservationSpec, max_rotor_speed=TOP)
 

@@ -13,6 +13,8 @@ from fcemu.export.c.cycles import Instruction, decode, flash_waits, histogram_cy
 from fcemu.export.c.trace import traced_calls
 from tests.export.mcu_tools import require_target_tools
 
+pytestmark = pytest.mark.no_wall_clock
+
 ITERATIONS = 100
 REFILL = 2
 KNOWN_LOOP = """\

@@ -14,6 +14,8 @@ from fcemu.export.c.build import export_c, ulp_distance
 from fcemu.export.c.tanh import FAST_TANH_HEADER, TANH_HEADER, use_fast_tanh
 from tests.export.mcu_tools import SHIPPED, require_codegen
 
+pytestmark = pytest.mark.no_wall_clock
+
 F32P = ctypes.POINTER(ctypes.c_float)
 FAST_TANH_MAX_ULP = 7  # measured on every float32 in [-10, 10] against the correctly rounded tanh
 

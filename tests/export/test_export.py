@@ -28,7 +28,7 @@ from fcemu.firmware.observation import ObservationSpec
 from fcemu.sim_bridge.airframe_spec import airframe_spec, envelope
 from fcemu.training.train import TrainConfig, train
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.no_wall_clock]
 
 
 def _tiny_run(root: Path, algo: str, memory: int, steps: int, hp: dict | None = None,

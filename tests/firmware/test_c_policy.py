@@ -16,6 +16,8 @@ from fcemu.firmware.controllers import DEFAULT_POLICY, load_controller
 from fcemu.firmware.neural import NeuralRateController, PolicyContractError, PolicyOutputError
 from fcemu.firmware.sensors import SensorFrame
 
+pytestmark = pytest.mark.no_wall_clock
+
 SHIPPED = DEFAULT_POLICY
 
 

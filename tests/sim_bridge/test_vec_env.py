@@ -7,6 +7,8 @@ from fcemu.sim_bridge.randomization import parse_randomization
 from fcemu.sim_bridge.twin import SensorNoise
 from fcemu.sim_bridge.vec_env import NOISE_BLOCK, BatchedRateEnv
 
+pytestmark = pytest.mark.no_wall_clock
+
 INFO_KEYS = ("setpoint", "rate", "gyro", "pwm", "paper_reward", "action_rate")
 CONFIGS = {
     "episodic": dict(episode_s=0.05),

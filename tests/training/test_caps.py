@@ -14,6 +14,8 @@ from fcemu.training.caps import consecutive_pairs, spatial_smoothness, temporal_
 from fcemu.training.regularised_ppo import RegularisedPPO
 from fcemu.training.train import TrainConfig, train
 
+pytestmark = pytest.mark.no_wall_clock
+
 OBS = spaces.Box(-np.inf, np.inf, (7,), np.float32)
 ACT = spaces.Box(-1.0, 1.0, (4,), np.float32)
 

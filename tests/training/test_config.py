@@ -13,6 +13,8 @@ import pytest
 from fcemu.cli import build_parser
 from fcemu.training.config import ALGOS, FIELDS, WARM_START_TARGET_KL, TrainConfig, from_args, parse_hp
 
+pytestmark = pytest.mark.no_wall_clock
+
 ROOT = Path(__file__).resolve().parents[2]
 
 

@@ -38,6 +38,8 @@ from fcemu.training.distill import (
     union_spec,
 )
 
+pytestmark = pytest.mark.no_wall_clock
+
 TEACHER = Path(__file__).parents[2] / "policies" / "iris_rate_ppo_rms64_mo.onnx"
 
 

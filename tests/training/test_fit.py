@@ -26,6 +26,8 @@ from fcemu.training.fit import (
 )
 from fcemu.training.inversion_teacher import DAMPING
 
+pytestmark = pytest.mark.no_wall_clock
+
 
 def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))

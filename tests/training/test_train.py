@@ -15,7 +15,7 @@ from fcemu.firmware.neural import NeuralRateController
 from fcemu.training import quick_eval
 from fcemu.training.train import TrainConfig, train
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.no_wall_clock]
 
 
 @pytest.fixture(scope="module")
