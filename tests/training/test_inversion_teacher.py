@@ -18,8 +18,6 @@ from fcemu.training.inversion_teacher import (
     max_scale,
 )
 
-pytestmark = pytest.mark.no_wall_clock
-
 
 def test_max_scale_is_the_largest_share_some_collective_keeps_inside_every_motors_reach():
     rng = np.random.default_rng(3)

@@ -13,8 +13,6 @@ from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.training.pid_search import Score
 from fcemu.training.pid_tune import SMOOTHNESS_CAP, carried_over, cost, knobs_for, loop_physics, settle_limits
 
-pytestmark = pytest.mark.no_wall_clock
-
 
 def test_loop_physics_follows_inertia_thrust_and_motor_lag():
     iris = load_airframe("iris")

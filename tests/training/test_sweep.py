@@ -16,8 +16,7 @@ import pytest
 from fcemu.firmware.neural import NeuralRateController
 from fcemu.training.sweep import parse_seeds, parse_space
 
-# Ray start-up on a loaded machine
-pytestmark = [pytest.mark.no_wall_clock, pytest.mark.slow, pytest.mark.timeout(900)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # Ray start-up on a loaded machine
 ROOT = Path(__file__).resolve().parents[2]
 # Two trials of 2048 steps (8 twins, rollouts of 1024), two evaluations each on 2 commands.
 SHORT = ["--steps", "2048", "--envs", "8", "--eval-every", "1024", "--eval-commands", "2",

@@ -18,8 +18,6 @@ from fcemu.training.train import make_model, make_vec_env
 from fcemu.training.warm_start import WarmStart
 from fcemu.training.warm_start_teacher import PidTeacher, episode_delay_ticks, load_schedule, teacher_inputs
 
-pytestmark = pytest.mark.no_wall_clock
-
 
 def _teacher_flight(n: int, seed: int):
     ev = quick_eval.BatchedEvaluator(n, seed)
