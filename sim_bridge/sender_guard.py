@@ -31,17 +31,16 @@ def reuse_port_socket() -> socket.socket:
     return sock
 
 
-def peer_queue(local: Address, peer: Address) -> socket.socket | None:
-    """A socket on the server's port that receives `peer`'s packets only; None where there is none."""
-    if not PEER_QUEUES:
-        return None
+def peer_queue(local: Address, peer: Address) -> socket.socket:
+    """A socket on the server's port that receives `peer`'s packets only (needs `PEER_QUEUES`); an
+    OSError where the kernel refuses one."""
     sock = reuse_port_socket()
     try:
         sock.bind(local)
         sock.connect(peer)
     except OSError:
         sock.close()
-        return None
+        raise
     return sock
 
 
@@ -101,7 +100,11 @@ class MutedQueues:
         """Give `addr` a queue of its own; False where it cannot have one (the limit, no SO_REUSEPORT)."""
         if addr in self._held:
             return True
-        if len(self._held) >= self.limit or (queue := peer_queue(self.local, addr)) is None:
+        if len(self._held) >= self.limit or not PEER_QUEUES:
+            return False
+        try:
+            queue = peer_queue(self.local, addr)
+        except OSError:  # muted all the same, shed from the shared queue
             return False
         self._held[addr] = (queue, now + self.mute_s)
         self.due = min(self.due, now + self.mute_s)
@@ -120,9 +123,7 @@ class MutedQueues:
             try:
                 queue.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT)
                 sending = True
-            except BlockingIOError:
-                sending = False
-            except OSError:  # an ICMP error queued for the peer: it sent nothing we could read
+            except OSError:  # empty, or only an ICMP error queued for the peer: nothing it sent
                 sending = False
             queue.close()
             del self._held[addr]

@@ -230,9 +230,10 @@ class UdpTwinServer:
         self._owner = addr
         if addr is None or not PEER_QUEUES:
             return
-        sock = peer_queue(self._sock.getsockname(), addr)
-        if sock is None:  # the shared queue still works, only without the isolation
-            log.warning("twin server: no separate queue for %s:%d", *addr)
+        try:
+            sock = peer_queue(self._sock.getsockname(), addr)
+        except OSError as exc:  # the shared queue still works, only without the isolation
+            log.warning("twin server: no separate queue for %s:%d (%s)", *addr, exc)
             return
         self._owner_sock = sock
         self._poll.register(sock, select.POLLIN)
