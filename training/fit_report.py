@@ -3,10 +3,22 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fcemu.evaluation.bar import SMOOTHNESS_BAR
-from fcemu.evaluation.metrics import AXES
+from fcemu.evaluation.metrics import AXES, EvalMetrics
+
+if TYPE_CHECKING:
+    from fcemu.training.fit import FitOptions
+
+
+def metrics_json(m: EvalMetrics) -> dict[str, Any]:
+    """The figures fit.json keeps of one controller's flights."""
+    out = {k: {a: round(m.stat(k, a).mean, 2) for a in AXES} for k in ("error", "rise_ms", "peak_pct",
+                                                                     "success_pct")}
+    out["error_sum"] = round(sum(out["error"].values()), 2)
+    out["smoothness"] = round(m.stat("smoothness", "roll").mean, 3)
+    return out
 
 
 def _axes(values: dict[str, float], fmt: str = ".1f") -> str:
@@ -92,3 +104,20 @@ def write_report(summary: dict[str, Any], path: Path) -> None:
               f"--fallback pid:{summary['pid']} --controller pid:{summary['pid']}",
               "```", ""]
     path.write_text("\n".join(lines))
+
+
+def command_line(opts: FitOptions) -> str:
+    """The `fcemu fit` command that makes the same fit (in fit.json and the report)."""
+    from fcemu.training.fit import shipped_pid
+
+    teacher = "" if opts.lag_multiple is None else f" --lag-multiple {opts.lag_multiple:g}"
+    teacher += "" if opts.damping is None else f" --damping {opts.damping:g}"
+    if opts.pid is not None:
+        teacher += f" --pid {opts.pid}"
+    elif shipped_pid(opts.airframe) is not None:
+        teacher += " --tune"
+    steps = "" if opts.steps is None else f"--steps {opts.steps} "
+    return (f"fcemu fit --airframe {opts.airframe} --out {opts.out} --seed {opts.seed} --episodes "
+            f"{opts.episodes} --tune-budget-s {opts.tune_budget_s:g} --rounds {opts.rounds} "
+            f"{steps}--envs {opts.envs} --fit-steps {opts.fit_steps} --net-arch "
+            f"{' '.join(map(str, opts.net_arch))}{teacher}")

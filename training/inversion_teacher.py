@@ -17,7 +17,9 @@ observes (rate error, rates, rotor speeds) it asks, per tick:
    ω²·e per second, so the motors are no rougher than the tuned PID's, and it overshoots a few
    percent where a first-order law (`damping` None: α* = (e − dt·α_now)/T_c) rises on an
    exponential tail; on the racer the second-order law's student flies 0.995 × the PID against
-   the first-order's 1.128 × (docs/training_notes.md, 2026-11-27, a teacher of second order);
+   the first-order's 1.128 × (docs/training_notes.md, 2026-11-27, a teacher of second order).
+   The α the law steers toward, ω·e/2ζ, is held under the braking curve √(2·J·|e|): no more
+   than the motors can take back by the time the error closes (`BRAKING_SHARE`);
 2. the thrusts that give it, within what each rotor can reach by the next tick (its lag from
    its present speed). Two allocations are tried, and the one whose torque lands nearer α*
    (roll and pitch weighted 10 to yaw's 1) is taken: the change of torque with roll and pitch
@@ -53,6 +55,14 @@ DAMPING = 0.7  # ζ: about 4 % of overshoot (0.5: 15 %, more Error for a faster 
 # with its motors 1.35 µs/step against 1.68 (docs/training_notes.md, 2026-11-28, each axis's speed
 # from its authority). A Crazyflie's yaw moves 25 rad/s in a lag, and slowed it rose 7 ms late.
 SATURATED_YAW_SPEED = 0.5
+# The braking curve's jerk J, per axis: this share of its authority per motor lag. A law much faster
+# than its motors (the Crazyflie's at 0.10 lags) asks for an α it cannot take back in time and
+# overshoots; under the curve, on 20 tuning commands, Error 554.2 → 535.8, Peak 118 → 113 %, motors
+# 3.29 → 2.86 µs/step, Rise the same (37.8 → 38.3 ms); a share of 0.25 brakes early (Peak 103 %, Rise
+# 41.7 ms). Where the law is no faster than its motors the curve lies past most errors: the racer's
+# teacher at 0.35 lags 903.5 → 902.8, the Iris's at 0.5 561.0 → 556.9 (docs/training_notes.md,
+# 2026-11-28, a braking curve for the teacher).
+BRAKING_SHARE = 0.5
 BISECTIONS = 30
 SPEC_FIELDS = (*FIELDS, RATE)
 
@@ -131,6 +141,8 @@ class InversionTeacher:
                  reads_truth: bool = False) -> None:
         """`reads_truth`: its observation is of the true rates (a privileged distillation's), so the
         error is predicted ahead over the ESC's delay only, not the gyro's too."""
+        from fcemu.evaluation.bound import authority
+
         af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
         if not lag_multiple > 0.0:
             raise ValueError(f"the inversion teacher's lag multiple must be > 0, got {lag_multiple}")
@@ -138,6 +150,7 @@ class InversionTeacher:
         self.model = m = InversionModel.of(af, dt)
         self.dt = dt
         self.time_constant = lag_multiple * m.lag_s / axis_speeds(m)  # (3,) roll, pitch, yaw
+        self.braking_jerk = BRAKING_SHARE * authority(m.B, m.kf, m.w_max) / m.lag_s  # (3,) rad/s³
         self.damping = damping
         self.ahead_ticks = 1 + m.esc_delay_ticks + (0 if reads_truth else m.gyro_delay_ticks)
         self.throttle = float(af.hover_throttle() if throttle is None else throttle)
@@ -165,7 +178,9 @@ class InversionTeacher:
             wanted = ahead / self.time_constant - gyroscopic  # from the thrusts, rad/s²
         else:
             omega = 1.0 / self.time_constant
-            wanted = now + self.dt * (omega * omega * ahead - 2.0 * self.damping * omega * now) - gyroscopic
+            steer = np.minimum(omega * np.abs(ahead) / (2.0 * self.damping),
+                               np.sqrt(2.0 * self.braking_jerk * np.abs(ahead)))
+            wanted = now + self.dt * 2.0 * self.damping * omega * (np.sign(ahead) * steer - now) - gyroscopic
         lo = m.kf * (w * (1.0 - m.a_down)) ** 2 - thrust  # each rotor's reach by the next tick
         hi = m.kf * (w + m.a_up * (m.w_max - w)) ** 2 - thrust
         hover = m.kf * (throttle * m.w_max) ** 2 / 4.0

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fcemu.cli import main
-from fcemu.evaluation.bar import SMOOTHNESS_BAR, airframe_bar_verdict
+from fcemu.evaluation.bar import ERROR_RATIO_BAR, SMOOTHNESS_BAR, airframe_bar_verdict
 from fcemu.evaluation.metrics import compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.controllers import load_controller
@@ -17,13 +17,17 @@ from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sitl.sitl import build_sitl
 from fcemu.training.distill_teacher import DistillError, make_teacher
 from fcemu.training.fit import (
+    ERROR_ROOM,
+    ERROR_TIE,
     STUDENT_MOTOR_MARGIN,
     STUDENT_SMOOTHING,
+    TEACHER_SPEEDS,
     FitOptions,
-    command_line,
+    first_teacher,
     shipped_pid,
     taught_student,
 )
+from fcemu.training.fit_report import command_line
 from fcemu.training.inversion_teacher import DAMPING
 
 pytestmark = pytest.mark.no_wall_clock
@@ -46,11 +50,12 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     assert set(summary["time_s"]) == {"tune", "teacher", "policy", "check", "total"}
     speed = summary["student"]["speed"]
     assert speed["commands"] == 2
-    assert [f["lag_multiple"] for f in speed["flown"]] == [0.5, 0.35, 0.25, 0.18, 0.13]
-    # taught first: the lowest Error among the admitted teachers; then slower ones while the student is rough
+    assert [f["lag_multiple"] for f in speed["flown"]] == list(TEACHER_SPEEDS)
+    # taught first: `first_teacher` of the admitted teachers; then slower ones while the student is rough
     limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING * speed["pid_smoothness"]
     admitted = [f for f in speed["flown"] if f["smoothness"] <= limit] or speed["flown"][:1]
-    first = min(admitted, key=lambda f: f["error_sum"])["lag_multiple"]
+    pid = {"error_sum": speed["pid_error_sum"], "rise_ms": speed["pid_rise_ms"]}
+    first = first_teacher(admitted, pid)["lag_multiple"]
     slower = sorted(f["lag_multiple"] for f in admitted if f["lag_multiple"] > first)
     assert speed["order"] == [first, *slower]
     tried = speed["tried"]
@@ -144,3 +149,18 @@ def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teach
     assert student["teacher"] == "inversion:0.5" and taught["order"] == [0.35, 0.5]
     assert speed == {"lag_multiple": 0.35, "order": [0.35, 0.5], "pid_smoothness": 1e-6}  # as given
     assert "the next slower teacher" in lines[0] and "next slower" not in lines[1]
+
+
+def test_the_first_teacher_is_the_smoothest_of_least_error_unless_it_rises_later_than_the_pid():
+    def teacher(multiple: float, error: float, rise: float) -> dict:
+        return {"lag_multiple": multiple, "error_sum": error, "smoothness": 1.0, "rise_ms": [rise, rise]}
+
+    room = (ERROR_RATIO_BAR - ERROR_ROOM) * 100.0  # the PID's Error sum 100, its Rise 40 ms
+    flown = [teacher(0.5, room + 6.0, 50.0), teacher(0.35, room - 2.0, 41.0),
+             teacher(0.18, room - 2.0 + 0.5 * ERROR_TIE * room, 39.0), teacher(0.13, room - 0.5, 38.0),
+             teacher(0.1, room + 1.0, 37.0)]
+    rises = {"error_sum": 100.0, "rise_ms": [41.0, 41.0]}
+    assert first_teacher(flown, rises)["lag_multiple"] == 0.35  # 0.18 ties it on Error; 0.35 rises in time
+    late = {"error_sum": 100.0, "rise_ms": [40.0, 41.0]}
+    assert first_teacher(flown, late)["lag_multiple"] == 0.13  # the fastest with room under the line
+    assert first_teacher(flown, {"error_sum": 90.0, "rise_ms": [40.0, 41.0]})["lag_multiple"] == 0.35

@@ -9,6 +9,7 @@ from fcemu.firmware.action import action_to_pwm
 from fcemu.firmware.observation import observe_step
 from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.plant import body_torque
+from fcemu.sim_bridge.tasks import OMEGA_MAX
 from fcemu.training.inversion_teacher import (
     SATURATED_YAW_SPEED,
     InversionController,
@@ -80,6 +81,24 @@ def test_roll_and_pitch_are_as_fast_as_their_authority_allows_and_a_yaw_that_rid
     assert axis_speeds(racer)[:2] == pytest.approx([1.0, np.sqrt(0.085 / 0.0675)], rel=1e-3)
     teacher = InversionTeacher("racer5", 0.5)
     assert teacher.time_constant == pytest.approx(0.5 * teacher.model.lag_s / axis_speeds(racer))
+
+
+def test_a_law_faster_than_its_motors_steers_under_the_braking_curve_and_overshoots_less():
+    cfg = runner.EvalConfig(episodes=4, seed=2018, airframe="crazyflie")  # motors lagging 72 ms
+
+    def fly(teacher: InversionTeacher):
+        return compute_metrics(runner.run_controller("inversion", cfg, progress=False,
+                                                     controller=InversionController(teacher, mapped=True)))
+
+    braked, linear = InversionTeacher("crazyflie", 0.1), InversionTeacher("crazyflie", 0.1)
+    linear.braking_jerk = np.full(3, np.inf)  # the second-order law alone
+    b, lin = fly(braked), fly(linear)
+    assert all(b.stat("peak_pct", a).mean < lin.stat("peak_pct", a).mean for a in AXES)
+    assert sum(b.stat("error", a).mean for a in AXES) < sum(lin.stat("error", a).mean for a in AXES)
+    assert b.stat("smoothness", "roll").mean < lin.stat("smoothness", "roll").mean
+    # Where the law is no faster than its motors the curve lies past every command's step.
+    slow = InversionTeacher("racer5", 0.5)
+    assert np.all(8.0 * slow.damping**2 * slow.braking_jerk[:2] * slow.time_constant[:2] ** 2 > OMEGA_MAX)
 
 
 def test_a_time_constant_that_is_not_positive_is_refused():
