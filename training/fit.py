@@ -172,7 +172,7 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
 
     airframe = nominal(load_airframe(opts.airframe))
     ref = tuning_flight(opts, f"pid:{pid}")
-    pid_rough = ref.stat("smoothness", "roll").mean
+    pid_rough, pid_rise = ref.stat("smoothness", "roll").mean, rise(ref)
     limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING * pid_rough
     flown = []
     damping = {} if opts.damping is None else {"damping": opts.damping}
@@ -182,14 +182,14 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
         flown.append({"lag_multiple": multiple, "error_sum": round(error_sum(m), 2),
                       "smoothness": round(m.stat("smoothness", "roll").mean, 3), "rise_ms": rise(m)})
         log(f"  teacher at {multiple:g} motor lags: Error {flown[-1]['error_sum']:.1f}, motors "
-            f"{flown[-1]['smoothness']:.2f}, Rise {'/'.join(map(str, rise(m)))} ms (the PID "
-            f"{error_sum(ref):.1f}, {pid_rough:.2f}, {'/'.join(map(str, rise(ref)))})")
+            f"{flown[-1]['smoothness']:.2f}, Rise {'/'.join(map(str, flown[-1]['rise_ms']))} ms (the PID "
+            f"{error_sum(ref):.1f}, {pid_rough:.2f}, {'/'.join(map(str, pid_rise))})")
     admitted = [f for f in flown if f["smoothness"] <= limit] or flown[:1]
-    first = first_teacher(admitted, {"error_sum": error_sum(ref), "rise_ms": rise(ref)})
+    first = first_teacher(admitted, {"error_sum": error_sum(ref), "rise_ms": pid_rise})
     slower = [f["lag_multiple"] for f in admitted if f["lag_multiple"] > first["lag_multiple"]]
     return {"lag_multiple": first["lag_multiple"], "order": [first["lag_multiple"], *sorted(slower)],
             "flown": flown, "pid_error_sum": round(error_sum(ref), 2), "pid_smoothness": round(pid_rough, 3),
-            "pid_rise_ms": rise(ref),
+            "pid_rise_ms": pid_rise,
             "commands": min(SPEED_COMMANDS, opts.episodes)}
 
 
