@@ -21,7 +21,7 @@ from tests.firmware.mavlink.conftest import command, connect, start_sitl, wait_f
 from tests.firmware.mavlink.flight import Flight, assert_offboard_and_armed, flood_against_baseline, params
 from tests.firmware.mavlink.fuzzframes import FrameFuzzer
 
-pytestmark = pytest.mark.timeout(180)
+pytestmark = [pytest.mark.timeout(180), pytest.mark.quiet_machine]
 FRAMES = 100_000
 FRAMES_PER_S = 10_000  # a hostile UDP link (a 921600-baud serial link carries about 3,500)
 BLOCKS = 4
