@@ -155,7 +155,7 @@ def test_the_first_teacher_is_the_smoothest_of_least_error_unless_it_rises_later
     def teacher(multiple: float, error: float, rise: float) -> dict:
         return {"lag_multiple": multiple, "error_sum": error, "smoothness": 1.0, "rise_ms": [rise, rise]}
 
-    room = (ERROR_RATIO_BAR - ERROR_ROOM) * 100.0  # the PID's Error sum 100, its Rise 40 ms
+    room = (ERROR_RATIO_BAR - ERROR_ROOM) * 100.0  # the PID's Error sum 100
     flown = [teacher(0.5, room + 6.0, 50.0), teacher(0.35, room - 2.0, 41.0),
              teacher(0.18, room - 2.0 + 0.5 * ERROR_TIE * room, 39.0), teacher(0.13, room - 0.5, 38.0),
              teacher(0.1, room + 1.0, 37.0)]
