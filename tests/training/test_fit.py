@@ -12,7 +12,7 @@ from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.controllers import load_controller
 from fcemu.firmware.neural import NeuralRateController
 from fcemu.firmware.pid_controller import PRESET_DIR, PIDRateController
-from fcemu.sim_bridge.airframe import AIRFRAME_DIR
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sitl.sitl import build_sitl
 from fcemu.training.distill_teacher import DistillError, make_teacher
@@ -21,10 +21,12 @@ from fcemu.training.fit import (
     ERROR_TIE,
     STUDENT_MOTOR_MARGIN,
     STUDENT_SMOOTHING,
+    STUDENT_STEPS,
     TEACHER_SPEEDS,
     FitOptions,
     first_teacher,
     shipped_pid,
+    student_kind,
     taught_student,
 )
 from fcemu.training.fit_report import command_line
@@ -52,7 +54,8 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     assert speed["commands"] == 2
     assert [f["lag_multiple"] for f in speed["flown"]] == list(TEACHER_SPEEDS)
     # taught first: `first_teacher` of the admitted teachers; then slower ones while the student is rough
-    limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING * speed["pid_smoothness"]
+    assert speed["student"] == "exact"
+    limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING["exact"] * speed["pid_smoothness"]
     admitted = [f for f in speed["flown"] if f["smoothness"] <= limit] or speed["flown"][:1]
     pid = {"error_sum": speed["pid_error_sum"], "rise_ms": speed["pid_rise_ms"]}
     first = first_teacher(admitted, pid)["lag_multiple"]
@@ -164,3 +167,12 @@ def test_the_first_teacher_is_the_smoothest_of_least_error_unless_it_rises_later
     late = {"error_sum": 100.0, "rise_ms": [40.0, 41.0]}
     assert first_teacher(flown, late)["lag_multiple"] == 0.13  # the fastest with room under the line
     assert first_teacher(flown, {"error_sum": 90.0, "rise_ms": [40.0, 41.0]})["lag_multiple"] == 0.35
+
+
+def test_student_kind_follows_the_sensors() -> None:
+    """A twin whose gyro or ESC telemetry is noisy, vibrating, delayed or lossy gets a student of
+    sensed history (its own admission ratio and steps); the nominal twin one that reads what its
+    teacher reads."""
+    assert student_kind(load_airframe("iris")) == "exact"
+    assert student_kind(load_airframe("iris_realistic")) == "sensed"
+    assert set(STUDENT_SMOOTHING) == set(STUDENT_STEPS) == {"exact", "sensed"}
