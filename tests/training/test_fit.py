@@ -1,6 +1,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,6 +29,7 @@ from fcemu.training.fit import (
     shipped_pid,
     student_kind,
     taught_student,
+    teacher_speed_stage,
 )
 from fcemu.training.fit_report import command_line
 from fcemu.training.inversion_teacher import DAMPING
@@ -176,3 +178,17 @@ def test_student_kind_follows_the_sensors() -> None:
     assert student_kind(load_airframe("iris")) == "exact"
     assert student_kind(load_airframe("iris_realistic")) == "sensed"
     assert set(STUDENT_SMOOTHING) == set(STUDENT_STEPS) == {"exact", "sensed"}
+
+
+def test_speed_stage_admits_by_the_kind_of_student(tmp_path) -> None:
+    """On a twin with noisy, delayed sensors the teachers admitted are those within the bar's motor
+    line over a sensed student's smoothing, not an exact student's: the stage's order follows it."""
+    opts = FitOptions("iris_realistic", str(tmp_path), episodes=2, jobs=1, progress=False)
+    speed = teacher_speed_stage(opts, Path(str(PRESET_DIR / "pid_iris.json")), log=lambda line: None)
+    assert speed["student"] == "sensed"
+    limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING["sensed"] * speed["pid_smoothness"]
+    admitted = [f for f in speed["flown"] if f["smoothness"] <= limit] or speed["flown"][:1]
+    first = first_teacher(admitted, {"error_sum": speed["pid_error_sum"], "rise_ms": speed["pid_rise_ms"]})
+    slower = sorted(f["lag_multiple"] for f in admitted if f["lag_multiple"] > first["lag_multiple"])
+    assert speed["order"] == [first["lag_multiple"], *slower]
+    assert STUDENT_SMOOTHING["sensed"] > STUDENT_SMOOTHING["exact"]
