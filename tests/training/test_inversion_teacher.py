@@ -1,3 +1,4 @@
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -146,3 +147,33 @@ def test_knowing_the_damping_and_the_delays_flies_a_damped_late_airframe_closer(
     error = {name: sum(compute_metrics(runner.run_controller(name, cfg, progress=False)).stat("error", a).mean
                        for a in AXES) for name in teachers}
     assert error["knowing"] < 0.9 * error["blind"], error
+
+
+def test_the_yaw_the_rotors_lend_is_counted_and_yaw_rises_sooner() -> None:
+    """Rotors spinning up push the body round and take it back as they return; counted in the yaw
+    error the law closes on the rate that remains, so yaw rises sooner with less Error."""
+    airframe = replace(load_airframe("iris"), rotor_inertia=9e-6)  # a drawn Iris's rotors
+    teacher = InversionTeacher(airframe, 0.5)
+    m, error, rates = teacher.model, np.array([[0.0, 0.0, 2.0]]), np.zeros((1, 3))
+    w_hold = np.full((1, 4), teacher.throttle * m.w_max)
+    at_hold = teacher.lent_yaw(error, rates, w_hold, teacher.throttle)  # the rotors at the holding speeds
+    assert np.abs(at_hold).max() < 1e-9
+    spun = w_hold + 50.0 * m.spin  # the rotors' differential turned toward +yaw
+    lent = teacher.lent_yaw(error, rates, spun, teacher.throttle)
+    assert lent[0, :2] == pytest.approx([0.0, 0.0])
+    assert lent[0, 2] == pytest.approx(m.rotor_inertia / m.inertia[2] * 200.0, rel=1e-9)
+    assert not InversionTeacher("iris").lent_yaw(error, rates, spun, teacher.throttle).any()  # no J_r
+
+    class Unaware(InversionTeacher):
+        def lent_yaw(self, error, rates, w, throttle):
+            return np.zeros_like(error)
+
+    cfg = runner.EvalConfig(episodes=6, seed=2019, airframe="iris")
+
+    def fly(t: InversionTeacher):
+        return compute_metrics(runner.run_controller("inversion", cfg, progress=False, airframe=airframe,
+                                                     controller=InversionController(t, mapped=True)))
+
+    aware, unaware = fly(teacher), fly(Unaware(airframe, 0.5))
+    assert aware.stat("rise_ms", "yaw").mean < unaware.stat("rise_ms", "yaw").mean - 10.0
+    assert aware.stat("error", "yaw").mean < 0.97 * unaware.stat("error", "yaw").mean
