@@ -179,8 +179,8 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
     def rise(m: Any) -> list[float]:
         return [round(m.stat("rise_ms", a).mean, 1) for a in ("roll", "pitch")]
 
-    student = student_kind(load_airframe(opts.airframe))
-    airframe = nominal(load_airframe(opts.airframe))
+    loaded = load_airframe(opts.airframe)
+    student, airframe = student_kind(loaded), nominal(loaded)
     ref = tuning_flight(opts, f"pid:{pid}")
     pid_rough, pid_rise = ref.stat("smoothness", "roll").mean, rise(ref)
     limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING[student] * pid_rough
@@ -257,10 +257,11 @@ def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
     if opts.damping is not None:
         teacher = f"{INVERSION}:{opts.lag_multiple or LAG_MULTIPLE:g}:{opts.damping:g}"
     airframe = load_airframe(opts.airframe)
-    sensed = student_kind(airframe) == "sensed"
+    kind = student_kind(airframe)
+    sensed = kind == "sensed"
     cfg = DistillConfig(teacher=teacher, out=str(out / "student"), airframe=opts.airframe,
                         net_arch=opts.net_arch, rounds=opts.rounds, envs=opts.envs,
-                        steps=opts.steps or STUDENT_STEPS["sensed" if sensed else "exact"],
+                        steps=opts.steps or STUDENT_STEPS[kind],
                         fit_steps=opts.fit_steps, seed=opts.seed, threads=opts.jobs, progress=opts.progress,
                         privileged=sensed, memory=SENSED_MEMORY if sensed else None, **STUDENT_RECIPE)
     summary = distill(cfg)
