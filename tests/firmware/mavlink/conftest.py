@@ -119,6 +119,19 @@ def wait_for(conn, kind: str, cond=lambda m: True, timeout: float = 10.0):
     raise TimeoutError(f"no {kind} matching within {timeout} s")
 
 
+def read_param(conn, name: bytes, timeout: float = 10.0):
+    """The PARAM_VALUE for `name`, the request sent again each second until it comes, as a GCS does
+    (MAVLink's parameter protocol retries an unanswered read: a datagram can be lost on a busy host)."""
+    deadline = time.monotonic() + timeout
+    while (left := deadline - time.monotonic()) > 0:
+        conn.mav.param_request_read_send(1, 1, name, -1)
+        try:
+            return wait_for(conn, "PARAM_VALUE", lambda m: m.param_id == name.decode(), min(1.0, left))
+        except TimeoutError:
+            continue
+    raise TimeoutError(f"no PARAM_VALUE for {name.decode()} within {timeout} s")
+
+
 def command(conn, cmd: int, *params: float, timeout: float = 5.0):
     p = [*params, 0, 0, 0, 0, 0, 0, 0][:7]
     conn.mav.command_long_send(conn.target_system, 1, cmd, 0, *p)

@@ -9,7 +9,7 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as M
 
-from tests.firmware.mavlink.conftest import command, connect, listen, wait_for
+from tests.firmware.mavlink.conftest import command, connect, listen, read_param, wait_for
 
 pytestmark = pytest.mark.timeout(90)
 KEY = bytes(range(1, 33))
@@ -63,8 +63,7 @@ def test_signed_link_refuses_unsigned_and_wrongly_signed_commands_obeys_signed_o
     ack = command(peer, ARM, 1)
     assert ack.result == M.MAV_RESULT_ACCEPTED and ack.get_signed()
     assert armed(gcs)
-    peer.mav.param_request_read_send(1, 1, b"COM_OF_LOSS_T", -1)
-    assert wait_for(peer, "PARAM_VALUE", lambda m: m.param_id == "COM_OF_LOSS_T").get_signed()
+    assert read_param(peer, b"COM_OF_LOSS_T").get_signed()
     assert command(peer, ARM, 0).result == M.MAV_RESULT_ACCEPTED
     assert not armed(gcs)
 
@@ -97,14 +96,12 @@ def test_a_forged_far_future_timestamp_does_not_lock_the_key_holder_out(sitl, tm
     ack = command(peer, ARM, 1)
     assert ack.result == M.MAV_RESULT_ACCEPTED
     assert armed(gcs)
-    peer.mav.param_request_read_send(1, 1, b"COM_OF_LOSS_T", -1)
-    assert wait_for(peer, "PARAM_VALUE", lambda m: m.param_id == "COM_OF_LOSS_T").get_signed()
+    assert read_param(peer, b"COM_OF_LOSS_T").get_signed()
     assert command(peer, ARM, 0).result == M.MAV_RESULT_ACCEPTED
 
 
 def param(conn, name: bytes) -> float:
-    conn.mav.param_request_read_send(1, 1, name, -1)
-    return wait_for(conn, "PARAM_VALUE", lambda m: m.param_id == name.decode()).param_value
+    return read_param(conn, name).param_value
 
 
 def test_a_signed_frame_captured_on_one_link_is_refused_when_replayed_on_another(sitl, tmp_path) -> None:
