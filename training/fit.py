@@ -182,7 +182,7 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
     loaded = load_airframe(opts.airframe)
     student, airframe = student_kind(loaded), nominal(loaded)
     ref = tuning_flight(opts, f"pid:{pid}")
-    pid_rough, pid_rise = ref.stat("smoothness", "roll").mean, rise(ref)
+    pid_error, pid_rough, pid_rise = error_sum(ref), ref.stat("smoothness", "roll").mean, rise(ref)
     limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING[student] * pid_rough
     flown = []
     damping = {} if opts.damping is None else {"damping": opts.damping}
@@ -193,12 +193,12 @@ def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]
                       "smoothness": round(m.stat("smoothness", "roll").mean, 3), "rise_ms": rise(m)})
         log(f"  teacher at {multiple:g} motor lags: Error {flown[-1]['error_sum']:.1f}, motors "
             f"{flown[-1]['smoothness']:.2f}, Rise {'/'.join(map(str, flown[-1]['rise_ms']))} ms (the PID "
-            f"{error_sum(ref):.1f}, {pid_rough:.2f}, {'/'.join(map(str, pid_rise))})")
+            f"{pid_error:.1f}, {pid_rough:.2f}, {'/'.join(map(str, pid_rise))})")
     admitted = [f for f in flown if f["smoothness"] <= limit] or flown[:1]
-    first = first_teacher(admitted, {"error_sum": error_sum(ref), "rise_ms": pid_rise})
+    first = first_teacher(admitted, {"error_sum": pid_error, "rise_ms": pid_rise})
     slower = [f["lag_multiple"] for f in admitted if f["lag_multiple"] > first["lag_multiple"]]
     return {"lag_multiple": first["lag_multiple"], "order": [first["lag_multiple"], *sorted(slower)],
-            "flown": flown, "pid_error_sum": round(error_sum(ref), 2), "pid_smoothness": round(pid_rough, 3),
+            "flown": flown, "pid_error_sum": round(pid_error, 2), "pid_smoothness": round(pid_rough, 3),
             "pid_rise_ms": pid_rise, "student": student,
             "commands": min(SPEED_COMMANDS, opts.episodes)}
 
