@@ -54,6 +54,7 @@ class Peer:
         self.heartbeats: list = []
         self.positions: list = []
         self.acks: list = []
+        self.texts: list[str] = []
 
     def pump(self, thrust: float | None) -> None:
         """Read what came; stream a setpoint once the vehicle has been heard (and the MAVLink
@@ -69,6 +70,8 @@ class Peer:
                 self.positions.append(m)
             elif kind == "COMMAND_ACK":
                 self.acks.append(m)
+            elif kind == "STATUSTEXT":
+                self.texts.append(m.text)
 
     def state(self) -> tuple[str, bool] | None:
         if not self.heartbeats:
@@ -103,8 +106,8 @@ def until(peers: list[Peer], cond, thrust: float | None, timeout: float = 20.0, 
     the peers it does not hold for yet, as a ground station retries."""
     end, next_ask = time.monotonic() + timeout, 0.0
     while not all(cond(p) for p in peers):
-        assert time.monotonic() < end, [(p.sysid, p.state(), [(a.command, a.result) for a in p.acks])
-                                        for p in peers]
+        assert time.monotonic() < end, [(p.sysid, p.state(), [(a.command, a.result) for a in p.acks],
+                                         p.texts[-6:]) for p in peers]
         if ask is not None and time.monotonic() >= next_ask:
             for peer in peers:
                 if not cond(peer):
@@ -138,16 +141,18 @@ def test_two_instances_fly_at_once_with_their_own_ids_ports_and_parameters(tmp_p
                 seen.add(m.get_srcSystem())
         assert seen == {1, 2}
 
-        # a parameter set on each instance (by its own peer) lands in that instance's own file
+        # a parameter set on each instance (by its own peer) lands in that instance's own file;
+        # the setpoint-loss timeouts set are long, so a busy host that stalls a peer for a moment
+        # does not send a vehicle to LAND
         files = [tmp_path / "fcemu" / "params.json", tmp_path / "fcemu" / "params-1.json"]
-        for n, value in ((1, 0.8), (0, 0.6)):
+        for n, value in ((1, 5.0), (0, 4.0)):
             peers[n].conn.mav.param_set_send(1 + n, 1, b"COM_OF_LOSS_T", value, M.MAV_PARAM_TYPE_REAL32)
             path = files[n]
             deadline = time.monotonic() + 10
             while not path.exists() and time.monotonic() < deadline:
                 fly_together(peers, 0.05, 0.0)
             assert json.loads(path.read_text())["COM_OF_LOSS_T"] == pytest.approx(value)
-        assert json.loads(files[1].read_text())["COM_OF_LOSS_T"] == pytest.approx(0.8)
+        assert json.loads(files[1].read_text())["COM_OF_LOSS_T"] == pytest.approx(5.0)
 
         # each peer arms its own vehicle in OFFBOARD and climbs
         fly_together(peers, 0.5, 0.0)  # a setpoint stream first, as PX4 asks
