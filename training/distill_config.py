@@ -41,7 +41,8 @@ DISTILL_EXCLUDED = {
 class DistillConfig:
     teacher: str = option(None, "the teacher: a policy (.onnx made by `fcemu export`), or `inversion` (the "
                                 "airframe's model inverted; `inversion:K`: its time constant in motor lags; "
-                                "`inversion:K:Z`: and its damping ratio)")
+                                "`inversion:K:Z`: and its damping ratio; `inversion:K:Z:Y`: and the share "
+                                "of yaw it serves first; `inversion:K:Z:Y:J`: and its braking share)")
     out: str = option("runs/distill", "run directory")
     memory: int | None = option(None, "the student's history length (default: the teacher's)")
     fields: tuple[str, ...] | None = option(

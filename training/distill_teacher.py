@@ -50,18 +50,24 @@ def is_model_based(name: str) -> bool:
 
 
 def make_teacher(name: str, airframe: str, privileged: bool = False) -> Any:
-    """`inversion` (or `inversion:K`, its time constant in motor lags, or `inversion:K:Z`, and its
-    damping ratio) for the model-based teacher of `airframe` (`privileged`: reading the truth), else
-    an exported policy's path."""
+    """`inversion` (or `inversion:K`, its time constant in motor lags, `inversion:K:Z`, and its
+    damping ratio, `inversion:K:Z:Y`, and the share of yaw it serves first, `inversion:K:Z:Y:J`, and
+    its braking share; an empty field takes the default) for the model-based teacher of `airframe`
+    (`privileged`: reading the truth), else an exported policy's path."""
     if is_model_based(name):
-        from fcemu.training.inversion_teacher import DAMPING, LAG_MULTIPLE, InversionTeacher
+        from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING, LAG_MULTIPLE, InversionTeacher
 
-        multiple, _, damping = name.partition(":")[2].partition(":")
+        fields = name.split(":")[1:]
+        multiple, damping, yaw_first, braking = (*fields, "", "", "", "")[:4]
         try:
+            if len(fields) > 4:
+                raise ValueError("at most four fields follow `inversion`: K:Z:Y:J")
             if damping and not float(damping) > 0.0:
                 raise ValueError(f"the damping ratio must be > 0, got {damping}")
             return InversionTeacher(airframe, float(multiple) if multiple else LAG_MULTIPLE,
-                                    damping=float(damping) if damping else DAMPING, reads_truth=privileged)
+                                    damping=float(damping) if damping else DAMPING, reads_truth=privileged,
+                                    yaw_first=float(yaw_first) if yaw_first else 0.0,
+                                    braking=float(braking) if braking else BRAKING_SHARE)
         except ValueError as exc:
             raise DistillError(f"teacher {name!r}: {exc}") from None
     return Teacher(name)

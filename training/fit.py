@@ -11,9 +11,10 @@ Top to bottom, one stage each:
    DIR/tune.json. Either way `fcemu bound`'s lower bound on the held-out commands (seed S + 1) is
    solved, or read from its cache.
 2. **The teacher**: the airframe's model inverted tick by tick (`training.inversion_teacher`);
-   nothing to train. Its speed (`TEACHER_SPEEDS`) is chosen on the tuning commands, each flown
-   alone through the action mapping against the tuned PID (`first_teacher`: Error and Rise as
-   the bar's lines), and its student's motors judged there.
+   nothing to train. Its speed, and whether it serves a share of yaw first, are chosen on the
+   tuning commands, each flown alone through the action mapping against the tuned PID
+   (`training.fit_teacher`: Error, Rise and Peak as the bar's lines), and its student's motors
+   judged there.
 3. **The policy**: a student fitted to the teacher by DAgger on the airframe's twins
    (`fcemu distill inversion`), nominal and drawn from the airframe's ranges; where the sensors
    are not the truth the teacher reads the truth and the student `SENSED_MEMORY` ticks; exported
@@ -35,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from fcemu.firmware.errors import UserError
+from fcemu.training.fit_teacher import student_kind, teacher_stage, tuning_flight
 
 
 @dataclass(frozen=True)
@@ -55,6 +57,8 @@ class FitOptions:
     progress: bool = True
     pid: str | None = None  # a preset already tuned for the airframe: no tune
     damping: float | None = None  # the teacher's damping ratio (None: the teacher's)
+    yaw_first: float | None = None  # the share of yaw the teacher serves first (None: chosen)
+    braking: float | None = None  # the teacher's braking share (None: chosen)
 
 
 # The student's recipe for the inversion teacher (docs/training_notes.md, 2026-11-27, fitting the
@@ -77,34 +81,10 @@ SENSED_MEMORY = 4
 STUDENT_STEPS = {"exact": 1000, "sensed": 2000}
 
 
-# The teacher's speed is the airframe's: a slow-motored one (a Crazyflie's motors lag 72 ms) rises
-# late at the default, a quick one can go faster. Each is flown alone through the action mapping on
-# SPEED_COMMANDS of the tuning commands, on the nominal twin. A student is smoother than its teacher,
-# by how much differs per airframe, so the teachers whose motors are within SMOOTHNESS_BAR /
-# STUDENT_SMOOTHING × the PID's are admitted (`first_teacher` picks among them), and the first one's
-# student judged on the same commands: one rougher than the bar allows is taught again by the next
-# slower admitted teacher (docs/training_notes.md, 2026-11-28, the exact label; a braking curve).
-TEACHER_SPEEDS = (0.5, 0.35, 0.25, 0.18, 0.13, 0.1)  # time constants in motor lags, the default first
-SPEED_COMMANDS = 20
-# The least a student's motor roughness was of its teacher's, rounded down: of the truth 0.64; of
-# SENSED_MEMORY ticks of noisy, delayed sensors 0.83-0.90, which averaging cannot smooth further
-# (docs/training_notes.md, 2026-11-29, an admission per kind of student).
-STUDENT_SMOOTHING = {"exact": 0.6, "sensed": 0.8}
-# Students fly within a point of their teachers' Error ratio on other commands (docs/results/fit.md),
-# so teachers within ERROR_TIE of the least Error are alike to them; ERROR_ROOM under the bar's ratio
-# leaves that point and the difference between 20 tuning commands and 50 held out.
-ERROR_TIE = 0.01
-ERROR_ROOM = 0.03
 # A student is judged on SPEED_COMMANDS and checked on the held-out ones, where its motors' ratio to
 # the PID's moved by up to 3 % (the hummingbird's 1.48 × became 1.52 ×, over the bar's 1.5 ×): one is
 # kept only within this share of the bar's motor line.
 STUDENT_MOTOR_MARGIN = 0.95
-
-
-def student_kind(airframe: Any) -> str:
-    """The kind of student the airframe gets: `sensed`, reading SENSED_MEMORY ticks of sensors with
-    noise, vibration or delay while its teacher reads the truth, or `exact`, reading what it does."""
-    return "sensed" if airframe.gyro_effects or airframe.telemetry_effects else "exact"
 
 
 def _stage(log: Any, t0: float, text: str) -> None:
@@ -155,70 +135,6 @@ def given_pid_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
             "given": opts.pid}
 
 
-def tuning_flight(opts: FitOptions, spec: str, controller: Any = None, fallback: str | None = None) -> Any:
-    """`spec` (or the `controller` object) flown on the speed stage's tuning commands (seed S) on
-    the nominal twin: its `EvalMetrics`."""
-    from fcemu.evaluation.metrics import compute_metrics
-    from fcemu.evaluation.runner import EvalConfig, run_controller
-    from fcemu.sim_bridge.airframe import load_airframe
-    from fcemu.training.pid_tune import nominal
-
-    cfg = EvalConfig(episodes=min(SPEED_COMMANDS, opts.episodes), seed=opts.seed, airframe=opts.airframe)
-    cfg = replace(cfg, fallback=fallback) if fallback else cfg
-    return compute_metrics(run_controller(spec, cfg, progress=False, controller=controller,
-                                          airframe=nominal(load_airframe(opts.airframe))))
-
-
-def teacher_speed_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]:
-    """The teacher's time constant in motor lags (`TEACHER_SPEEDS`), chosen on the tuning commands."""
-    from fcemu.evaluation.bar import SMOOTHNESS_BAR, error_sum
-    from fcemu.sim_bridge.airframe import load_airframe
-    from fcemu.training.inversion_teacher import InversionController, InversionTeacher
-    from fcemu.training.pid_tune import nominal
-
-    def rise(m: Any) -> list[float]:
-        return [round(m.stat("rise_ms", a).mean, 1) for a in ("roll", "pitch")]
-
-    loaded = load_airframe(opts.airframe)
-    student, airframe = student_kind(loaded), nominal(loaded)
-    ref = tuning_flight(opts, f"pid:{pid}")
-    pid_error, pid_rough, pid_rise = error_sum(ref), ref.stat("smoothness", "roll").mean, rise(ref)
-    limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING[student] * pid_rough
-    flown = []
-    damping = {} if opts.damping is None else {"damping": opts.damping}
-    for multiple in TEACHER_SPEEDS:
-        teacher = InversionController(InversionTeacher(airframe, multiple, **damping), mapped=True)
-        m = tuning_flight(opts, "inversion", controller=teacher)
-        flown.append({"lag_multiple": multiple, "error_sum": round(error_sum(m), 2),
-                      "smoothness": round(m.stat("smoothness", "roll").mean, 3), "rise_ms": rise(m)})
-        log(f"  teacher at {multiple:g} motor lags: Error {flown[-1]['error_sum']:.1f}, motors "
-            f"{flown[-1]['smoothness']:.2f}, Rise {'/'.join(map(str, flown[-1]['rise_ms']))} ms (the PID "
-            f"{pid_error:.1f}, {pid_rough:.2f}, {'/'.join(map(str, pid_rise))})")
-    admitted = [f for f in flown if f["smoothness"] <= limit] or flown[:1]
-    first = first_teacher(admitted, {"error_sum": pid_error, "rise_ms": pid_rise})
-    slower = [f["lag_multiple"] for f in admitted if f["lag_multiple"] > first["lag_multiple"]]
-    return {"lag_multiple": first["lag_multiple"], "order": [first["lag_multiple"], *sorted(slower)],
-            "flown": flown, "pid_error_sum": round(pid_error, 2), "pid_smoothness": round(pid_rough, 3),
-            "pid_rise_ms": pid_rise, "student": student,
-            "commands": min(SPEED_COMMANDS, opts.episodes)}
-
-
-def first_teacher(admitted: list[dict[str, Any]], pid: dict[str, Any]) -> dict[str, Any]:
-    """Error and Rise are lines of the bar, not scores. The slowest (smoothest) teacher within
-    `ERROR_TIE` of the least Error, unless it rises later than the PID on roll or pitch (`rise_ms`,
-    means); then the fastest whose Error leaves `ERROR_ROOM` under the bar's ratio, if one does."""
-    from fcemu.evaluation.bar import ERROR_RATIO_BAR
-
-    least = min(f["error_sum"] for f in admitted)
-    best = max((f for f in admitted if f["error_sum"] <= (1.0 + ERROR_TIE) * least),
-               key=lambda f: f["lag_multiple"])
-    if all(t <= p for t, p in zip(best["rise_ms"], pid["rise_ms"], strict=True)):
-        return best
-    roomy = [f for f in admitted if f["lag_multiple"] < best["lag_multiple"]
-             and f["error_sum"] <= (ERROR_RATIO_BAR - ERROR_ROOM) * pid["error_sum"]]
-    return min(roomy, key=lambda f: f["lag_multiple"]) if roomy else best
-
-
 def student_smoothness(opts: FitOptions, policy: Path, pid: Path) -> float:
     """The policy's motor roughness (µs/step) on the speed stage's tuning commands, nominal twin."""
     m = tuning_flight(opts, str(policy), fallback=f"pid:{pid}")
@@ -251,11 +167,15 @@ def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
     from fcemu.sim_bridge.airframe import load_airframe
     from fcemu.training.distill import INVERSION, distill
     from fcemu.training.distill_config import DistillConfig
-    from fcemu.training.inversion_teacher import LAG_MULTIPLE
+    from fcemu.training.inversion_teacher import BRAKING_SHARE, LAG_MULTIPLE
 
-    teacher = INVERSION if opts.lag_multiple is None else f"{INVERSION}:{opts.lag_multiple:g}"
-    if opts.damping is not None:
-        teacher = f"{INVERSION}:{opts.lag_multiple or LAG_MULTIPLE:g}:{opts.damping:g}"
+    fields = [opts.lag_multiple, opts.damping, opts.yaw_first or None,
+              None if opts.braking in (None, BRAKING_SHARE) else opts.braking]
+    while fields and fields[-1] is None:
+        fields.pop()
+    if fields and fields[0] is None:
+        fields[0] = LAG_MULTIPLE
+    teacher = ":".join([INVERSION, *("" if f is None else f"{f:g}" for f in fields)])
     airframe = load_airframe(opts.airframe)
     kind = student_kind(airframe)
     sensed = kind == "sensed"
@@ -310,6 +230,7 @@ def check_stage(opts: FitOptions, policy: Path, pid: Path, bound_sum: float | No
 def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
     """The three stages and the check; the summary written as DIR/fit.json and DIR/report.md."""
     from fcemu.training.fit_report import command_line, write_report
+    from fcemu.training.inversion_teacher import BRAKING_SHARE
 
     log = log or (lambda line: None)
     out = Path(opts.out)
@@ -327,10 +248,13 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
     if opts.lag_multiple is None:
         _stage(log, t0, "choosing the teacher's speed on the tuning commands")
         t = time.monotonic()
-        speed = teacher_speed_stage(opts, out / "pid.json", log)
+        speed = teacher_stage(opts, out / "pid.json", log)
         times["teacher"] = round(time.monotonic() - t, 1)
+    if speed is not None:
+        opts = replace(opts, yaw_first=speed["yaw_first"], braking=speed["braking"])
     first = opts.lag_multiple if speed is None else speed["lag_multiple"]
-    _stage(log, t0, f"fitting the policy to the model-based teacher ({first:g} motor lags)")
+    _stage(log, t0, f"fitting the policy to the model-based teacher ({first:g} motor lags, "
+                    f"{opts.yaw_first or 0.0:g} of yaw first, braking {opts.braking or BRAKING_SHARE:g})")
     t = time.monotonic()
     student = taught_student(opts, speed, out, log)
     opts = replace(opts, lag_multiple=student["speed"]["lag_multiple"]) if speed else opts
@@ -374,6 +298,10 @@ def fit_command(args: Any) -> int:
                         "--fit-steps and --net-arch ≥ 1")
     if args.damping is not None and not args.damping > 0.0:
         raise UserError("fit: --damping must be > 0")
+    if args.yaw_first is not None and not 0.0 <= args.yaw_first <= 1.0:
+        raise UserError("fit: --yaw-first must be in [0, 1]")
+    if args.braking is not None and not args.braking > 0.0:
+        raise UserError("fit: --braking must be > 0")
     if args.pid and args.tune:
         raise UserError("fit: --pid or --tune, not both")
     out = checked_airframe_and_out("fit", args.airframe, args.out)
@@ -381,7 +309,8 @@ def fit_command(args: Any) -> int:
     opts = FitOptions(args.airframe, str(out), args.seed, args.episodes, args.tune_budget_s,
                       args.lag_multiple, args.rounds, args.steps, args.envs, args.fit_steps,
                       tuple(args.net_arch), args.jobs or available_cpus(), not args.no_mcu,
-                      progress=sys.stderr.isatty(), pid=pid, damping=args.damping)
+                      progress=sys.stderr.isatty(), pid=pid, damping=args.damping,
+                      yaw_first=args.yaw_first, braking=args.braking)
     summary = fit(opts, log=lambda line: print(line, file=sys.stderr, flush=True))
     verdict = "meets the bar" if summary["meets_bar"] else "does not meet the bar (see report.md)"
     print(f"wrote {summary['pid']}, {summary['policy']} and {out / 'report.md'} in "
@@ -402,6 +331,12 @@ def register(sub: Any) -> None:
                    help="the teacher's time constant in motor lags (default: the teacher's)")
     p.add_argument("--damping", type=float, default=None,
                    help="the teacher's damping ratio (default 0.7: about 4 %% of overshoot)")
+    p.add_argument("--yaw-first", type=float, default=None, metavar="SHARE",
+                   help="the share of yaw's need the teacher serves before roll and pitch's while they "
+                        "gather speed (default: chosen on the tuning commands, 0 or 0.3)")
+    p.add_argument("--braking", type=float, default=None, metavar="SHARE",
+                   help="the teacher's braking curve's jerk, in shares of each axis's authority per motor "
+                        "lag (default: chosen on the tuning commands, 0.5, 0.3 or 0.2)")
     p.add_argument("--rounds", type=int, default=6, help="DAgger rounds of the policy's fit")
     p.add_argument("--steps", type=int, default=None,
                    help="steps per twin and DAgger round (default: 1000, 2000 where the sensors are not "

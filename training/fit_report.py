@@ -67,7 +67,17 @@ def teacher_speed(student: dict[str, Any]) -> str:
     return (f"time constant {speed['lag_multiple']:g} motor lags: of the teachers flown alone on "
             f"{speed['commands']} tuning commands ({flown}; the PID {speed['pid_smoothness']:.2f} µs/step, "
             f"Error {speed['pid_error_sum']:.1f}), the fastest-tracking whose student's motors stay within "
-            f"{SMOOTHNESS_BAR:g} × the PID's there ({students}).")
+            f"{SMOOTHNESS_BAR:g} × the PID's there ({students}).{teacher_shape(speed)}")
+
+
+def teacher_shape(speed: dict[str, Any]) -> str:
+    """The share of yaw the teacher served first and its braking share, and the shapes flown for them."""
+    flown = "; ".join(f"{f['yaw_first']:g} of yaw first, braking {f['braking']:g}: Error {f['error_sum']:.1f}"
+                      + ("" if f["admitted"] else " (not admitted)") for f in speed.get("shapes", []))
+    return (f" Shape: {speed.get('yaw_first', 0.0):g} of yaw's need served first, braking "
+            f"{speed.get('braking', 0.5):g}" + (f", of those flown at that speed ({flown}) the least Error "
+                                                "admitted, where it beats the speed stage's by more than 1 %."
+                                                if flown else "."))
 
 
 def write_report(summary: dict[str, Any], path: Path) -> None:
@@ -112,6 +122,8 @@ def command_line(opts: FitOptions) -> str:
 
     teacher = "" if opts.lag_multiple is None else f" --lag-multiple {opts.lag_multiple:g}"
     teacher += "" if opts.damping is None else f" --damping {opts.damping:g}"
+    teacher += "" if opts.yaw_first is None else f" --yaw-first {opts.yaw_first:g}"
+    teacher += "" if opts.braking is None else f" --braking {opts.braking:g}"
     if opts.pid is not None:
         teacher += f" --pid {opts.pid}"
     elif shipped_pid(opts.airframe) is not None:

@@ -19,14 +19,15 @@ observes (rate error, rates, rotor speeds) it asks, per tick:
    exponential tail; on the racer the second-order law's student flies 0.995 × the PID against
    the first-order's 1.128 × (docs/training_notes.md, 2026-11-27, a teacher of second order).
    The α the law steers toward, ω·e/2ζ, is held under the braking curve √(2·J·|e|): no more
-   than the motors can take back by the time the error closes (`BRAKING_SHARE`). Where the rotors
+   than the motors can take back by the time the error closes (`braking`, `BRAKING_SHARE`). Where the rotors
    carry momentum, the yaw their speeds lend the body is counted in the yaw error (`lent_yaw`): they
    take it back as they return, and without it a drawn Iris's teacher rose in yaw 24 ms late with
    2.3 % more Error (docs/training_notes.md, 2026-11-29, the rotors' momentum);
 2. the thrusts that give it, within what each rotor can reach by the next tick (its lag from
    its present speed). Two allocations are tried, and the one whose torque lands nearer α*
    (roll and pitch weighted 10 to yaw's 1) is taken: the change of torque with roll and pitch
-   served first and yaw from what is left, and a step toward the thrusts that give α* at rest
+   served first and yaw from what is left (a share `yaw_first` of yaw's need served before them
+   while they gather speed, none while they brake), and a step toward the thrusts that give α* at rest
    (roll and pitch first, yaw scaled into what is left of the output range), the torque's
    direction kept. Both keep the mix's collective at the outer loop's throttle, as the
    `throttle` action mapping does, so the teacher's outputs are ones a policy can give;
@@ -62,10 +63,17 @@ SATURATED_YAW_SPEED = 0.5
 # than its motors (the Crazyflie's at 0.10 lags) asks for an α it cannot take back in time and
 # overshoots; under the curve, on 20 tuning commands, Error 554.2 → 535.8, Peak 118 → 113 %, motors
 # 3.29 → 2.86 µs/step, Rise the same (37.8 → 38.3 ms); a share of 0.25 brakes early (Peak 103 %, Rise
-# 41.7 ms). Where the law is no faster than its motors the curve lies past most errors: the racer's
-# teacher at 0.35 lags 903.5 → 902.8, the Iris's at 0.5 561.0 → 556.9 (docs/training_notes.md,
-# 2026-11-28, a braking curve for the teacher).
+# 41.7 ms). The default; `fcemu fit` brings it in where that pays: the Iris's teacher overshoots roll
+# by 12 % at 0.5 and 2 % at 0.2, with 3 % less Error (docs/training_notes.md, 2026-11-28, a braking
+# curve for the teacher; 2026-11-29, the teacher's shape).
 BRAKING_SHARE = 0.5
+# A share of yaw's need served before roll and pitch while they gather speed. Served after them, yaw
+# waits some 45 ms on large mixed steps, and the rotors' momentum it then meets lends it late; 0.3
+# took 2.1-2.3 % off three identified Irises' teachers, every effect on (0.5 no more). Not while roll
+# or pitch brake: there it only adds their overshoot (a drawn Iris's roll Peak 114.7 % against 112.7,
+# the Error the same). `fcemu fit` takes it where it pays on the tuning commands (docs/training_notes.md,
+# 2026-11-29, yaw first while roll and pitch gather speed).
+YAW_FIRST = 0.3
 BISECTIONS = 30
 SPEC_FIELDS = (*FIELDS, RATE)
 
@@ -141,19 +149,26 @@ class InversionTeacher:
 
     def __init__(self, airframe: str | Airframe, lag_multiple: float = LAG_MULTIPLE,
                  throttle: float | None = None, dt: float = 0.001, damping: float | None = DAMPING,
-                 reads_truth: bool = False) -> None:
+                 reads_truth: bool = False, yaw_first: float = 0.0, braking: float = BRAKING_SHARE) -> None:
         """`reads_truth`: its observation is of the true rates (a privileged distillation's), so the
-        error is predicted ahead over the ESC's delay only, not the gyro's too."""
+        error is predicted ahead over the ESC's delay only, not the gyro's too. `yaw_first`: the share
+        of yaw's need served before roll and pitch while they gather speed (`YAW_FIRST`). `braking`:
+        the braking curve's jerk in shares of each axis's authority per motor lag (`BRAKING_SHARE`)."""
         from fcemu.evaluation.bound import authority
 
         af = airframe if isinstance(airframe, Airframe) else load_airframe(airframe)
         if not lag_multiple > 0.0:
             raise ValueError(f"the inversion teacher's lag multiple must be > 0, got {lag_multiple}")
+        if not 0.0 <= yaw_first <= 1.0:
+            raise ValueError(f"the share of yaw served first must be in [0, 1], got {yaw_first}")
+        if not braking > 0.0:
+            raise ValueError(f"the braking share must be > 0, got {braking}")
+        self.yaw_first, self.braking = float(yaw_first), float(braking)
         self.airframe = af.name
         self.model = m = InversionModel.of(af, dt)
         self.dt = dt
         self.time_constant = lag_multiple * m.lag_s / axis_speeds(m)  # (3,) roll, pitch, yaw
-        self.braking_jerk = BRAKING_SHARE * authority(m.B, m.kf, m.w_max) / m.lag_s  # (3,) rad/s³
+        self.braking_jerk = braking * authority(m.B, m.kf, m.w_max) / m.lag_s  # (3,) rad/s³
         self.damping = damping
         self.ahead_ticks = 1 + m.esc_delay_ticks + (0 if reads_truth else m.gyro_delay_ticks)
         self.throttle = float(af.hover_throttle() if throttle is None else throttle)
@@ -175,7 +190,8 @@ class InversionTeacher:
         thrust = m.kf * w * w
         t_max = m.kf * m.w_max**2
         gyroscopic = m.body_acceleration(rates, w)
-        now = thrust @ m.B.T + gyroscopic
+        from_thrust = thrust @ m.B.T
+        now = from_thrust + gyroscopic
         if m.rotor_inertia > 0.0:
             error = error + self.lent_yaw(error, rates, w, throttle)
         ahead = error - self.ahead_ticks * self.dt * now
@@ -189,7 +205,7 @@ class InversionTeacher:
         lo = m.kf * (w * (1.0 - m.a_down)) ** 2 - thrust  # each rotor's reach by the next tick
         hi = m.kf * (w + m.a_up * (m.w_max - w)) ** 2 - thrust
         hover = m.kf * (throttle * m.w_max) ** 2 / 4.0
-        candidates = [self._by_change(wanted - thrust @ m.B.T, lo, hi, hover - thrust.mean(-1)),
+        candidates = [self._by_change(wanted - from_thrust, lo, hi, hover - thrust.mean(-1), from_thrust),
                       self._toward_rest_target(wanted, thrust, lo, hi, hover, t_max)]
         weights = np.array([ROLL_PITCH_WEIGHT, ROLL_PITCH_WEIGHT, 1.0])
         misses = [((thrust + c) @ m.B.T - wanted) ** 2 @ weights for c in candidates]
@@ -210,13 +226,19 @@ class InversionTeacher:
         lent[:, 2] = m.rotor_inertia / m.inertia[2] * ((w - w_hold) @ m.spin)
         return lent
 
-    def _by_change(self, needed: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                   collective: np.ndarray) -> np.ndarray:
-        """Thrust changes: roll and pitch's share of `needed` first, then yaw's, then the collective."""
-        rp = needed[:, :2] @ self._alloc[:, :2].T
-        change = max_scale(lo, hi, rp)[:, None] * rp
+    def _by_change(self, needed: np.ndarray, lo: np.ndarray, hi: np.ndarray, collective: np.ndarray,
+                   from_thrust: np.ndarray) -> np.ndarray:
+        """Thrust changes: `yaw_first` of yaw's share of `needed` (none where roll or pitch brakes,
+        its need against the thrusts' present acceleration), then roll and pitch's, then the rest of
+        yaw's, then the collective."""
         yaw = needed[:, 2:3] * self._alloc[:, 2]
-        change = change + max_scale(lo - change, hi - change, yaw)[:, None] * yaw
+        braking = (needed[:, :2] * from_thrust[:, :2] < 0.0).any(-1)
+        share = np.where(braking, 0.0, self.yaw_first)
+        first = (share * max_scale(lo, hi, yaw))[:, None] * yaw
+        rp = needed[:, :2] @ self._alloc[:, :2].T
+        change = first + max_scale(lo - first, hi - first, rp)[:, None] * rp
+        rest = yaw - first
+        change = change + max_scale(lo - change, hi - change, rest)[:, None] * rest
         c = np.clip(collective, (lo - change).max(-1), (hi - change).min(-1))
         return change + c[:, None]
 

@@ -1,38 +1,35 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
+from dataclasses import replace
+from itertools import product
 
 import numpy as np
 import pytest
 
 from fcemu.cli import main
-from fcemu.evaluation.bar import ERROR_RATIO_BAR, SMOOTHNESS_BAR, airframe_bar_verdict
+from fcemu.evaluation.bar import SMOOTHNESS_BAR, airframe_bar_verdict
 from fcemu.evaluation.metrics import compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.controllers import load_controller
 from fcemu.firmware.neural import NeuralRateController
 from fcemu.firmware.pid_controller import PRESET_DIR, PIDRateController
-from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sitl.sitl import build_sitl
 from fcemu.training.distill_teacher import DistillError, make_teacher
-from fcemu.training.fit import (
-    ERROR_ROOM,
-    ERROR_TIE,
-    STUDENT_MOTOR_MARGIN,
-    STUDENT_SMOOTHING,
-    STUDENT_STEPS,
-    TEACHER_SPEEDS,
-    FitOptions,
-    first_teacher,
-    shipped_pid,
-    student_kind,
-    taught_student,
-    teacher_speed_stage,
-)
+from fcemu.training.fit import STUDENT_MOTOR_MARGIN, FitOptions, shipped_pid, taught_student
 from fcemu.training.fit_report import command_line
-from fcemu.training.inversion_teacher import DAMPING
+from fcemu.training.fit_teacher import (
+    BRAKING_CHOICES,
+    ERROR_TIE,
+    STUDENT_SMOOTHING,
+    TEACHER_SPEEDS,
+    YAW_FIRST_CHOICES,
+    first_teacher,
+    shape_admitted,
+)
+from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING
 
 pytestmark = pytest.mark.no_wall_clock
 
@@ -69,7 +66,21 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     rough = [f["student_smoothness"] > STUDENT_MOTOR_MARGIN * SMOOTHNESS_BAR * speed["pid_smoothness"]
              for f in tried]
     assert all(rough[:-1]) and (not rough[-1] or len(tried) == len(speed["order"]))
-    assert summary["student"]["teacher"] == f"inversion:{speed['lag_multiple']:g}"
+    # its shape: every other pair flown at that speed, the least Error admitted where it beats the
+    # first teacher's past the tie; then in the teacher's name and the command line
+    without = next(f for f in speed["flown"] if f["lag_multiple"] == first)
+    pid["peak_pct"] = speed["pid_peak_pct"]
+    shapes = speed["shapes"]
+    assert {(f["yaw_first"], f["braking"]) for f in shapes} == set(
+        product(YAW_FIRST_CHOICES, BRAKING_CHOICES)) - {(0.0, BRAKING_SHARE)}
+    assert all(f["admitted"] == shape_admitted(f, without, pid, limit) for f in shapes)
+    best = min((f for f in shapes if f["admitted"]), key=lambda f: f["error_sum"], default=None)
+    if best is None or best["error_sum"] >= (1 - ERROR_TIE) * without["error_sum"]:
+        best = {"yaw_first": 0.0, "braking": BRAKING_SHARE}
+    assert (speed["yaw_first"], speed["braking"]) == (best["yaw_first"], best["braking"])
+    taught = make_teacher(summary["student"]["teacher"], "racer5")
+    assert (taught.yaw_first, taught.braking) == (speed["yaw_first"], speed["braking"])
+    assert f"--yaw-first {speed['yaw_first']:g} --braking {speed['braking']:g}" in summary["command"]
     check = summary["check"]
     assert check["seed"] == 6 and check["bound_sum"] > 0.0 and check["mcu_us_f405"] is None
     episodic = check["tasks"]["episodic"]["bar"]
@@ -124,8 +135,10 @@ def test_fit_refuses_a_bad_airframe_and_a_bad_budget_in_one_line(tmp_path, capsy
     assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--tune-budget-s", "0"]) == 2
     assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--damping", "0"]) == 2
     assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--pid", "iris", "--tune"]) == 2
+    assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--yaw-first", "1.5"]) == 2
+    assert main(["fit", "--airframe", "iris", "--out", str(tmp_path / "x"), "--braking", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 4 and all(line.startswith("fcemu: error: fit:") for line in err)
+    assert len(err) == 6 and all(line.startswith("fcemu: error: fit:") for line in err)
     assert not (tmp_path / "x").exists()
 
 
@@ -137,6 +150,18 @@ def test_the_teacher_s_damping_reaches_the_teacher_and_the_command_line():
         make_teacher("inversion:0.2:-1", "crazyflie")
     opts = FitOptions("crazyflie", "runs/x", lag_multiple=0.2, damping=0.4)
     assert command_line(opts).endswith("--lag-multiple 0.2 --damping 0.4 --tune")  # no --pid: it tuned
+    # and the share of yaw served first, an empty field taking the default
+    first = make_teacher("inversion:0.2::0.3", "crazyflie")
+    assert first.yaw_first == 0.3 and first.damping == DAMPING
+    assert make_teacher("inversion", "iris").yaw_first == 0.0
+    braking = make_teacher("inversion:0.2:::0.3", "crazyflie")
+    assert (braking.yaw_first, braking.braking) == (0.0, 0.3) and first.braking == BRAKING_SHARE
+    for bad, why in (("inversion:0.2::1.5", "share of yaw"), ("inversion:0.2:::0", "braking share"),
+                     ("inversion:0.2:0.7:0.3:0.3:1", "at most four")):
+        with pytest.raises(DistillError, match=why):
+            make_teacher(bad, "crazyflie")
+    assert command_line(replace(opts, yaw_first=0.3, braking=0.2)).endswith(
+        "--damping 0.4 --yaw-first 0.3 --braking 0.2 --tune")
 
 
 def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teacher(tmp_path):
@@ -154,41 +179,3 @@ def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teach
     assert student["teacher"] == "inversion:0.5" and taught["order"] == [0.35, 0.5]
     assert speed == {"lag_multiple": 0.35, "order": [0.35, 0.5], "pid_smoothness": 1e-6}  # as given
     assert "the next slower teacher" in lines[0] and "next slower" not in lines[1]
-
-
-def test_the_first_teacher_is_the_smoothest_of_least_error_unless_it_rises_later_than_the_pid():
-    def teacher(multiple: float, error: float, rise: float) -> dict:
-        return {"lag_multiple": multiple, "error_sum": error, "smoothness": 1.0, "rise_ms": [rise, rise]}
-
-    room = (ERROR_RATIO_BAR - ERROR_ROOM) * 100.0  # the PID's Error sum 100
-    flown = [teacher(0.5, room + 6.0, 50.0), teacher(0.35, room - 2.0, 41.0),
-             teacher(0.18, room - 2.0 + 0.5 * ERROR_TIE * room, 39.0), teacher(0.13, room - 0.5, 38.0),
-             teacher(0.1, room + 1.0, 37.0)]
-    rises = {"error_sum": 100.0, "rise_ms": [41.0, 41.0]}
-    assert first_teacher(flown, rises)["lag_multiple"] == 0.35  # 0.18 ties it on Error; 0.35 rises in time
-    late = {"error_sum": 100.0, "rise_ms": [40.0, 41.0]}
-    assert first_teacher(flown, late)["lag_multiple"] == 0.13  # the fastest with room under the line
-    assert first_teacher(flown, {"error_sum": 90.0, "rise_ms": [40.0, 41.0]})["lag_multiple"] == 0.35
-
-
-def test_student_kind_follows_the_sensors() -> None:
-    """A twin whose gyro or ESC telemetry is noisy, vibrating, delayed or lossy gets a student of
-    sensed history (its own admission ratio and steps); the nominal twin one that reads what its
-    teacher reads."""
-    assert student_kind(load_airframe("iris")) == "exact"
-    assert student_kind(load_airframe("iris_realistic")) == "sensed"
-    assert set(STUDENT_SMOOTHING) == set(STUDENT_STEPS) == {"exact", "sensed"}
-
-
-def test_speed_stage_admits_by_the_kind_of_student(tmp_path) -> None:
-    """On a twin with noisy, delayed sensors the teachers admitted are those within the bar's motor
-    line over a sensed student's smoothing, not an exact student's: the stage's order follows it."""
-    opts = FitOptions("iris_realistic", str(tmp_path), episodes=2, jobs=1, progress=False)
-    speed = teacher_speed_stage(opts, Path(str(PRESET_DIR / "pid_iris.json")), log=lambda line: None)
-    assert speed["student"] == "sensed"
-    limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING["sensed"] * speed["pid_smoothness"]
-    admitted = [f for f in speed["flown"] if f["smoothness"] <= limit] or speed["flown"][:1]
-    first = first_teacher(admitted, {"error_sum": speed["pid_error_sum"], "rise_ms": speed["pid_rise_ms"]})
-    slower = sorted(f["lag_multiple"] for f in admitted if f["lag_multiple"] > first["lag_multiple"])
-    assert speed["order"] == [first["lag_multiple"], *slower]
-    assert STUDENT_SMOOTHING["sensed"] > STUDENT_SMOOTHING["exact"]

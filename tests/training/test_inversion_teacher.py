@@ -177,3 +177,27 @@ def test_the_yaw_the_rotors_lend_is_counted_and_yaw_rises_sooner() -> None:
     aware, unaware = fly(teacher), fly(Unaware(airframe, 0.5))
     assert aware.stat("rise_ms", "yaw").mean < unaware.stat("rise_ms", "yaw").mean - 10.0
     assert aware.stat("error", "yaw").mean < 0.97 * unaware.stat("error", "yaw").mean
+
+
+def test_a_share_of_yaw_is_served_first_while_roll_and_pitch_gather_speed_and_not_while_they_brake():
+    """Served after roll and pitch, yaw waits while they take every motor's reach; with a share
+    served first it moves from the first tick, but not where roll or pitch brakes (its overshoot)."""
+    first, after = InversionTeacher("iris", 0.5, yaw_first=0.3), InversionTeacher("iris", 0.5)
+    m = first.model
+    hover = np.full((1, 4), first.throttle * m.w_max)
+    thrust = m.kf * hover**2
+    lo = m.kf * (hover * (1 - m.a_down)) ** 2 - thrust  # each rotor's reach by the next tick
+    hi = m.kf * (hover + m.a_up * (m.w_max - hover)) ** 2 - thrust
+    needed = np.array([[400.0, 0.0, 40.0]])  # a large roll and yaw step: roll alone takes the reach
+    collective = np.zeros(1)
+
+    def yaw_of(teacher: InversionTeacher, from_thrust: np.ndarray) -> float:
+        return float((teacher._by_change(needed, lo, hi, collective, from_thrust) @ m.B.T)[0, 2])
+
+    gathering = np.array([[50.0, 0.0, 0.0]])  # roll's acceleration along its need
+    assert abs(yaw_of(after, gathering)) < 1e-6 * needed[0, 2]
+    assert yaw_of(first, gathering) > 0.25 * max_scale(lo, hi, needed[:, 2:3] * first._alloc[:, 2])[0] * 40.0
+    braking = -gathering  # roll's need against its acceleration
+    assert yaw_of(first, braking) == pytest.approx(yaw_of(after, braking), abs=1e-9)
+    with pytest.raises(ValueError, match="share of yaw"):
+        InversionTeacher("iris", yaw_first=1.5)

@@ -1,0 +1,98 @@
+"""The fit's teacher stage: the teacher's speed and the share of yaw it serves first, as the bar's
+lines choose them on the tuning commands."""
+
+from pathlib import Path
+
+import pytest
+
+from fcemu.evaluation.bar import ERROR_RATIO_BAR, PEAK_MARGIN_PCT, SMOOTHNESS_BAR
+from fcemu.firmware.pid_controller import PRESET_DIR
+from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.training.fit import STUDENT_STEPS, FitOptions
+from fcemu.training.fit_teacher import (
+    BRAKING_CHOICES,
+    ERROR_ROOM,
+    ERROR_TIE,
+    STUDENT_SMOOTHING,
+    TEACHER_SPEEDS,
+    YAW_FIRST_CHOICES,
+    first_teacher,
+    shape_admitted,
+    student_kind,
+    teacher_stage,
+)
+from fcemu.training.inversion_teacher import BRAKING_SHARE
+
+pytestmark = pytest.mark.no_wall_clock
+
+
+def test_the_first_teacher_is_the_smoothest_of_least_error_unless_it_rises_later_than_the_pid():
+    def teacher(multiple: float, error: float, rise: float) -> dict:
+        return {"lag_multiple": multiple, "error_sum": error, "smoothness": 1.0, "rise_ms": [rise, rise]}
+
+    room = (ERROR_RATIO_BAR - ERROR_ROOM) * 100.0  # the PID's Error sum 100
+    flown = [teacher(0.5, room + 6.0, 50.0), teacher(0.35, room - 2.0, 41.0),
+             teacher(0.18, room - 2.0 + 0.5 * ERROR_TIE * room, 39.0), teacher(0.13, room - 0.5, 38.0),
+             teacher(0.1, room + 1.0, 37.0)]
+    rises = {"error_sum": 100.0, "rise_ms": [41.0, 41.0]}
+    assert first_teacher(flown, rises)["lag_multiple"] == 0.35  # 0.18 ties it on Error; 0.35 rises in time
+    late = {"error_sum": 100.0, "rise_ms": [40.0, 41.0]}
+    assert first_teacher(flown, late)["lag_multiple"] == 0.13  # the fastest with room under the line
+    assert first_teacher(flown, {"error_sum": 90.0, "rise_ms": [40.0, 41.0]})["lag_multiple"] == 0.35
+
+
+def test_student_kind_follows_the_sensors() -> None:
+    """A twin whose gyro or ESC telemetry is noisy, vibrating, delayed or lossy gets a student of
+    sensed history (its own admission ratio and steps); the nominal twin one that reads what its
+    teacher reads."""
+    assert student_kind(load_airframe("iris")) == "exact"
+    assert student_kind(load_airframe("iris_realistic")) == "sensed"
+    assert set(STUDENT_SMOOTHING) == set(STUDENT_STEPS) == {"exact", "sensed"}
+
+
+def test_speed_stage_admits_by_the_kind_of_student(tmp_path) -> None:
+    """On a twin with noisy, delayed sensors the teachers admitted are those within the bar's motor
+    line over a sensed student's smoothing, not an exact student's: the stage's order follows it."""
+    opts = FitOptions("iris_realistic", str(tmp_path), episodes=2, jobs=1, progress=False)
+    lines: list[str] = []
+    speed = teacher_stage(opts, Path(str(PRESET_DIR / "pid_iris.json")), log=lines.append)
+    assert speed["student"] == "sensed"
+    limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING["sensed"] * speed["pid_smoothness"]
+    admitted = [f for f in speed["flown"] if f["smoothness"] <= limit] or speed["flown"][:1]
+    first = first_teacher(admitted, {"error_sum": speed["pid_error_sum"], "rise_ms": speed["pid_rise_ms"]})
+    slower = sorted(f["lag_multiple"] for f in admitted if f["lag_multiple"] > first["lag_multiple"])
+    assert speed["order"] == [first["lag_multiple"], *slower]
+    assert STUDENT_SMOOTHING["sensed"] > STUDENT_SMOOTHING["exact"]
+    # then the first teacher flown again in every other shape, each admitted by the rule
+    pid = {"rise_ms": speed["pid_rise_ms"], "peak_pct": speed["pid_peak_pct"]}
+    shapes = speed["shapes"]
+    assert len(shapes) == len(YAW_FIRST_CHOICES) * len(BRAKING_CHOICES) - 1
+    assert all(f["admitted"] == shape_admitted(f, first, pid, limit) for f in shapes)
+    assert len(lines) == len(TEACHER_SPEEDS) + len(shapes)
+    assert sum("(not admitted)" in line for line in lines) == sum(not f["admitted"] for f in shapes)
+    chosen = (speed["yaw_first"], speed["braking"])
+    assert chosen == (0.0, BRAKING_SHARE) or next(
+        f for f in shapes if (f["yaw_first"], f["braking"]) == chosen)["admitted"]
+
+
+def test_a_shape_is_admitted_with_the_motors_rise_and_peaks_the_bar_allows() -> None:
+    without = {"error_sum": 100.0, "smoothness": 1.0, "rise_ms": [30.0, 40.0],
+               "peak_pct": [110.0, 102.0, 101.0]}
+    pid = {"error_sum": 120.0, "rise_ms": [35.0, 38.0], "peak_pct": [108.0, 104.0, 103.0]}
+
+    def flown(roll_peak: float = 110.0, smoothness: float = 1.0, rise: tuple = (30.0, 40.0)) -> dict:
+        return {"error_sum": 95.0, "smoothness": smoothness, "rise_ms": list(rise),
+                "peak_pct": [roll_peak, 102.0, 101.0]}
+
+    assert shape_admitted(flown(), without, pid, 2.0)
+    assert not shape_admitted(flown(smoothness=2.1), without, pid, 2.0)  # motors past the admission
+    # Rise: no later than the PID's, or than the teacher's own where it already rose later (pitch here)
+    assert shape_admitted(flown(rise=(35.0, 40.0)), without, pid, 2.0)
+    assert not shape_admitted(flown(rise=(35.5, 40.0)), without, pid, 2.0)
+    assert not shape_admitted(flown(rise=(30.0, 40.5)), without, pid, 2.0)
+    # a Peak may rise to the bar's room over the PID's (111), or stay where it was without (110 here)
+    assert shape_admitted(flown(roll_peak=108.0 + PEAK_MARGIN_PCT), without, pid, 2.0)
+    assert not shape_admitted(flown(roll_peak=111.5), without, pid, 2.0)
+    over = {**without, "peak_pct": [112.0, 102.0, 101.0]}
+    assert shape_admitted(flown(roll_peak=112.0), over, pid, 2.0)
+    assert not shape_admitted(flown(roll_peak=112.5), over, pid, 2.0)
