@@ -11,10 +11,10 @@ Top to bottom, one stage each:
    DIR/tune.json. Either way `fcemu bound`'s lower bound on the held-out commands (seed S + 1) is
    solved, or read from its cache.
 2. **The teacher**: the airframe's model inverted tick by tick (`training.inversion_teacher`);
-   nothing to train. Its speed, and whether it serves a share of yaw first, are chosen on the
-   tuning commands, each flown alone through the action mapping against the tuned PID
-   (`training.fit_teacher`: Error, Rise and Peak as the bar's lines), and its student's motors
-   judged there.
+   nothing to train. Its speed, then its shape (a share of yaw served first, its braking share),
+   are chosen on the tuning commands, each flown alone through the action mapping against the
+   tuned PID (`training.fit_teacher`: Error, Rise and Peak as the bar's lines), and its student's
+   motors judged there.
 3. **The policy**: a student fitted to the teacher by DAgger on the airframe's twins
    (`fcemu distill inversion`), nominal and drawn from the airframe's ranges; where the sensors
    are not the truth the teacher reads the truth and the student `SENSED_MEMORY` ticks; exported
@@ -36,7 +36,6 @@ from pathlib import Path
 from typing import Any
 
 from fcemu.firmware.errors import UserError
-from fcemu.training.fit_teacher import student_kind, teacher_stage, tuning_flight
 
 
 @dataclass(frozen=True)
@@ -137,6 +136,8 @@ def given_pid_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
 
 def student_smoothness(opts: FitOptions, policy: Path, pid: Path) -> float:
     """The policy's motor roughness (µs/step) on the speed stage's tuning commands, nominal twin."""
+    from fcemu.training.fit_teacher import tuning_flight
+
     m = tuning_flight(opts, str(policy), fallback=f"pid:{pid}")
     return round(m.stat("smoothness", "roll").mean, 3)
 
@@ -167,6 +168,7 @@ def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
     from fcemu.sim_bridge.airframe import load_airframe
     from fcemu.training.distill import INVERSION, distill
     from fcemu.training.distill_config import DistillConfig
+    from fcemu.training.fit_teacher import student_kind
     from fcemu.training.inversion_teacher import BRAKING_SHARE, LAG_MULTIPLE
 
     fields = [opts.lag_multiple, opts.damping, opts.yaw_first or None,
@@ -230,6 +232,7 @@ def check_stage(opts: FitOptions, policy: Path, pid: Path, bound_sum: float | No
 def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
     """The three stages and the check; the summary written as DIR/fit.json and DIR/report.md."""
     from fcemu.training.fit_report import command_line, write_report
+    from fcemu.training.fit_teacher import teacher_stage
     from fcemu.training.inversion_teacher import BRAKING_SHARE
 
     log = log or (lambda line: None)
