@@ -72,12 +72,16 @@ def teacher_speed(student: dict[str, Any]) -> str:
 
 def teacher_shape(speed: dict[str, Any]) -> str:
     """The share of yaw the teacher served first and its braking share, and the shapes flown for them."""
+    from fcemu.training.inversion_teacher import BRAKING_SHARE
+
     flown = "; ".join(f"{f['yaw_first']:g} of yaw first, braking {f['braking']:g}: Error {f['error_sum']:.1f}"
                       + ("" if f["admitted"] else " (not admitted)") for f in speed.get("shapes", []))
-    return (f" Shape: {speed.get('yaw_first', 0.0):g} of yaw's need served first, braking "
-            f"{speed.get('braking', 0.5):g}" + (f", of those flown at that speed ({flown}) the least Error "
-                                                "admitted, where it beats the speed stage's by more than 1 %."
-                                                if flown else "."))
+    chosen = (f" Shape: {speed.get('yaw_first', 0.0):g} of yaw's need served first, braking "
+              f"{speed.get('braking', BRAKING_SHARE):g}")
+    if not flown:
+        return chosen + "."
+    return (f"{chosen}, of those flown at that speed ({flown}) the least Error admitted, where it beats "
+            "the speed stage's by more than 1 %.")
 
 
 def write_report(summary: dict[str, Any], path: Path) -> None:

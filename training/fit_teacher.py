@@ -1,6 +1,6 @@
-"""`fcemu fit`'s teacher stage: the model-based teacher's speed and the share of yaw it serves first,
-chosen on the tuning commands, each teacher flown alone through the action mapping on the nominal
-twin against the tuned PID (`training.fit` composes the stages)."""
+"""`fcemu fit`'s teacher stage: the model-based teacher's speed, then its shape (the share of yaw it
+serves first, its braking share), chosen on the tuning commands, each teacher flown alone through the
+action mapping on the nominal twin against the tuned PID (`training.fit` composes the stages)."""
 
 from __future__ import annotations
 
