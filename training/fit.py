@@ -11,8 +11,8 @@ Top to bottom, one stage each:
    DIR/tune.json. Either way `fcemu bound`'s lower bound on the held-out commands (seed S + 1) is
    solved, or read from its cache.
 2. **The teacher**: the airframe's model inverted tick by tick (`training.inversion_teacher`);
-   nothing to train. Its speed, then its shape (a share of yaw served first, its braking share),
-   are chosen on the tuning commands, each flown alone through the action mapping against the
+   nothing to train. Its speed, then its shape (a share of yaw served first, its braking share,
+   its damping), are chosen on the tuning commands, each flown alone through the action mapping against the
    tuned PID (`training.fit_teacher`: Error, Rise and Peak as the bar's lines), and its student's
    motors judged there.
 3. **The policy**: a student fitted to the teacher by DAgger on the airframe's twins
@@ -55,7 +55,7 @@ class FitOptions:
     mcu: bool = True
     progress: bool = True
     pid: str | None = None  # a preset already tuned for the airframe: no tune
-    damping: float | None = None  # the teacher's damping ratio (None: the teacher's)
+    damping: float | None = None  # the teacher's damping ratio (None: chosen, 0.7 or 0.85)
     yaw_first: float | None = None  # the share of yaw the teacher serves first (None: chosen)
     braking: float | None = None  # the teacher's braking share (None: chosen)
 
@@ -169,9 +169,9 @@ def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
     from fcemu.training.distill import INVERSION, distill
     from fcemu.training.distill_config import DistillConfig
     from fcemu.training.fit_teacher import student_kind
-    from fcemu.training.inversion_teacher import BRAKING_SHARE, LAG_MULTIPLE
+    from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING, LAG_MULTIPLE
 
-    fields = [opts.lag_multiple, opts.damping, opts.yaw_first or None,
+    fields = [opts.lag_multiple, None if opts.damping == DAMPING else opts.damping, opts.yaw_first or None,
               None if opts.braking in (None, BRAKING_SHARE) else opts.braking]
     while fields and fields[-1] is None:
         fields.pop()
@@ -233,7 +233,7 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
     """The three stages and the check; the summary written as DIR/fit.json and DIR/report.md."""
     from fcemu.training.fit_report import command_line, write_report
     from fcemu.training.fit_teacher import teacher_stage
-    from fcemu.training.inversion_teacher import BRAKING_SHARE
+    from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING
 
     log = log or (lambda line: None)
     out = Path(opts.out)
@@ -254,10 +254,11 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
         speed = teacher_stage(opts, out / "pid.json", log)
         times["teacher"] = round(time.monotonic() - t, 1)
     if speed is not None:
-        opts = replace(opts, yaw_first=speed["yaw_first"], braking=speed["braking"])
+        opts = replace(opts, yaw_first=speed["yaw_first"], braking=speed["braking"], damping=speed["damping"])
     first = opts.lag_multiple if speed is None else speed["lag_multiple"]
     _stage(log, t0, f"fitting the policy to the model-based teacher ({first:g} motor lags, "
-                    f"{opts.yaw_first or 0.0:g} of yaw first, braking {opts.braking or BRAKING_SHARE:g})")
+                    f"{opts.yaw_first or 0.0:g} of yaw first, braking {opts.braking or BRAKING_SHARE:g}, "
+                    f"damping {opts.damping or DAMPING:g})")
     t = time.monotonic()
     student = taught_student(opts, speed, out, log)
     opts = replace(opts, lag_multiple=student["speed"]["lag_multiple"]) if speed else opts
@@ -333,7 +334,8 @@ def register(sub: Any) -> None:
     p.add_argument("--lag-multiple", type=float, default=None,
                    help="the teacher's time constant in motor lags (default: the teacher's)")
     p.add_argument("--damping", type=float, default=None,
-                   help="the teacher's damping ratio (default 0.7: about 4 %% of overshoot)")
+                   help="the teacher's damping ratio (default: 0.7, about 4 %% of overshoot, or 0.85 where "
+                        "that lowers the Peaks on the tuning commands)")
     p.add_argument("--yaw-first", type=float, default=None, metavar="SHARE",
                    help="the share of yaw's need the teacher serves before roll and pitch's while they "
                         "gather speed (default: chosen on the tuning commands, 0 or 0.3)")

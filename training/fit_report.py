@@ -78,10 +78,24 @@ def teacher_shape(speed: dict[str, Any]) -> str:
                       + ("" if f["admitted"] else " (not admitted)") for f in speed.get("shapes", []))
     chosen = (f" Shape: {speed.get('yaw_first', 0.0):g} of yaw's need served first, braking "
               f"{speed.get('braking', BRAKING_SHARE):g}")
+    chosen = (chosen + "." if not flown else f"{chosen}, of those flown at that speed ({flown}) the least "
+              "Error admitted, where it beats the speed stage's by more than 1 %.")
+    return chosen + damping_line(speed)
+
+
+def damping_line(speed: dict[str, Any]) -> str:
+    """The teacher's damping ratio, and the more damped shape flown for it."""
+    from fcemu.training.inversion_teacher import DAMPING
+
+    line = f" Damping {speed.get('damping', DAMPING):g}"
+    flown = speed.get("dampings", [])
     if not flown:
-        return chosen + "."
-    return (f"{chosen}, of those flown at that speed ({flown}) the least Error admitted, where it beats "
-            "the speed stage's by more than 1 %.")
+        return line + "."
+    f = flown[0]
+    return (f"{line}: at {f['damping']:g}, Error {f['error_sum']:.1f}, highest Peak "
+            f"{max(f['peak_pct']):.1f} %"
+            + ("" if f["admitted"] else " (not admitted)") + "; the more damped is taken where admitted, "
+            "within 1 % of the shape's Error, with a lower highest Peak.")
 
 
 def write_report(summary: dict[str, Any], path: Path) -> None:

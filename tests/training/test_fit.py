@@ -27,6 +27,7 @@ from fcemu.training.fit_teacher import (
     TEACHER_SPEEDS,
     YAW_FIRST_CHOICES,
     first_teacher,
+    more_damped_taken,
     shape_admitted,
 )
 from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING
@@ -78,8 +79,16 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     if best is None or best["error_sum"] >= (1 - ERROR_TIE) * without["error_sum"]:
         best = {"yaw_first": 0.0, "braking": BRAKING_SHARE}
     assert (speed["yaw_first"], speed["braking"]) == (best["yaw_first"], best["braking"])
+    # then the chosen shape more damped, taken where admitted, tied on Error and lower at its highest Peak
+    pair = (best["yaw_first"], best["braking"])
+    chosen = next((f for f in shapes if (f["yaw_first"], f["braking"]) == pair), without)
+    (damped,) = speed["dampings"]
+    assert damped["admitted"] == shape_admitted(damped, without, pid, limit)
+    taken = damped["admitted"] and more_damped_taken(damped, chosen)
+    assert speed["damping"] == (damped["damping"] if taken else DAMPING)
     taught = make_teacher(summary["student"]["teacher"], "racer5")
-    assert (taught.yaw_first, taught.braking) == (speed["yaw_first"], speed["braking"])
+    assert (taught.yaw_first, taught.braking, taught.damping) == (speed["yaw_first"], speed["braking"],
+                                                                  speed["damping"])
     assert f"--yaw-first {speed['yaw_first']:g} --braking {speed['braking']:g}" in summary["command"]
     check = summary["check"]
     assert check["seed"] == 6 and check["bound_sum"] > 0.0 and check["mcu_us_f405"] is None

@@ -13,15 +13,17 @@ from fcemu.training.fit_teacher import (
     BRAKING_CHOICES,
     ERROR_ROOM,
     ERROR_TIE,
+    MORE_DAMPING,
     STUDENT_SMOOTHING,
     TEACHER_SPEEDS,
     YAW_FIRST_CHOICES,
     first_teacher,
+    more_damped_taken,
     shape_admitted,
     student_kind,
     teacher_stage,
 )
-from fcemu.training.inversion_teacher import BRAKING_SHARE
+from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING
 
 pytestmark = pytest.mark.no_wall_clock
 
@@ -68,7 +70,9 @@ def test_speed_stage_admits_by_the_kind_of_student(tmp_path) -> None:
     shapes = speed["shapes"]
     assert len(shapes) == len(YAW_FIRST_CHOICES) * len(BRAKING_CHOICES) - 1
     assert all(f["admitted"] == shape_admitted(f, first, pid, limit) for f in shapes)
-    assert len(lines) == len(TEACHER_SPEEDS) + len(shapes)
+    assert len(lines) == len(TEACHER_SPEEDS) + len(shapes) + 1  # and the chosen shape more damped
+    assert speed["damping"] in (DAMPING, MORE_DAMPING) and lines[-1].startswith(f"  damping {MORE_DAMPING:g}")
+    assert (speed["damping"] == MORE_DAMPING) == lines[-1].endswith("(taken)")
     assert sum("(not admitted)" in line for line in lines) == sum(not f["admitted"] for f in shapes)
     chosen = (speed["yaw_first"], speed["braking"])
     assert chosen == (0.0, BRAKING_SHARE) or next(
@@ -96,3 +100,14 @@ def test_a_shape_is_admitted_with_the_motors_rise_and_peaks_the_bar_allows() -> 
     over = {**without, "peak_pct": [112.0, 102.0, 101.0]}
     assert shape_admitted(flown(roll_peak=112.0), over, pid, 2.0)
     assert not shape_admitted(flown(roll_peak=112.5), over, pid, 2.0)
+
+
+def test_a_more_damped_teacher_is_taken_within_a_tie_on_error_where_its_highest_peak_is_lower() -> None:
+    chosen = {"error_sum": 100.0, "peak_pct": [104.0, 102.0, 101.0]}
+
+    def damped(error: float, peaks: tuple) -> dict:
+        return {"error_sum": error, "peak_pct": list(peaks)}
+
+    assert more_damped_taken(damped(100.0 + 100.0 * ERROR_TIE, (103.0, 103.5, 101.0)), chosen)
+    assert not more_damped_taken(damped(101.5, (100.0, 100.0, 100.0)), chosen)  # past the tie
+    assert not more_damped_taken(damped(95.0, (104.0, 100.0, 100.0)), chosen)  # the highest Peak as high
