@@ -72,7 +72,8 @@ def register_tune(sub: argparse._SubParsersAction) -> None:
                    help="sim_bridge/airframes/<name>.json or a path to an airframe file")
     p.add_argument("--out", required=True, metavar="DIR", help="where pid.json and tune.json are written")
     p.add_argument("--budget-s", type=float, default=540.0, metavar="S",
-                   help="wall time for the whole tune, the held-out check included (default 540)")
+                   help="wall time for the search and the held-out check, the bound's (solved once per "
+                        "airframe and cached) aside (default 540)")
     p.add_argument("--seed", type=int, default=2018,
                    help="seed of the tuning commands; the held-out commands are seed + 1 (default 2018)")
     p.add_argument("--jobs", type=int, default=0, metavar="J",

@@ -240,7 +240,7 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
     t0 = time.monotonic()
     times: dict[str, float] = {}
     if opts.pid is None:
-        _stage(log, t0, f"tuning the PID for {opts.airframe} (at most {opts.tune_budget_s:.0f} s)")
+        _stage(log, t0, f"tuning the PID for {opts.airframe} ({opts.tune_budget_s:.0f} s, the bound aside)")
         tuned = tune_stage(opts, out, log)
         _stage(log, t0, f"PID: {tuned['held_out']['tuned']['error_sum']:.1f} on the held-out commands")
     else:
@@ -330,7 +330,8 @@ def register(sub: Any) -> None:
     p.add_argument("--out", required=True, help="directory for pid.json, policy.onnx, report.md, fit.json")
     p.add_argument("--seed", type=int, default=2018, help="tuning commands' seed; held out: seed + 1")
     p.add_argument("--episodes", type=int, default=50, help="commands tuned on, and held out")
-    p.add_argument("--tune-budget-s", type=float, default=540.0, help="the PID tune's time, bound included")
+    p.add_argument("--tune-budget-s", type=float, default=540.0,
+                   help="the PID tune's search and check time, the bound's aside")
     p.add_argument("--lag-multiple", type=float, default=None,
                    help="the teacher's time constant in motor lags (default: the teacher's)")
     p.add_argument("--damping", type=float, default=None,

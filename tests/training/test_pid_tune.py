@@ -102,6 +102,9 @@ def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp
     assert code == 0, captured.err
     summary = json.loads(captured.out)
     assert "clean: start cost" in captured.err and "/300 s]" in captured.err
+    # the budget is the search's and the check's: the bound, solved first, counts its own time
+    bound_lines = [line for line in captured.err.splitlines() if "] bound: " in line]
+    assert bound_lines and not any("/300 s]" in line for line in bound_lines)
     for key in ("airframe", "cost_version", "physics", "stages", "tuning_set", "held_out", "meets_lines",
                 "fails",
                 "time_s"):
