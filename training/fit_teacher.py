@@ -45,7 +45,7 @@ BRAKING_CHOICES = (BRAKING_SHARE, 0.3, 0.2)
 # PID on the racer's pitch and the Crazyflie's roll (refused by the shape's Rise admission); on an Iris
 # identified from Betaflight's blackbox it took yaw's Peak on the true twin from 105.6 to 102.4 %,
 # under the PID's 101.2 + 3, where the rotors' momentum damps the PID's overshoot and not the
-# teacher's (docs/training_notes.md, 2026-11-29, the teacher's shape; damping chosen).
+# teacher's (docs/training_notes.md, 2026-11-29, the teacher's shape; the teacher's damping, chosen).
 MORE_DAMPING = 0.85
 
 
