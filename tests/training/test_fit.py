@@ -39,7 +39,7 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     out = tmp_path / "fit"
     code = main(["fit", "--airframe", "racer5", "--tune", "--out", str(out), "--episodes", "2",
-                 "--tune-budget-s", "10", "--rounds", "1", "--steps", "40", "--envs", "4", "--fit-steps",
+                 "--tune-budget-s", "2", "--rounds", "1", "--steps", "40", "--envs", "4", "--fit-steps",
                  "20", "--net-arch", "8", "--jobs", "1", "--no-mcu", "--seed", "5", "--json"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
