@@ -12,9 +12,9 @@ Top to bottom, one stage each:
    solved, or read from its cache.
 2. **The teacher**: the airframe's model inverted tick by tick (`training.inversion_teacher`);
    nothing to train. Its speed, then its shape (a share of yaw served first, its braking share,
-   its damping), are chosen on the tuning commands, each flown alone through the action mapping against the
-   tuned PID (`training.fit_teacher`: Error, Rise and Peak as the bar's lines), and its student's
-   motors judged there.
+   its damping), are chosen on the tuning commands, each flown alone through the action mapping
+   against the tuned PID (`training.fit_teacher`: Error, Rise and Peak as the bar's lines), and its
+   student's motors judged there.
 3. **The policy**: a student fitted to the teacher by DAgger on the airframe's twins
    (`fcemu distill inversion`), nominal and drawn from the airframe's ranges; where the sensors
    are not the truth the teacher reads the truth and the student `SENSED_MEMORY` ticks; exported
