@@ -27,7 +27,20 @@ from fcemu.firmware.action import PWM_MIN, PWM_SPAN
 from fcemu.sim_bridge.airframe import Airframe
 
 MAX_DELAY_TICKS = 6
+# A real quad's command-to-gyro delay (ESC, motor start, filters) reaches 10-15 ms: searched that far
+# in time, and at least MAX_DELAY_TICKS samples.
+MAX_DELAY_S = 0.015
+
+
+def max_delay(dt: float) -> int:
+    return max(MAX_DELAY_TICKS, round(MAX_DELAY_S / dt))
+# The motor spin-up time constants a quad's motors have, from a 65 mm whoop's (~10 ms) to a large
+# quad's (~150 ms): the rate response is searched inside, and a best at either end is not known.
+TAU_UP_RANGE_S = (0.005, 0.2)
 SMOOTH_HZ = 40.0
+# Below this the air turns a flying quad as much as its motors do (forward flight's pitch-up, prop
+# wash, a trim drifting with throttle): the motors' effectiveness is read above it.
+BAND_LOW_HZ = 5.0
 Z95 = 1.959964
 AXES = ("roll", "pitch", "yaw")
 
@@ -59,6 +72,7 @@ class MotorFit:
     tau_up: Estimate  # s
     tau_down: Estimate  # s
     from_rpm: bool  # fitted to the ESC rpm (else to the rates)
+    at_edge: bool = False  # the rates' best time constant is at an end of the physical range: not known
 
 
 @dataclass(frozen=True)
@@ -69,6 +83,7 @@ class AxisFit:
     coupling: Estimate  # g: rad/s² per (rad/s)² of the other two rates' product
     delay_ticks: int
     rms: float  # rad/s² of the acceleration residual
+    bias: Estimate = Estimate(0.0, 0.0, 0.0)  # rad/s² with the rates still: a trim the thrust makes
 
 
 @dataclass(frozen=True)
@@ -174,21 +189,37 @@ def smooth(x: np.ndarray, dt: float) -> np.ndarray:
     return sosfiltfilt(sos, x, axis=0)
 
 
+def band(x: np.ndarray, dt: float) -> np.ndarray:
+    """`smooth` less what is slower than `BAND_LOW_HZ`: where the motors, not the air, turn the body."""
+    sos = butter(2, BAND_LOW_HZ, fs=1.0 / dt, output="sos")
+    return smooth(x, dt) - sosfiltfilt(sos, x, axis=0)
+
+
+def _design(columns: np.ndarray, rates: np.ndarray, axis: int, delay: int, n: int) -> np.ndarray:
+    return np.column_stack([columns[:n], -rates[delay:delay + n, axis],
+                            coupling_regressor(rates[delay:delay + n], axis)])
+
+
 def fit_rates(log: FlightLog, speed: np.ndarray, lever: np.ndarray) -> RateFit:
-    """Per axis c, d (and j on yaw) by least squares, at the gyro delay that fits best."""
+    """Per axis c, d, g (and j on yaw) by least squares in the motors' band (`band`), at the gyro
+    delay that fits best; then the steady acceleration they leave over the whole band (a trim)."""
     dt = log.dt
     g = smooth(log.gyro, dt)
     accel = np.diff(g, axis=0) / dt  # tick k → k + 1
+    g_band = band(log.gyro, dt)
+    products = band(np.stack([coupling_regressor(log.gyro, a) for a in range(3)], axis=1), dt)
+    accel_band = np.diff(g_band, axis=0) / dt
     fits: list[AxisFit] = []
     results = []
     for axis in range(3):
-        base = smooth(axis_regressors(speed, lever, dt, axis), dt)
+        columns = smooth(axis_regressors(speed, lever, dt, axis), dt)
+        columns_band = band(axis_regressors(speed, lever, dt, axis), dt)
         best = None
-        for delay in range(MAX_DELAY_TICKS + 1):
+        for delay in range(max_delay(dt) + 1):
             n = len(accel) - delay
-            x = np.column_stack([base[:n], -g[delay:delay + n, axis],
-                                 coupling_regressor(g[delay:delay + n], axis), np.ones(n)])
-            y = accel[delay:, axis]
+            x = np.column_stack([columns_band[:n], -g_band[delay:delay + n, axis],
+                                 products[delay:delay + n, axis]])
+            y = accel_band[delay:, axis]
             beta, *_ = np.linalg.lstsq(x, y, rcond=None)
             residual = y - x @ beta
             if best is None or residual @ residual < best[0]:
@@ -196,18 +227,22 @@ def fit_rates(log: FlightLog, speed: np.ndarray, lever: np.ndarray) -> RateFit:
         _, delay, x, beta, residual = best
         # The filtered residual is correlated over about 1 / (2·SMOOTH_HZ·dt) ticks: count them as one sample.
         std = np.sqrt(np.diag(_covariance(x, residual) / (2 * SMOOTH_HZ * dt)))
+        n = len(accel) - delay
+        whole = _design(columns, g, axis, delay, n) @ beta
+        left = accel[delay:, axis] - whole
+        bias = Estimate.normal(float(left.mean()), float(left.std() * np.sqrt(2 * SMOOTH_HZ * dt / n)))
         spin = Estimate.normal(beta[1], std[1]) if axis == 2 else None
         k = 2 if axis == 2 else 1
         coupling = Estimate.normal(beta[k + 1], std[k + 1])
         fits.append(AxisFit(Estimate.normal(beta[0], std[0]), Estimate.normal(beta[k], std[k]), spin,
-                            coupling, delay, float(np.sqrt(np.mean(residual**2)))))
-        results.append((delay, base, beta))
+                            coupling, delay, float(np.sqrt(np.mean(residual**2))), bias))
+        results.append((delay, columns_band, beta))
     gyro_delay = int(np.median([f.delay_ticks for f in fits]))
     modelled = np.zeros((len(g), 3))
-    for axis, (delay, base, beta) in enumerate(results):
+    for axis, (delay, columns_band, beta) in enumerate(results):
         n = len(g) - delay
-        x = np.column_stack([base[:n], -g[delay:, axis], coupling_regressor(g[delay:], axis), np.ones(n)])
-        modelled[delay:, axis] = x @ beta
+        modelled[delay:, axis] = np.column_stack([columns_band[:n], -g_band[delay:, axis],
+                                                  products[delay:, axis]]) @ beta
     return RateFit((fits[0], fits[1], fits[2]), gyro_delay, modelled, speed)
 
 
@@ -220,7 +255,7 @@ def fit_without_rpm(log: FlightLog, base: Airframe, lever: np.ndarray) -> tuple[
     target = np.clip(pwm, m.pwm_min, m.pwm_max) - m.pwm_min
     target *= m.max_rotor_speed / (m.pwm_max - m.pwm_min)
     dt = log.dt
-    g = smooth(log.gyro, dt)
+    g = band(log.gyro, dt)
     accel = np.diff(g, axis=0) / dt
 
     def scores(scale: np.ndarray, delays: range) -> tuple[np.ndarray, np.ndarray]:
@@ -229,20 +264,20 @@ def fit_without_rpm(log: FlightLog, base: Airframe, lever: np.ndarray) -> tuple[
         out = np.zeros((len(scale), len(delays)))
         for i in range(len(scale)):
             for axis in range(3):
-                columns = smooth(axis_regressors(speeds[i], lever, dt, axis), dt)
+                columns = band(axis_regressors(speeds[i], lever, dt, axis), dt)
                 for j, delay in enumerate(delays):
                     n = len(accel) - delay
-                    x = np.column_stack([columns[:n], -g[delay:delay + n, axis], np.ones(n)])
+                    x = np.column_stack([columns[:n], -g[delay:delay + n, axis]])
                     y = accel[delay:, axis]
                     beta, *_ = np.linalg.lstsq(x, y, rcond=None)
                     out[i, j] += float(np.sum((y - x @ beta) ** 2))
         return out, speeds
 
-    coarse = np.geomspace(0.25, 4.0, 29)
-    coarse_scores, _ = scores(coarse, range(MAX_DELAY_TICKS + 1))
+    coarse = np.geomspace(TAU_UP_RANGE_S[0] / m.tau_up, TAU_UP_RANGE_S[1] / m.tau_up, 29)
+    coarse_scores, _ = scores(coarse, range(max_delay(dt) + 1))
     i, delay = np.unravel_index(np.argmin(coarse_scores), coarse_scores.shape)
     step = coarse[1] / coarse[0]
-    fine = coarse[i] * np.geomspace(1 / step, step, 21)
+    fine = np.clip(coarse[i] * np.geomspace(1 / step, step, 21), coarse[0], coarse[-1])
     fine_scores, speeds = scores(fine, range(delay, delay + 1))
     best = int(np.argmin(fine_scores[:, 0]))
     # The scale's interval: where the residual sum of squares stays within χ²(1)'s 95 % of its least,
@@ -257,7 +292,8 @@ def fit_without_rpm(log: FlightLog, base: Airframe, lever: np.ndarray) -> tuple[
     a = -b * (m.pwm_min - PWM_MIN) / PWM_SPAN
     motors = MotorFit(0, Estimate(a, a, a), Estimate(b, b, b),
                       Estimate(m.tau_up * fine[best], m.tau_up * lo, m.tau_up * hi),
-                      Estimate(m.tau_down * fine[best], m.tau_down * lo, m.tau_down * hi), from_rpm=False)
+                      Estimate(m.tau_down * fine[best], m.tau_down * lo, m.tau_down * hi), from_rpm=False,
+                      at_edge=bool(np.isclose(fine[best], coarse[0]) or np.isclose(fine[best], coarse[-1])))
     return motors, rate
 
 
@@ -282,21 +318,24 @@ def predict_ahead(log: FlightLog, accel: np.ndarray, horizon: int) -> np.ndarray
 def airframe_accel(log: FlightLog, speed: np.ndarray, airframe: Airframe, lever: np.ndarray) -> np.ndarray:
     """(T, 3) the acceleration `airframe`'s twin gives the logged rotor speeds and rates (its
     effectiveness, damping, gyroscopic coupling, spin-up reaction and gyro delay, the twin's own
-    tick included)."""
+    tick included), in the motors' band (`band`): slower, a flying quad's air and trim balance
+    the motors, which no twin on a rig has."""
     inertia = airframe.inertia()
     m = airframe.motor
     c = [m.kf / inertia[0], m.kf / inertia[1], m.kf * m.km / inertia[2]]
     coupling = gyro_coefficients(inertia)
     damping = np.array(airframe.rate_damping) / inertia
-    delay = airframe.gyro_delay_ticks + 1
-    g = smooth(log.gyro, log.dt)
+    # the twin's gyro delay counts its 1 ms physics steps (and one of its own); a filtered gyro adds its lag
+    delay = round(((airframe.gyro_delay_ticks + 1) * 0.001 + log.gyro_filter_lag_s) / log.dt)
+    g = band(log.gyro, log.dt)
+    products = band(np.stack([coupling_regressor(log.gyro, a) for a in range(3)], axis=1), log.dt)
     out = np.zeros_like(g)
     n = len(g) - delay
     for axis in range(3):
-        columns = smooth(axis_regressors(speed, lever, log.dt, axis), log.dt)
+        columns = band(axis_regressors(speed, lever, log.dt, axis), log.dt)
         coef = [c[axis]] + ([airframe.rotor_inertia / inertia[2]] if axis == 2 else [])
         out[delay:, axis] = (columns[:n] @ np.array(coef) - damping[axis] * g[delay:, axis]
-                             + coupling[axis] * coupling_regressor(g[delay:], axis))
+                             + coupling[axis] * products[delay:, axis])
     return out
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from fcemu.evaluation.identify import (
     AXES,
+    TAU_UP_RANGE_S,
     Z95,
     Estimate,
     MotorFit,
@@ -54,6 +55,7 @@ class Identification:
     rates: RateFit
     hover: Estimate  # the collective, 0..1
     gyro: GyroFit
+    spin_note: str = ""  # which way the props turn, and how it is known
 
     @property
     def hover_rotor_speed(self) -> Estimate:
@@ -65,17 +67,42 @@ class Identification:
 
 
 def identify(log: FlightLog, base: Airframe, base_label: str) -> Identification:
-    lever = levers(base)
-    if log.rotor_speed is not None:
-        motors = fit_motors(log)
-        rates = fit_rates(log, log.rotor_speed, lever)
+    """The fits on `base`'s geometry; its props turned the other way round where the log's header
+    says so, or where, unsaid, the yaw answers the motors the other way (props "out")."""
+    props_out = bool(base.spin[0] > 0)
+    if log.props_reversed is not None:
+        told = log.props_reversed != props_out
+        spin_note = f"props {'out' if log.props_reversed else 'in'}: the log's header (yaw_motors_reversed)"
+        base = _spun(base, log.props_reversed) if told else base
+        motors, rates = _fits(log, base)
     else:
-        motors, rates = fit_without_rpm(log, base, lever)
+        motors, rates = _fits(log, base)
+        c = [axis.effectiveness.value for axis in rates.axes]
+        spin_note = f"props {'out' if props_out else 'in'}, as the base's: the yaw answers the motors so"
+        if c[0] > 0 and c[1] > 0 and c[2] < 0:
+            base = _spun(base, not props_out)
+            motors, rates = _fits(log, base)
+            spin_note = (f"props {'in' if props_out else 'out'}: the yaw answered the motors "
+                         "the other way round "
+                         f"from the base's spins (yaw effectiveness {c[2]:.3g}), and the header does not say")
     hover = hover_command(log)
     if not 0.02 < hover.value < 0.98:
         raise LogError(f"{log.path}: the collective holds at {hover.value:.2f}, not a hover")
     gyro = fit_gyro(log, base.motor.max_rotor_speed, rates.speed)
-    return Identification(log, base, base_label, motors, rates, hover, gyro)
+    return Identification(log, base, base_label, motors, rates, hover, gyro, spin_note)
+
+
+def _fits(log: FlightLog, base: Airframe) -> tuple[MotorFit, RateFit]:
+    lever = levers(base)
+    if log.rotor_speed is not None:
+        return fit_motors(log), fit_rates(log, log.rotor_speed, lever)
+    return fit_without_rpm(log, base, lever)
+
+
+def _spun(base: Airframe, props_out: bool) -> Airframe:
+    """`base` with motor 1 counter-clockwise (props out) or clockwise (in), the others to match."""
+    sign = 1 if props_out else -1
+    return replace(base, spin=np.array([sign, -sign, -sign, sign]))
 
 
 def _effects_document(airframe: Airframe) -> dict:
@@ -161,8 +188,16 @@ def identified_document(ident: Identification, name: str) -> dict:
         effectiveness_scale = (m.max_rotor_speed / max_speed) ** 2  # the fit's speeds were the base line's
     sources["motor.pwm_max_us"] = "the firmware's PWM scale (1000-2000 µs)"
     how = "ESC rpm against the command" if mf.from_rpm else "the rate response to the motor commands"
-    sources["motor.time_constant_up_s"] = f"{at} ({how}): {mf.tau_up.text(' s')}"
-    sources["motor.time_constant_down_s"] = f"{at} ({how}): {mf.tau_down.text(' s')}"
+    tau_up, tau_down = mf.tau_up.value, mf.tau_down.value
+    if mf.at_edge:
+        for key, e in (("up", mf.tau_up), ("down", mf.tau_down)):
+            sources[f"motor.time_constant_{key}_s"] = (
+                f"{at} ({how}): {e.value:.4g} s, at an end of the range searched ({TAU_UP_RANGE_S[0]:g} to "
+                f"{TAU_UP_RANGE_S[1]:g} s spin-up): the log says only that it is no further in")
+    else:
+        sources["motor.time_constant_up_s"] = f"{at} ({how}): {mf.tau_up.text(' s')}"
+        sources["motor.time_constant_down_s"] = f"{at} ({how}): {mf.tau_down.text(' s')}"
+    sources["motors"] = f"positions {kept}; {ident.spin_note}"
     c = [_scaled(rf.axes[i].effectiveness, effectiveness_scale) for i in range(3)]
     if min(ci.value for ci in c) <= 0:
         raise LogError(f"{log.path}: a motor command turns the vehicle the wrong way round "
@@ -170,9 +205,23 @@ def identified_document(ident: Identification, name: str) -> dict:
                        "motor order or spins differ from the base's")
     roll_pitch = [kf / c[0].value, kf / c[1].value]
     izz = yaw_inertia(roll_pitch, rf.axes[0].coupling, rf.axes[1].coupling)
-    if izz is None:
+    if izz is not None and not is_rigid_body([*roll_pitch, izz.value]):
+        izz = None  # the coupling's reading makes no body: the base's k_M instead, said below
+    if izz is None and is_rigid_body([*roll_pitch, kf * base.motor.km / c[2].value]):
         km = base.motor.km
         izz_text = "k_F·k_M over the yaw effectiveness (k_M the base's: the log's rates never coupled)"
+    elif izz is None:
+        base_i = base.inertia()
+        shape = base_i[2] / (base_i[0] + base_i[1])
+        # inside the rigid bodies' interval for I_zz, |I_xx − I_yy| … I_xx + I_yy, with a margin
+        low, high = abs(roll_pitch[0] - roll_pitch[1]), sum(roll_pitch)
+        shape = float(np.clip(shape, low / high + 0.05, 0.95))
+        km = shape * sum(roll_pitch) * c[2].value / kf
+        sources["motor.moment_constant_m"] = (
+            f"derived: the yaw effectiveness {c[2].text()} × I_zz / k_F, I_zz from the base's shape (below)")
+        izz_text = (f"{shape:.3f} of roll's and pitch's sum, as the base {ident.base_label}'s "
+                    "(the log's rates never "
+                    "coupled, and the base's k_M makes no rigid body of this quad)")
     else:
         km = c[2].value * izz.value / kf
         sources["motor.moment_constant_m"] = (f"derived: the yaw effectiveness {c[2].text()} × I_zz / k_F, "
@@ -185,13 +234,20 @@ def identified_document(ident: Identification, name: str) -> dict:
     if min(inertia) <= 0:
         raise LogError(f"{log.path}: the identified inertia {total} is below the rotors' own share: the base "
                        f"{ident.base_label} does not fit this vehicle")
+    if not is_rigid_body(total):
+        raise LogError(f"{log.path}: the identified inertia "
+                       f"({', '.join(f'{v:.3g}' for v in total)} kg·m²) is no "
+                       "rigid body (an axis above the sum of the other two): the yaw effectiveness "
+                       f"({c[2].text()}) and the base {ident.base_label}'s k_M disagree; try a --base nearer "
+                       "this quad")
     parts = [f"{a} {ci.text(' rad/s² per (N·m/k_F)')}" for a, ci in zip(AXES, c, strict=True)]
     sources["base_inertia_kg_m2"] = (f"derived: roll and pitch k_F over the effectiveness {at} "
                                      f"({'; '.join(parts)}); yaw {izz_text}; less the rotors' share by the "
                                      "base's geometry")
     per_tick = log.dt / TWIN_DT  # the log's samples in the twin's physics steps
     delay_esc = round(mf.delay_ticks * per_tick)
-    delay_gyro = max(0, round(rf.gyro_delay_ticks * per_tick) - TWIN_GYRO_LAG_TICKS)
+    filter_ticks = round(log.gyro_filter_lag_s / TWIN_DT)
+    delay_gyro = max(0, round(rf.gyro_delay_ticks * per_tick) - TWIN_GYRO_LAG_TICKS - filter_ticks)
     effects = {}
     damping, damping_text = [], []
     for i in range(3):
@@ -199,6 +255,19 @@ def identified_document(ident: Identification, name: str) -> dict:
         damping.append(value * (total[i]))
         damping_text.append(f"{AXES[i]} {text}")
     effects["rate_damping"] = (tuple(damping), "; ".join(damping_text) + " (× the derived inertia)")
+    weight = base.mass * GRAVITY  # the thrust that holds the hover, about the flight's mean
+    offset = [0.0, 0.0, 0.0]
+    offset_text = []
+    for i, (axis, share) in enumerate(((1, total[0]), (0, -total[1]))):
+        bias = rf.axes[i].bias
+        if bias.low > 0 or bias.high < 0:
+            offset[axis] = bias.value * share / weight
+        offset_text.append(f"{AXES[i]} {bias.text(' rad/s²')}")
+    effects["centre_of_mass_offset"] = (tuple(offset), (
+        f"{at}: the steady roll and pitch acceleration the motors' mix leaves "
+        f"({'; '.join(offset_text)}; 0 where "
+        "not distinguishable from 0) × the derived inertia over the weight: "
+        "the thrust off the centre of mass"))
     spin = rf.axes[2].spin_up
     if spin is not None:
         value, text = _nonnegative(spin, log.name, "")
@@ -207,7 +276,9 @@ def identified_document(ident: Identification, name: str) -> dict:
                 f"no ESC rpm in {log.name}: the whole command-to-gyro delay is given to the gyro")
     effects["esc_delay_ticks"] = (delay_esc, esc_text)
     gyro_text = (f"{at}: {rf.gyro_delay_ticks * log.dt * 1e3:.0f} ms from rotor speed to gyro, less the "
-                 f"twin's own {TWIN_GYRO_LAG_TICKS} tick")
+                 f"twin's own {TWIN_GYRO_LAG_TICKS} tick"
+                 + (f" and the logged gyro's filters' {log.gyro_filter_lag_s * 1e3:.2f} ms "
+                    f"({log.gyro_filter_note}: the controller's own filters add it)" if filter_ticks else ""))
     effects["gyro_delay_ticks"] = (delay_gyro, gyro_text)
     effects["gyro_noise_std"] = (ident.gyro.noise_std, f"{at}: {ident.gyro.noise_how}")
     vibration = [_nonnegative(e, log.name, "") for e in ident.gyro.vibration]
@@ -222,7 +293,7 @@ def identified_document(ident: Identification, name: str) -> dict:
                             f"{kept}: {base_sources.get(attr, '')}".rstrip(": "))
                            for attr in ATTRIBUTE_OF_EFFECT)
     motor = replace(base.motor, max_rotor_speed=float(max_speed), kf=float(kf), km=float(km),
-                    tau_up=mf.tau_up.value, tau_down=mf.tau_down.value, pwm_min=float(pwm_min),
+                    tau_up=float(tau_up), tau_down=float(tau_down), pwm_min=float(pwm_min),
                     pwm_max=PWM_MIN + PWM_SPAN)
     airframe = replace(airframe, name=name, base_inertia=tuple(float(v) for v in inertia), motor=motor,
                        effect_sources=effect_sources)
@@ -230,6 +301,12 @@ def identified_document(ident: Identification, name: str) -> dict:
               f"motor commands from {log.command_source}{', ESC rpm' if mf.from_rpm else ', no ESC rpm'}) "
               f"on the base airframe {ident.base_label}." + "".join(f" {note}." for note in log.notes))
     return airframe_document(airframe, source, sources)
+
+
+def is_rigid_body(inertia: list[float]) -> bool:
+    """Principal moments a rigid body can have: positive, each below the sum of the other two."""
+    a, b, c = inertia
+    return min(inertia) > 0 and a < b + c and b < a + c and c < a + b
 
 
 def yaw_inertia(roll_pitch: list[float], roll: Estimate, pitch: Estimate) -> Estimate | None:
@@ -250,9 +327,19 @@ def yaw_inertia(roll_pitch: list[float], roll: Estimate, pitch: Estimate) -> Est
 
 
 def write_airframe(doc: dict, path: Path) -> Airframe:
-    """Write the file and read it back as `--airframe` would (its checks refuse an unflyable one)."""
+    """Write the file only once it reads back as `--airframe` would read it (its checks refuse an
+    unflyable one, and then nothing is written)."""
     from fcemu.sim_bridge.airframe import load_airframe
+    from fcemu.sim_bridge.airframe_file import AirframeError
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+    draft = path.with_name(f".{path.name}.draft.json")
+    draft.write_text(json.dumps(doc, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+    try:
+        load_airframe(draft)
+    except AirframeError as exc:
+        draft.unlink()
+        raise LogError(f"the identified airframe is not one fcemu flies, so {path} is not written: "
+                       f"{str(exc).replace(str(draft), path.name)}") from None
+    draft.replace(path)
     return load_airframe(path)

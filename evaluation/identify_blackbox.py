@@ -15,17 +15,32 @@ jittering clock (seen as four times the gyro noise); its clock also runs on whil
 a packet, so the readings, not its time stamps, count the twin's steps. (A gyro without noise,
 reading the same for several packets at rest, loses those steps; a real one never does.)
 Readings faster than the twin's 1 ms step (a board's 8 kHz gyro logged at 1/1) are held onto
-that step, the latest at each.
+that step, the latest at each; slower ones are used at their own interval.
+
+What the header says (the firmware and its version, the logging interval, the gyro filters'
+lag, the rates that turn sticks into a setpoint) is `blackbox_header`'s; the pilot's tune is
+`blackbox_tune`'s. Each arming in a file is a log of its own (`read_blackbox_logs`); frames a
+storage error garbled are left out and counted.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import math
 from pathlib import Path
 
 import numpy as np
 
+from fcemu.evaluation.blackbox_header import (
+    firmware,
+    gyro_filter_lag_s,
+    logged_interval_s,
+    stick_setpoint_dps,
+    yaw_motors_reversed,
+)
+from fcemu.evaluation.blackbox_tune import log_tune
 from fcemu.evaluation.identify_log import IDLE, FlightLog, LogError, flown_stretch
 
 MAGIC = b"H Product:Blackbox flight data recorder by Nicholas Sherlock"
@@ -34,6 +49,9 @@ DSHOT_PROTOCOLS = (5, 6, 7, 8)  # Betaflight's motorProtocol_e: DSHOT150, 300, 6
 DSHOT_ZERO, DSHOT_SPAN = 48.0, 1999.0  # DShot's throttle values 48..2047
 PWM_ZERO, PWM_SPAN = 1000.0, 1000.0  # Betaflight's analog outputs, µs
 BOXARM_BIT = 1  # flightModeFlags is Betaflight's rcModeActivationMask; BOXARM is box 0
+MAX_LOG_INTERVAL_S = 1 / 200  # slower than 200 Hz the rates' response (tens of ms) is a handful of samples
+INTRA = "fcemu:intra"  # the column _frames adds: 1 for an intra (key) frame
+MIN_MOTOR_TRAVEL = 0.02  # of the output range: motors that never move say nothing of the vehicle
 
 
 def is_blackbox(path: Path) -> bool:
@@ -44,22 +62,25 @@ def is_blackbox(path: Path) -> bool:
         return False
 
 
-def _parser(path: Path):
-    """orangebox's parser on the longest log in the file (a flash chip holds one per arming)."""
+def _log_starts(path: Path) -> tuple[bytes, list[int]]:
+    data = path.read_bytes()
+    starts = [0]
+    while (found := data.find(MAGIC, starts[-1] + 1)) > 0:
+        starts.append(found)
+    return data, starts
+
+
+def _parser(path: Path, index: int):
+    """orangebox's parser on log `index` (1-based) of the file (a flash chip holds one per arming)."""
     try:
         from orangebox import Parser
     except ImportError:
         raise LogError(f"{path}: a Betaflight blackbox log; reading it needs the blackbox decoder: "
                        "pip install 'fcemu[blackbox]' (orangebox, GPL-3.0: docs/identify.md)") from None
-    data = path.read_bytes()
-    starts = [0]
-    while (found := data.find(MAGIC, starts[-1] + 1)) > 0:
-        starts.append(found)
-    sizes = np.diff([*starts, len(data)])
-    index = int(np.argmax(sizes)) + 1
-    logging.getLogger("orangebox").setLevel(logging.ERROR)  # its per-frame warnings are not the user's
+    logging.getLogger("orangebox").setLevel(logging.CRITICAL)  # its per-frame warnings are not the user's
     try:
-        return Parser.load(str(path), index), index, len(starts)
+        with contextlib.redirect_stdout(io.StringIO()):  # orangebox prints unknown events
+            return Parser.load(str(path), index)
     except Exception as exc:  # orangebox raises bare exceptions on a broken header
         raise LogError(f"{path}: not a readable blackbox log ({type(exc).__name__}: "
                        f"{' '.join(str(exc).split())[:100]})") from None
@@ -72,58 +93,111 @@ def _frames(parser, path: Path) -> tuple[list[str], np.ndarray, bool]:
     rows = []
     cut = False
     try:
-        for frame in parser.frames():
-            rows.append(frame.data[:len(names)])
+        with contextlib.redirect_stdout(io.StringIO()):
+            for frame in parser.frames():
+                rows.append((*frame.data[:len(names)], *[np.nan] * (len(names) - len(frame.data)),
+                             1.0 if frame.type.value == "I" else 0.0))
     except (RuntimeError, IndexError, ValueError, KeyError, TypeError):  # orangebox on data cut mid-frame
         cut = True
     if len(rows) < 2:
         raise LogError(f"{path}: {len(rows)} data frames decoded: no flight in the log (truncated?)")
     table = np.array([[np.nan if v == "" else v for v in row] for row in rows], dtype=np.float64)
-    return names, table, cut
+    return [*names, INTRA], table, cut
 
 
-def _columns(names: list[str], table: np.ndarray, base: str, count: int) -> np.ndarray | None:
-    idx = [names.index(f"{base}[{i}]") for i in range(count) if f"{base}[{i}]" in names]
-    return table[:, idx] if len(idx) == count else None
+def _sound_frames(names: list[str], table: np.ndarray) -> np.ndarray:
+    """Frames a corrupted stretch of the log did not garble: from an intra frame on, time running
+    forward by less than a second from the last sound frame, motors and gyro in their ranges (inter
+    frames before the first intra frame, or after a storage error, decode as garbage until the next
+    intra frame; Betaflight's own viewer drops them too)."""
+    t = table[:, names.index("time")]
+    ok = np.isfinite(t)
+    for base, limit in (("motor", 2100.0), ("gyroADC", 40000.0)):
+        columns = [names.index(f"{base}[{i}]") for i in range(4 if base == "motor" else 3)
+                   if f"{base}[{i}]" in names]
+        if columns:
+            values = table[:, columns]
+            ok &= np.all((values >= (0.0 if base == "motor" else -limit)) & (values <= limit), axis=1)
+    intra = table[:, names.index(INTRA)] > 0
+    keep = np.zeros(len(t), dtype=bool)
+    last = None
+    for k in np.flatnonzero(ok):
+        if (intra[k] and (last is None or t[k] > last)) or (last is not None and 0 < t[k] - last < 1e6):
+            keep[k] = True
+            last = t[k]
+    return keep
 
 
-def _header_int(headers: dict, key: str) -> int | None:
-    value = headers.get(key)
-    return int(value) if isinstance(value, int | float) else None
-
-
-def decode_blackbox(path: Path) -> tuple[list[str], np.ndarray, dict, list[str]]:
-    """(field names, frames (N, fields) in time order, header, notes) of the longest Betaflight log."""
-    parser, index, count = _parser(path)
+def decode_blackbox(path: Path, index: int | None = None) -> tuple[list[str], np.ndarray, dict, list[str]]:
+    """(field names, sound frames (N, fields) in time order, header, notes) of log `index` of the
+    file (1-based), or of its longest log."""
+    data, starts = _log_starts(path)
+    count = len(starts)
+    if index is None:
+        index = int(np.argmax(np.diff([*starts, len(data)]))) + 1
+    elif not 1 <= index <= count:
+        raise LogError(f"{path}: log {index} asked for; the file holds {count}")
+    parser = _parser(path, index)
     headers = parser.headers
-    firmware = str(headers.get("Firmware type", "?"))
-    if firmware != "Betaflight":
-        raise LogError(f"{path}: a {firmware} blackbox log; only Betaflight's units are read")
+    firmware(headers, path)
     names, table, cut = _frames(parser, path)
-    notes = [f"log {index} of the {count} in the file (the longest)"] if count > 1 else []
+    notes = [f"log {index} of the {count} in the file"] if count > 1 else []
     if cut:
         notes.append("the log ends cut off (no end-of-log event): the frames before the cut are used")
+    sound = _sound_frames(names, table)
+    if sound.sum() < 2:
+        raise LogError(f"{path}: no sound data frame in the log (corrupt?)")
+    if (~sound).sum():
+        notes.append(f"{(~sound).sum()} of {len(sound)} frames garbled (time running back or values out of "
+                     "range) and left out")
+    table = table[sound]
     order = np.argsort(table[:, names.index("time")], kind="stable")
     return names, table[order], headers, notes
 
 
-def read_blackbox_log(path: Path, motor_poles: int | None = None) -> FlightLog:
-    names, table, headers, notes = decode_blackbox(path)
+def log_count(path: Path) -> int:
+    return len(_log_starts(path)[1])
+
+
+def read_blackbox_logs(path: Path, motor_poles: int | None = None) -> list[FlightLog]:
+    """Every log in the file that holds a flight; a LogError (the longest's) where none does."""
+    data, starts = _log_starts(path)
+    sizes = np.diff([*starts, len(data)])
+    logs, refused = [], []
+    for index in range(1, len(starts) + 1):
+        try:
+            logs.append(read_blackbox_log(path, motor_poles, index))
+        except LogError as exc:
+            refused.append((sizes[index - 1], exc))
+    if not logs:
+        raise max(refused, key=lambda pair: pair[0])[1]
+    return logs
+
+
+def read_blackbox_log(path: Path, motor_poles: int | None = None, index: int | None = None) -> FlightLog:
+    names, table, headers, notes = decode_blackbox(path, index)
+    version = firmware(headers, path)
     t_us = table[:, names.index("time")]
+    frame_dt = float(np.median(np.diff(t_us))) * 1e-6
+    check_rate(path, frame_dt)
+    interval = logged_interval_s(headers)
+    if interval and abs(frame_dt / interval - 1) > 0.1:
+        notes.append(f"the header makes the logging interval {interval * 1e3:.3f} ms, the frames "
+                     f"{frame_dt * 1e3:.3f} ms: the frames' time stamps are used")
     gyro_name = "gyroUnfilt" if _columns(names, table, "gyroUnfilt", 3) is not None else "gyroADC"
     gyro_deg = _columns(names, table, gyro_name, 3)
     if gyro_deg is None:
         raise LogError(f"{path}: no gyroADC or gyroUnfilt fields (the gyro): clear blackbox_disable_gyro")
-    if gyro_name == "gyroADC":
-        notes.append("gyroUnfilt is not logged: the filtered gyroADC stands in (its filters' lag counts "
-                     "as gyro delay)")
     motors = _columns(names, table, "motor", 4)
     if motors is None:
         raise LogError(f"{path}: no motor[0..3] fields (the motor outputs): clear blackbox_disable_motors")
     scale = 10.0 if headers.get("blackbox_high_resolution") == 1 else 1.0
-    gyro = np.radians(gyro_deg / scale) * np.array([1.0, -1.0, -1.0])  # Betaflight's axes to FRD
+    frd = np.array([1.0, -1.0, -1.0])  # Betaflight's axes to FRD
+    gyro = np.radians(gyro_deg / scale) * frd
     low, high = _output_range(headers, motors)
     protocol = _header_int(headers, "motor_pwm_protocol")
+    if protocol is None:
+        protocol = _header_int(headers, "fast_pwm_protocol")  # 3.x's name
     digital = protocol in DSHOT_PROTOCOLS if protocol is not None else high > 2000
     zero, span = (DSHOT_ZERO, DSHOT_SPAN) if digital else (PWM_ZERO, PWM_SPAN)
     command = np.clip((motors - zero) / span, 0.0, 1.0)
@@ -139,15 +213,71 @@ def read_blackbox_log(path: Path, motor_poles: int | None = None) -> FlightLog:
         if not armed.any():
             raise LogError(f"{path}: the arm switch is never on (flightModeFlags): a ground-only log")
         keep &= armed
+    check_motors_move(path, command[keep])
     rotor, rotor_note = _rotor_speed(names, table, headers, motor_poles)
     if rotor_note:
         notes.append(rotor_note)
+    setpoint = _setpoint(names, table, headers)
+    battery = _battery(names, table, version)
+    lag, lag_note = 0.0, "gyroUnfilt, before the gyro filters"
+    if gyro_name == "gyroADC":
+        hover = float(np.median(command[keep].mean(axis=1))) if keep.any() else None
+        lag, lag_note = gyro_filter_lag_s(headers, hover)
+        notes.append(f"the filtered gyroADC is read: its filters' lag, {lag * 1e3:.2f} ms ({lag_note}), is "
+                     "known from the header and not fitted as delay")
     sample_t, held, note = _samples(t_us, gyro_deg)
     if note:
         notes.append(note)
+    index_text = next((n for n in notes if n.startswith("log ") and " of the " in n), "")
     return flown_stretch(path, sample_t, gyro[held], command[held], keep[held],
                          None if rotor is None else rotor[held], None if throttle is None else throttle[held],
-                         source, tuple(notes))
+                         source, tuple(notes), setpoint=None if setpoint is None else setpoint[held] * frd,
+                         battery_v=None if battery is None else battery[held], gyro_filter_lag_s=lag,
+                         gyro_filter_note=lag_note, props_reversed=yaw_motors_reversed(headers),
+                         header=dict(headers), title=index_text)
+
+
+def check_rate(path: Path, interval_s: float) -> None:
+    if interval_s > MAX_LOG_INTERVAL_S:
+        raise LogError(f"{path}: logged at {1 / interval_s:.0f} Hz: a rate twin needs at least "
+                       f"{1 / MAX_LOG_INTERVAL_S:.0f} Hz (set blackbox_sample_rate / P ratio higher)")
+
+
+def check_motors_move(path: Path, armed_command: np.ndarray) -> None:
+    """`armed_command` (N, 4), 0..1, armed and above idle: refused where no motor ever moves."""
+    if len(armed_command) and np.ptp(armed_command, axis=0).max() < MIN_MOTOR_TRAVEL:
+        raise LogError(f"{path}: the motors never move (their outputs span less than {MIN_MOTOR_TRAVEL:.0%} "
+                       "of the range): a ground-only or bench log")
+
+
+def _setpoint(names: list[str], table: np.ndarray, headers: dict) -> np.ndarray | None:
+    """(N, 3) rad/s in Betaflight's axes: the logged setpoint (4.x), else the sticks through the rates."""
+    logged = _columns(names, table, "setpoint", 3)
+    if logged is None:
+        sticks = _columns(names, table, "rcCommand", 3)
+        if sticks is None:
+            return None
+        logged = stick_setpoint_dps(headers, np.nan_to_num(sticks))
+    return np.radians(np.nan_to_num(logged))
+
+
+def _battery(names: list[str], table: np.ndarray, version: tuple[int, ...]) -> np.ndarray | None:
+    """(N,) V from vbatLatest: 0.01 V a unit from Betaflight 4.0, 0.1 V before."""
+    if "vbatLatest" not in names:
+        return None
+    raw = table[:, names.index("vbatLatest")]
+    volts = raw * (0.01 if version >= (4, 0) else 0.1)
+    return volts if np.nanmax(volts) > 1.0 else None
+
+
+def _columns(names: list[str], table: np.ndarray, base: str, count: int) -> np.ndarray | None:
+    idx = [names.index(f"{base}[{i}]") for i in range(count) if f"{base}[{i}]" in names]
+    return table[:, idx] if len(idx) == count else None
+
+
+def _header_int(headers: dict, key: str) -> int | None:
+    value = headers.get(key)
+    return int(value) if isinstance(value, int | float) else None
 
 
 def _output_range(headers: dict, motors: np.ndarray) -> tuple[float, float]:
@@ -196,3 +326,25 @@ def _samples(t_us: np.ndarray, raw_gyro: np.ndarray) -> tuple[np.ndarray, np.nda
         times = grid
         note = f"{1 / interval_s:.0f} Hz gyro readings held onto the twin's {1 / GRID_S:.0f} Hz step"
     return times, index, note
+
+
+def mixer_throttle(header: dict, command: float) -> float:
+    """Betaflight's mixer throttle (0..1 of `motorOutput`) for a motor command (0..1 of the protocol)."""
+    protocol = _header_int(header, "motor_pwm_protocol")
+    if protocol is None:
+        protocol = _header_int(header, "fast_pwm_protocol")
+    value = header.get("motorOutput")
+    paired = isinstance(value, list) and len(value) == 2
+    low, high = (float(value[0]), float(value[1])) if paired else (0.0, 1.0)
+    digital = protocol in DSHOT_PROTOCOLS if protocol is not None else high > 2000
+    zero, span = (DSHOT_ZERO, DSHOT_SPAN) if digital else (PWM_ZERO, PWM_SPAN)
+    if high <= low:
+        return command
+    return float(np.clip((zero + span * command - low) / (high - low), 0.0, 1.0))
+
+
+def own_tune(log: FlightLog) -> dict:
+    """The log's own tune as an fcemu preset, its TPA at the flight's median collective."""
+    collective = log.throttle if log.throttle is not None else log.command.mean(axis=1)
+    hover = mixer_throttle(log.header, float(np.median(collective)))
+    return log_tune(log.header, log.path, hover_throttle=hover)

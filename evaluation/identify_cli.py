@@ -15,11 +15,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("identify", help="an airframe file from a PX4 ULog or a Betaflight blackbox log (rate "
                                         "response, motor lag and delay, rpm, hover, gyro noise); --fly: from"
                                         " a flight on a twin")
-    p.add_argument("log", nargs="?", default=None, metavar="LOG.ulg|LOG.BFL",
-                   help="the flight log (docs/identify.md: what to log and fly)")
+    p.add_argument("log", nargs="*", metavar="LOG.ulg|LOG.BFL",
+                   help="the flight logs of one quad, each flight of each used "
+                        "(docs/identify.md: what to log and fly)")
     p.add_argument("--out", required=True, metavar="PATH",
-                   help="the airframe file to write (its report.md and rates.png beside it); with --fly "
-                        "a folder: flight.ulg, airframe.json, report.md")
+                   help="the airframe file to write (its report.md and rates.png beside it, and for a "
+                        "Betaflight log its own tune as pid_log.json); with --fly a folder: flight.ulg, "
+                        "airframe.json, report.md")
+    add_span_option(p, "identify from this stretch only (leave the rest for `fcemu replay` to check)")
+    p.add_argument("--no-refine", dest="refine", action="store_false",
+                   help="a Betaflight log: skip flying the twin with the log's own tune to refine it "
+                        "(docs/identify.md: about a minute on 2 cores)")
     p.add_argument("--base", default=DEFAULT_AIRFRAME, metavar="NAME|FILE",
                    help="the airframe that gives what a log cannot: mass, geometry, k_M, sizes "
                         "(default iris)")
@@ -37,6 +43,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(handler="fcemu.evaluation.identify_cli:identify_command")
 
 
+def add_span_option(p: argparse.ArgumentParser, purpose: str) -> None:
+    p.add_argument("--span", type=parse_span, default=None, metavar="START:END",
+                   help=f"seconds into the flight, either end may be left empty: {purpose}")
+
+
+def parse_span(text: str) -> tuple[float | None, float | None]:
+    start, sep, end = text.partition(":")
+    try:
+        span = (float(start) if start else None, float(end) if end else None)
+    except ValueError:
+        span = None
+    if not sep or span is None or (None not in span and span[1] <= span[0]):
+        raise argparse.ArgumentTypeError(f"{text!r}: give START:END in seconds, "
+                                         "END after START (e.g. 0:60 or 60:)")
+    return span
+
+
 def _load_base(name: str):
     from fcemu.sim_bridge.airframe import load_airframe
 
@@ -45,38 +68,49 @@ def _load_base(name: str):
 
 def identify_command(args) -> int:
     from fcemu.evaluation.identify_airframe import identified_document, identify, write_airframe
-    from fcemu.evaluation.identify_log import read_flight_log
     from fcemu.evaluation.identify_report import write_report
     from fcemu.firmware.errors import UserError
 
-    if (args.log is None) == (args.fly is None):
+    if bool(args.log) == (args.fly is not None):
         raise UserError("fcemu identify takes a LOG or --fly AIRFRAME, one of them")
     if args.fly is None and args.perturb_seed is not None:
         raise UserError("--perturb-seed draws the airframe --fly flies; there is none to draw without --fly")
     base = _load_base(args.base)
-    truth = None
+    truth = flown_by = None
     if args.fly is not None:
         out_dir = Path(args.out)
         truth = _flown_airframe(args.fly, args.perturb_seed, out_dir)
         if args.controller == "betaflight":
             log_path = _fly_betaflight(truth, out_dir)
         else:
-            from fcemu.evaluation.identify_flight import fly_identification
+            from fcemu.evaluation.identify_flight import fly_identification, identification_controller
 
-            log_path = fly_identification(truth, args.controller, seed=args.seed).write(
+            controller, flown_by = identification_controller(truth, args.controller, out_dir)
+            log_path = fly_identification(truth, controller, seed=args.seed).write(
                 out_dir / "flight.ulg", {"ver_hw": f"fcemu SITL {truth.name}"})
         airframe_path = out_dir / "airframe.json"
         name = f"{truth.name}_identified"
     else:
-        log_path, airframe_path = Path(args.log), Path(args.out)
+        airframe_path = Path(args.out)
         if airframe_path.is_dir():
             raise UserError(f"--out {airframe_path}: a folder; name the airframe file to write")
         out_dir = airframe_path.parent
         name = airframe_path.stem
-    log = read_flight_log(log_path)
+    from fcemu.evaluation.identify_log import joined, read_flight_logs
+    from fcemu.evaluation.replay import span_of
+
+    log = span_of(joined(read_flight_logs(args.log or [log_path])), args.span)
+    log_path = log.path
     ident = identify(log, base, args.base)
-    airframe = write_airframe(identified_document(ident, name), airframe_path)
-    report, figures = write_report(ident, airframe, airframe_path, out_dir, truth)
+    document = identified_document(ident, name)
+    airframe = write_airframe(document, airframe_path)
+    refinement = None
+    if log.header is not None:
+        refinement = _refined(log, document, airframe_path, out_dir, args.refine)
+        airframe = write_airframe(document if refinement is None else refinement[1], airframe_path)
+        refinement = None if refinement is None else refinement[0]
+    report, figures = write_report(ident, airframe, airframe_path, out_dir, truth, flown_by=flown_by,
+                                   refinement=refinement)
     if args.json:
         print(json.dumps(figures))
     else:
@@ -88,6 +122,29 @@ def identify_command(args) -> int:
               + ", ".join(f"{a} {fits['identified'][a]:.1f} % (base {fits['base'][a]:.1f} %)"
                           for a in fits["identified"]))
     return 0
+
+
+def _refined(log, document: dict, airframe_path: Path, out_dir: Path, refine: bool):
+    """The log's own tune written as pid_log.json; with `refine`, (the refinement, the refined file)."""
+    from fcemu.evaluation.identify_blackbox import own_tune
+    from fcemu.evaluation.identify_closed_loop import refine as refine_twin
+    from fcemu.evaluation.identify_closed_loop import refined_document
+    from fcemu.sim_bridge.airframe import load_airframe
+
+    tune_path = out_dir / "pid_log.json"
+    tune = own_tune(log)
+    tune_path.write_text(json.dumps(tune, indent=2) + "\n")
+    print(f"the log's own tune: {tune_path} (what fcemu's PID does not model is listed in it)",
+          file=sys.stderr)
+    if not refine:
+        return None
+
+    def progress(flights: int, mismatch: float) -> None:
+        if flights % 20 == 0:
+            print(f"  closed-loop refinement: {flights} flights, mismatch {mismatch:.4f}", file=sys.stderr)
+
+    refinement = refine_twin(log, load_airframe(airframe_path), f"pid:{tune_path}", progress)
+    return refinement, refined_document(document, refinement, log.name)
 
 
 def _fly_betaflight(truth, out_dir: Path) -> Path:

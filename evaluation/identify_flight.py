@@ -13,6 +13,8 @@ The loop ticks in lockstep with the twin, faster than real time; the log is the 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from fcemu.firmware.controller import RateSetpoint
@@ -87,6 +89,33 @@ class _Excitation:
 
     def command(self, t_us: int, frame: SensorFrame) -> Command:
         return self.commands[min(t_us // self.period_us, len(self.commands) - 1)]
+
+
+def identification_controller(airframe: Airframe, controller: str, out_dir: Path) -> tuple[str, str | None]:
+    """(the controller spec that flies `airframe`'s identification flight, a sentence for the report
+    where it is not the one asked for). `pid` is the airframe's shipped tune; where none is shipped it
+    is the Iris tune carried over by the loop's physics, as `fcemu tune` starts from
+    (`evaluation.pid_carry_over`), written to DIR/pid_carried_over.json and flown as pid:that file."""
+    from fcemu.firmware.controllers import ControllerSpecError, airframe_preset
+
+    if controller != "pid":
+        return controller, None
+    try:
+        airframe_preset(airframe_spec(airframe))
+        return controller, None
+    except ControllerSpecError:
+        pass
+    import json
+
+    from fcemu.evaluation.pid_carry_over import REFERENCE, iris_tune_carried_over
+
+    start = iris_tune_carried_over(airframe)
+    path = Path(out_dir) / "pid_carried_over.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(start, indent=1) + "\n")
+    note = (f"flown by the {REFERENCE[0].capitalize()} tune carried over to {airframe.name} by the loop's "
+            f"physics (fcemu tune's start, {path.name}): no tune is shipped for it")
+    return f"pid:{path}", note
 
 
 def fly_identification(airframe: Airframe, controller: str = "pid", rate_hz: float = 1000.0,

@@ -41,6 +41,13 @@ class FlightLog:
     throttle: np.ndarray | None  # (T,) the collective setpoint, 0..1
     command_source: str  # which topic the motor commands came from
     notes: tuple[str, ...] = ()  # what of the log was left unused, and why
+    setpoint: np.ndarray | None = None  # (T, 3) rad/s FRD: the rate setpoint the log's controller flew
+    battery_v: np.ndarray | None = None  # (T,) the battery voltage, V
+    gyro_filter_lag_s: float = 0.0  # the logged gyro's known filter lag (Betaflight's gyroADC)
+    gyro_filter_note: str = ""  # which filters make that lag
+    props_reversed: bool | None = None  # the log's header on the motors' spin (None: it does not say)
+    header: dict | None = None  # a Betaflight log's header: its own tune, rates and filters
+    title: str = ""  # which log of the file, where it holds several
 
     @property
     def dt(self) -> float:
@@ -48,41 +55,53 @@ class FlightLog:
 
     @property
     def name(self) -> str:
-        return self.path.name
+        return self.path.name + (f" ({self.title})" if self.title else "")
 
 
 def _read(path: Path):
+    """The ULog at `path`, read up to its last complete message: a log cut off mid-message (the
+    battery pulled while it was written) keeps the messages before the cut, and says so in the
+    `fcemu_notes` it is given (empty where the file is whole)."""
+    import io
+
     from pyulog import ULog
     from pyulog.core import ULogException
 
     try:
-        with open(path, "rb") as handle:
-            head = handle.read(7)
+        data = path.read_bytes()
     except OSError as exc:
         raise LogError(f"{path}: cannot read it ({(exc.strerror or type(exc).__name__).lower()})") from None
-    if head != bytes(ULog.HEADER_BYTES[:7]):
+    if data[:7] != bytes(ULog.HEADER_BYTES[:7]):
         raise LogError(f"{path}: not a PX4 ULog or a Betaflight blackbox log (no header of either)")
-    _check_complete(path)
+    cut = _check_complete(path, data)
     try:
-        log = ULog(str(path))
+        log = ULog(io.BytesIO(data[:cut]))
     except (ULogException, ValueError, struct.error, IndexError, UnicodeDecodeError) as exc:
         raise LogError(f"{path}: not a readable ULog ({' '.join(str(exc).split())[:120]})") from None
     if log.file_corruption:
         raise LogError(f"{path}: the ULog is truncated or corrupt (pyulog found a broken message)")
+    log.fcemu_notes = () if cut == len(data) else (
+        f"the log ends cut off (power lost?): read up to byte {cut} of {len(data)}",)
     return log
 
 
-def _check_complete(path: Path) -> None:
-    """pyulog drops a message cut off at the end of the file without a word: walk the messages
-    (each a uint16 size, a uint8 type and the payload, after the 16-byte file header) to the end."""
-    data = path.read_bytes()
-    position = 16
+def _check_complete(path: Path, data: bytes) -> int:
+    """The byte the ULog's last complete message ends at: the file's length where it is whole.
+    pyulog drops a message cut off at the end of the file without a word, so walk the messages
+    (each a uint16 size, a uint8 type and the payload, after the 16-byte file header) to the end.
+    A file that ends before its first logged data (`D` message) has nothing to read: a LogError."""
+    position, logged = 16, False
     while position + 3 <= len(data):
-        (size,) = struct.unpack_from("<H", data, position)
+        size, kind = struct.unpack_from("<HB", data, position)
+        if position + 3 + size > len(data):
+            break
+        logged |= kind == ord("D")
         position += 3 + size
-    if position != len(data):
-        raise LogError(f"{path}: truncated: its last message stops {position - len(data)} bytes short "
-                       f"(the file ends at byte {len(data)})")
+    if not logged:
+        inside = " (inside its 16-byte file header)" if len(data) < 16 else ""
+        raise LogError(f"{path}: the ULog ends at byte {len(data)} before any logged data{inside}: no flight "
+                       "to read (cut off?)")
+    return position
 
 
 def _dataset(log, name: str):
@@ -137,11 +156,11 @@ def read_flight_log(path: str | Path, motor_poles: int | None = None) -> FlightL
         keep &= was.astype(bool)
     rotor, esc_hz = _rotor_speed(log, t_us)
     gyro_hz = 1e6 / float(np.median(np.diff(t_us)))
-    notes = ()
+    notes = log.fcemu_notes
     if rotor is not None and esc_hz < MIN_ESC_SHARE * gyro_hz:
         rotor = None
-        notes = (f"esc_status at {esc_hz:.0f} Hz against the gyro's {gyro_hz:.0f} Hz is too slow for the "
-                 "motor lag: its rpm is left out (log esc_status at the loop rate: docs/identify.md)",)
+        notes += (f"esc_status at {esc_hz:.0f} Hz against the gyro's {gyro_hz:.0f} Hz is too slow for the "
+                  "motor lag: its rpm is left out (log esc_status at the loop rate: docs/identify.md)",)
     throttle = None
     setpoint_set = _dataset(log, "vehicle_rates_setpoint")
     if setpoint_set is not None and "thrust_body[2]" in setpoint_set.data:
@@ -153,9 +172,10 @@ def read_flight_log(path: str | Path, motor_poles: int | None = None) -> FlightL
 
 def flown_stretch(path: Path, t_us: np.ndarray, gyro: np.ndarray, command: np.ndarray, keep: np.ndarray,
                   rotor: np.ndarray | None, throttle: np.ndarray | None, source: str,
-                  notes: tuple[str, ...]) -> FlightLog:
+                  notes: tuple[str, ...], **per_sample_and_more) -> FlightLog:
     """The log's samples from the first to the last `keep` (armed, motors above idle), or a
-    LogError where that is no flight: too short, never turning, an axis never excited."""
+    LogError where that is no flight: too short, never turning, an axis never excited. Keyword
+    arguments are further FlightLog fields; `setpoint` and `battery_v` are cut to the same stretch."""
     dt = float(np.median(np.diff(t_us))) * 1e-6
     if keep.sum() * dt < MIN_FLIGHT_S:
         raise LogError(f"{path}: {keep.sum() * dt:.2f} s with the motors armed and above idle, at least "
@@ -170,10 +190,14 @@ def flown_stretch(path: Path, t_us: np.ndarray, gyro: np.ndarray, command: np.nd
     if quiet:
         raise LogError(f"{path}: {' and '.join(quiet)} never turned faster than {MIN_RATE} rad/s: fly a "
                        "doublet or chirp on every axis (docs/identify.md)")
+    more = dict(per_sample_and_more)
+    for key in ("setpoint", "battery_v"):
+        if more.get(key) is not None:
+            more[key] = np.asarray(more[key], dtype=np.float64)[window]
     return FlightLog(path, (t_us[window] - t_us[first]) * 1e-6, gyro[window], command[window],
                      None if rotor is None else rotor[window],
                      None if throttle is None else np.asarray(throttle[window], dtype=np.float64), source,
-                     notes)
+                     notes, **more)
 
 
 def _rotor_speed(log, t_us: np.ndarray) -> tuple[np.ndarray | None, float]:
@@ -192,3 +216,41 @@ def _rotor_speed(log, t_us: np.ndarray) -> tuple[np.ndarray | None, float]:
     out = np.stack(speeds, axis=1)
     rate = 1e6 / max(float(np.median(np.diff(esc.data["timestamp"].astype(np.int64)))), 1.0)
     return (out if np.abs(out).max() > 0 else None), rate
+
+
+def read_flight_logs(paths: list[str | Path], motor_poles: int | None = None) -> list[FlightLog]:
+    """Every flight in the logs: a blackbox file's every arming that flew, a ULog's flight."""
+    from fcemu.evaluation.identify_blackbox import is_blackbox, read_blackbox_logs
+
+    logs: list[FlightLog] = []
+    for path in map(Path, paths):
+        logs += (read_blackbox_logs(path, motor_poles) if is_blackbox(path)
+                 else [read_flight_log(path, motor_poles)])
+    return logs
+
+
+def joined(logs: list[FlightLog]) -> FlightLog:
+    """The flights one after another as one log (the fits see a seam as one odd sample among
+    thousands); refused where they were logged at different rates."""
+    if len(logs) == 1:
+        return logs[0]
+    rates = [1 / log.dt for log in logs]
+    if max(rates) > 1.02 * min(rates):
+        raise LogError(f"the logs are at different rates ({', '.join(f'{r:.0f}' for r in rates)} Hz): "
+                       "identify "
+                       "them apart, or from logs of one rate")
+    first = logs[0]
+
+    def stack(field: str) -> np.ndarray | None:
+        values = [getattr(log, field) for log in logs]
+        return None if any(v is None for v in values) else np.concatenate(values)
+
+    t = np.arange(sum(len(log.t) for log in logs)) * first.dt
+    notes = tuple(dict.fromkeys(n for log in logs for n in log.notes if not n.startswith("log ")))
+    names = ", ".join(log.name for log in logs)
+    return FlightLog(first.path, t, stack("gyro"), stack("command"), stack("rotor_speed"), stack("throttle"),
+                     first.command_source, (f"{len(logs)} flights joined: {names}", *notes),
+                     setpoint=stack("setpoint"), battery_v=stack("battery_v"),
+                     gyro_filter_lag_s=first.gyro_filter_lag_s, gyro_filter_note=first.gyro_filter_note,
+                     props_reversed=first.props_reversed, header=first.header,
+                     title=f"{len(logs)} flights")

@@ -62,8 +62,10 @@ def _row(what: str, identified: str, true: float | None, unit: str = "") -> str:
 
 
 def write_report(ident: Identification, airframe: Airframe, airframe_path: Path, out_dir: Path,
-                 truth: Airframe | None = None) -> tuple[Path, dict]:
-    """DIR/report.md and DIR/rates.png; returns the report's path and its figures as JSON."""
+                 truth: Airframe | None = None, flown_by: str | None = None,
+                 refinement=None) -> tuple[Path, dict]:
+    """DIR/report.md and DIR/rates.png; returns the report's path and its figures as JSON. `flown_by`:
+    a sentence on what flew the identification flight where it says more than the log."""
     identified, base, horizon = predictions(ident)
     fit_id, fit_base = prediction_fit(ident.log, identified), prediction_fit(ident.log, base)
     plot = plot_rates(ident, identified, base, out_dir / "rates.png")
@@ -110,7 +112,25 @@ def write_report(ident: Identification, airframe: Airframe, airframe_path: Path,
                "prediction_fit_pct": {"identified": dict(zip(AXES, map(float, fit_id), strict=True)),
                                       "base": dict(zip(AXES, map(float, fit_base), strict=True))},
                "tau_up_s": mf.tau_up.__dict__, "tau_down_s": mf.tau_down.__dict__,
-               "hover_command": ident.hover.__dict__}
+               "hover_command": ident.hover.__dict__, "props": ident.spin_note}
+    refined = []
+    if refinement is not None:
+        figures["closed_loop"] = {"factors": refinement.factors,
+                                  "gyro_delay_ticks": refinement.gyro_delay_ticks,
+                                  "mismatch_before": refinement.mismatch_before,
+                                  "mismatch_after": refinement.mismatch_after, "flights": refinement.flights,
+                                  "stretch_s": refinement.stretch_s}
+        refined = [
+            "## Refined in closed loop", "",
+            f"The log's own tune (`pid_log.json`) flew the twin on the log's setpoints over "
+            f"{refinement.stretch_s[0]:.1f}-{refinement.stretch_s[1]:.1f} s ({refinement.flights} flights); "
+            "each axis's mismatch of the rates (squared error over the log's variance) went from "
+            + ", ".join(f"{a} {b:.3f} to {c:.3f}" for a, b, c in zip(AXES, refinement.mismatch_before,
+                                                                    refinement.mismatch_after, strict=True))
+            + ". The factors on the least-squares values: "
+            + ", ".join(f"{k.replace('_', ' ')} ×{v:.3g}" for k, v in refinement.factors.items())
+            + f"; gyro delay {refinement.gyro_delay_ticks} ticks. The table above is the least-squares fit; "
+              "the file holds the refined numbers.", ""]
     lines = [
         f"# {airframe.name}: identified from {log.name}", "",
         f"`{airframe_path}` from `{log.path}`: {len(log.t)} samples at {1 / log.dt:.0f} Hz, motor commands "
@@ -120,8 +140,9 @@ def write_report(ident: Identification, airframe: Airframe, airframe_path: Path,
         "from k_F over the effectiveness, "
         + ("the yaw inertia from the rates' gyroscopic coupling and k_M from it" if km_identified else
            "the yaw inertia from the base's k_M (the log's rates never turned about two axes at once)")
-        + ". Every number's source is in the airframe file.", "",
-        *(f"Left out: {note}." for note in log.notes), *([""] if log.notes else []),
+        + ". Every number's source is in the airframe file."
+        + (f" The flight was {flown_by}." if flown_by else "") + f" Motors: {ident.spin_note}.", "",
+        *(f"From the log: {note}." for note in log.notes), *([""] if log.notes else []),
         *rows, "",
         f"## Body rates predicted {horizon * log.dt * 1000:.0f} ms ahead", "",
         "Fit (100 % = the measured rate; 0 % = no better than its mean):", "",
@@ -129,6 +150,7 @@ def write_report(ident: Identification, airframe: Airframe, airframe_path: Path,
         "| identified | " + " | ".join(f"{v:.1f} %" for v in fit_id) + " |",
         f"| base {ident.base_label} | " + " | ".join(f"{v:.1f} %" for v in fit_base) + " |", "",
         f"![measured and predicted rates]({plot.name})", "",
+        *refined,
     ]
     report = out_dir / "report.md"
     report.write_text("\n".join(lines), encoding="utf-8")

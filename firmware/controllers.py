@@ -55,9 +55,15 @@ def load_controller(spec: str, loop_rate_hz: float | None = None,
         if not preset:
             preset = DEFAULT_PRESET if airframe is None else str(airframe_preset(airframe))
         try:
-            return PIDRateController.from_preset(preset)
+            controller = PIDRateController.from_preset(preset)
         except (ValueError, KeyError, TypeError) as exc:  # an unknown preset or a preset file that is not one
             raise ControllerSpecError(f"controller {spec!r}: {exc}") from exc
+        if airframe is not None and airframe.props_out and not controller.mixer.yaw_reversed:
+            controller.mixer = _yaw_reversed(controller.mixer)
+        return controller
+    if airframe is not None and airframe.props_out:
+        raise ControllerSpecError(f"controller {spec!r}: {airframe.name}'s props spin out (motor 1 "
+                                  "counter-clockwise) and a policy is made for props in: fly the PID")
     if spec.endswith(".onnx"):
         from fcemu.firmware.neural import NeuralRateController
 
@@ -68,3 +74,11 @@ def load_controller(spec: str, loop_rate_hz: float | None = None,
         return CPolicyController(spec, loop_rate_hz=loop_rate_hz, airframe=airframe)
     raise ControllerSpecError(f"unknown controller {spec!r}: use pid, pid:<preset>, a .onnx file "
                               "or a directory from `fcemu export --target c`")
+
+
+def _yaw_reversed(mixer):
+    """The same mixer for props spinning out, as Betaflight's yaw_motors_reversed flies them."""
+    from fcemu.firmware.mixer import QuadXMixer
+
+    table = mixer.table_name if mixer.table_name != "custom" else mixer.table
+    return QuadXMixer(table, mixer.idle, mixer.airmode, mixer.pwm_min, mixer.pwm_max, yaw_reversed=True)

@@ -73,6 +73,7 @@ class QuadXMixer:
         airmode: bool = True,
         pwm_min: float = 1000.0,
         pwm_max: float = 2000.0,
+        yaw_reversed: bool = False,
     ) -> None:
         if isinstance(table, str):
             if table not in TABLES:
@@ -84,6 +85,10 @@ class QuadXMixer:
             rows = tuple(tuple(float(v) for v in row) for row in table)  # type: ignore[misc]
         if len(rows) != 4 or any(len(r) != 3 for r in rows):
             raise ValueError("a Quad X table has 4 rows of (roll, pitch, yaw)")
+        # Betaflight's yaw_motors_reversed: props spinning "out", each motor the other way round
+        self.yaw_reversed = bool(yaw_reversed)
+        if self.yaw_reversed:
+            rows = tuple((r, p, -y) for r, p, y in rows)
         if not 0.0 <= idle < 1.0:
             raise ValueError(f"idle must be in [0, 1), got {idle}")
         if pwm_max <= pwm_min:

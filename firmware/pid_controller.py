@@ -73,7 +73,8 @@ class PIDRateController:
         m = self.mixer
         return {"name": self.name, "pid": self.pid.gains.to_dict(),
                 "mixer": {"table": m.table_name if m.table_name != "custom" else [list(r) for r in m.table],
-                          "idle": m.idle, "airmode": m.airmode}}
+                          "idle": m.idle, "airmode": m.airmode,
+                          **({"yaw_reversed": True} if m.yaw_reversed else {})}}
 
     @property
     def dt(self) -> float:

@@ -69,6 +69,8 @@ class Airframe:
     # What a real airframe adds (`sim_bridge.plant`); all off by default, as in the paper's twin.
     rate_damping: tuple[float, float, float] = (0.0, 0.0, 0.0)  # N·m·s/rad, FRD torque −D·Ω
     rotor_inertia: float = 0.0  # kg·m² about the spin axis: spin-up reaction and gyroscopic moment
+    # FRD, m: the centre of mass off the rotors' centre; the thrust then turns the body (a quad's trim)
+    centre_of_mass_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
     esc_delay_ticks: int = 0  # PWM command → motor, whole physics steps
     gyro_delay_ticks: int = 0  # rate → gyro reading, whole physics steps
     # ESC telemetry as a real bus delivers it: late by whole steps, and each motor's frame lost
@@ -94,7 +96,7 @@ class Airframe:
     @property
     def body_torques(self) -> bool:
         """Any torque beside the rotors' thrust and drag: damping, spin-up reaction, gyroscopic."""
-        return bool(any(self.rate_damping) or self.rotor_inertia)
+        return bool(any(self.rate_damping) or self.rotor_inertia or any(self.centre_of_mass_offset))
 
     @property
     def gyro_effects(self) -> bool:
@@ -177,6 +179,7 @@ class Airframe:
 EFFECT_KEYS = {
     "rate_damping_N_m_s_rad": "rate_damping",
     "rotor_inertia_kg_m2": "rotor_inertia",
+    "centre_of_mass_offset_m": "centre_of_mass_offset",
     "esc_delay_ticks": "esc_delay_ticks",
     "gyro_delay_ticks": "gyro_delay_ticks",
     "esc_telemetry_delay_ticks": "esc_telemetry_delay_ticks",
@@ -232,7 +235,8 @@ def _effects(path: Path, raw: dict) -> dict:
         name = EFFECT_KEYS[key]
         value = entry["value"]
         if isinstance(value, list):
-            value = vector(path, f"{where}.value", value, strict=False)
+            value = vector(path, f"{where}.value", value, strict=False,
+                           low=None if name == "centre_of_mass_offset" else 0.0)
         elif name.endswith("_ticks"):
             whole = isinstance(value, int | float) and not isinstance(value, bool) and int(value) == value
             if not whole or value < 0:

@@ -107,7 +107,8 @@ def _rotor_sum(x: np.ndarray, spin: np.ndarray | None = None) -> np.ndarray:
 
 
 def body_torque(rates: np.ndarray, omega: np.ndarray, omega_before: np.ndarray, damping: np.ndarray,
-                rotor_inertia: float | np.ndarray, spin: np.ndarray, dt: float) -> np.ndarray:
+                rotor_inertia: float | np.ndarray, spin: np.ndarray, dt: float,
+                com_offset: np.ndarray | None = None, thrust: np.ndarray | None = None) -> np.ndarray:
     """FRD torque (..., 3) on the body beside thrust and drag, from body `rates` (..., 3) FRD.
 
     Aerodynamic damping −D·Ω (`damping` (..., 3)). Rotor i (spin s_i, +1 counter-clockwise
@@ -115,18 +116,23 @@ def body_torque(rates: np.ndarray, omega: np.ndarray, omega_before: np.ndarray, 
     the rotors hold h = (0, 0, h_z), h_z = −J_r·Σ s_i ω_i. Speeding them up pushes the body
     the other way, −dh/dt = J_r·Σ s_i dω_i/dt about z (the sign of the drag torque
     k_M·s_i·T_i); a body turning at Ω with spinning rotors feels the gyroscopic moment
-    −Ω × h = (−q·h_z, p·h_z, 0). `rotor_inertia` is a scalar or per vehicle (...,).
+    −Ω × h = (−q·h_z, p·h_z, 0). `rotor_inertia` is a scalar or per vehicle (...,). A centre of
+    mass `com_offset` (..., 3) FRD off the rotors' centre puts the rotors' total `thrust` (..., 4)
+    N (along −z) off it: c × (0, 0, T) = (c_y·T, −c_x·T, 0).
     """
     p, q, r = rates[..., 0], rates[..., 1], rates[..., 2]
     h_z = -(rotor_inertia * _rotor_sum(omega, spin))
     spin_up = rotor_inertia * (_rotor_sum(omega - omega_before, spin) / dt)
-    return np.stack([-damping[..., 0] * p - q * h_z,
-                     -damping[..., 1] * q + p * h_z,
-                     -damping[..., 2] * r + spin_up], axis=-1)
+    roll, pitch = -damping[..., 0] * p - q * h_z, -damping[..., 1] * q + p * h_z
+    if com_offset is not None and thrust is not None:
+        total = thrust.sum(axis=-1)
+        roll, pitch = roll + com_offset[..., 1] * total, pitch - com_offset[..., 0] * total
+    return np.stack([roll, pitch, -damping[..., 2] * r + spin_up], axis=-1)
 
 
 def body_torque_one(rates: list[float], omega: list[float], before: list[float], damping: list[float],
-                    rotor_inertia: float, spin: list[float], dt: float) -> list[float]:
+                    rotor_inertia: float, spin: list[float], dt: float, com_offset: list[float] | None = None,
+                    thrust: list[float] | None = None) -> list[float]:
     """`body_torque` for one vehicle in plain floats: the same operations in the same order."""
     s0, s1, s2, s3 = spin
     w0, w1, w2, w3 = omega
@@ -134,7 +140,11 @@ def body_torque_one(rates: list[float], omega: list[float], before: list[float],
     p, q, r = rates
     h_z = -(rotor_inertia * ((s0 * w0 + s1 * w1) + (s2 * w2 + s3 * w3)))
     spin_up = rotor_inertia * (((s0 * (w0 - b0) + s1 * (w1 - b1)) + (s2 * (w2 - b2) + s3 * (w3 - b3))) / dt)
-    return [-damping[0] * p - q * h_z, -damping[1] * q + p * h_z, -damping[2] * r + spin_up]
+    roll, pitch = -damping[0] * p - q * h_z, -damping[1] * q + p * h_z
+    if com_offset is not None and thrust is not None:
+        total = sum(thrust)
+        roll, pitch = roll + com_offset[1] * total, pitch - com_offset[0] * total
+    return [roll, pitch, -damping[2] * r + spin_up]
 
 
 @dataclass(frozen=True)
@@ -232,6 +242,7 @@ class AirframeEffects:
         self.dt, self.shape = dt, batch_shape
         self.spin = airframe.spin.astype(float)
         self.damping = np.zeros((*batch_shape, 3))
+        self.com_offset = np.zeros((*batch_shape, 3))
         self.rotor_inertia = np.zeros(batch_shape)
         self.vibration = np.zeros((*batch_shape, 3))
         self.battery_params = np.zeros((4, *batch_shape, 1))  # V_full, k, R, c
@@ -257,6 +268,7 @@ class AirframeEffects:
         """Take `airframe`'s parameters for one row of the batch (None: all rows)."""
         at = ... if row is None else row
         self.damping[at] = airframe.rate_damping
+        self.com_offset[at] = airframe.centre_of_mass_offset
         self.rotor_inertia[at] = airframe.rotor_inertia
         self.vibration[at] = airframe.gyro_vibration
         battery = (airframe.battery_voltage_full, airframe.battery_sag_per_charge,
@@ -279,6 +291,7 @@ class AirframeEffects:
         if not self.shape:
             # The one-vehicle path's parameters as plain floats, taken here rather than per step.
             self._damping_one, self._inertia_one = self.damping.tolist(), float(self.rotor_inertia)
+            self._com_one = self.com_offset.tolist() if any(airframe.centre_of_mass_offset) else None
             self._spin_one = self.spin.tolist()
             self._battery_one = tuple(float(p[0]) for p in self.battery_params)
 
@@ -297,8 +310,10 @@ class AirframeEffects:
     def speed_scale(self) -> np.ndarray | None:
         return self.battery.speed_scale(self.charge, self.current) if self.sags else None
 
-    def torque(self, rates: np.ndarray, omega: np.ndarray, omega_before: np.ndarray) -> np.ndarray:
-        return body_torque(rates, omega, omega_before, self.damping, self.rotor_inertia, self.spin, self.dt)
+    def torque(self, rates: np.ndarray, omega: np.ndarray, omega_before: np.ndarray,
+               thrust: np.ndarray | None = None) -> np.ndarray:
+        return body_torque(rates, omega, omega_before, self.damping, self.rotor_inertia, self.spin, self.dt,
+                           self.com_offset, thrust)
 
     def advance(self, omega: np.ndarray, thrust: np.ndarray) -> None:
         if self.sags:
@@ -317,9 +332,10 @@ class AirframeEffects:
         scale = volts / v
         return scale if scale > 0.0 else 0.0
 
-    def torque_one(self, rates: list[float], omega: list[float], before: list[float]) -> list[float]:
+    def torque_one(self, rates: list[float], omega: list[float], before: list[float],
+                   thrust: list[float] | None = None) -> list[float]:
         return body_torque_one(rates, omega, before, self._damping_one, self._inertia_one, self._spin_one,
-                               self.dt)
+                               self.dt, self._com_one, thrust)
 
     def advance_one(self, omega: list[float], thrust: list[float]) -> None:
         if self.sags:

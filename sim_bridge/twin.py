@@ -179,7 +179,7 @@ class Twin:
         self._ctrl[:] = thrust if faults is None else faults.thrust(thrust)
         if fx.torques:
             rates = (self.data.qvel[self._rot] * FLU_FROM_FRD).tolist()
-            torque = fx.torque_one(rates, self._omega, before)
+            torque = fx.torque_one(rates, self._omega, before, self._ctrl.tolist())
             self.data.qfrc_applied[self._rot] = np.array(torque) * FLU_FROM_FRD
 
     def _frame(self, reset: bool = False) -> SensorFrame:

@@ -132,7 +132,7 @@ class BatchedRateEnv(VectorEnv):
             rates = self._state[:, self._qvel] * FLU_FROM_FRD
             control, spec = self._control, CTRL_AND_TORQUE
             control[:, 0, :4] = self._ctrl[:, 0]
-            control[:, 0, 4:7] = fx.torque(rates, self._omega, before) * FLU_FROM_FRD
+            control[:, 0, 4:7] = fx.torque(rates, self._omega, before, self._ctrl[:, 0]) * FLU_FROM_FRD
         self._pool.rollout(self._models, self._datas, self._state, control, control_spec=spec,
                            skip_checks=True, nstep=1, state=self._next, sensordata=self._sens,
                            initial_warmstart=None,

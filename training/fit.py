@@ -293,9 +293,13 @@ def shipped_pid(airframe: str) -> str | None:
 
 
 def fit_command(args: Any) -> int:
+    import importlib.util
+
     from fcemu.firmware.timing import available_cpus
     from fcemu.training.pid_tune_cli import checked_airframe_and_out
 
+    if importlib.util.find_spec("torch") is None:  # before the tune's minutes, not after them
+        raise ModuleNotFoundError("the policy is trained with torch", name="torch")
     if args.tune_budget_s <= 0 or min(args.episodes, args.rounds, args.steps or 1, args.envs, args.fit_steps,
                                       *args.net_arch) < 1:
         raise UserError("fit: --tune-budget-s must be > 0; --episodes, --rounds, --steps, --envs, "

@@ -32,16 +32,26 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from fcemu.evaluation.pid_carry_over import (
+    FILTER_KNOBS,
+    REFERENCE,
+    LoopPhysics,
+    carried_over,
+    gain_scale,
+    loop_physics,
+    nominal,
+    per_axis,
+)
 from fcemu.firmware.errors import UserError
 from fcemu.firmware.mixer import QuadXMixer
 from fcemu.firmware.pid_controller import load_preset
-from fcemu.sim_bridge.airframe import Airframe, effect_fields, load_airframe
+from fcemu.sim_bridge.airframe import Airframe, load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.training.pid_search import (
     AXES,
@@ -55,7 +65,6 @@ from fcemu.training.pid_search import (
 )
 
 COST_VERSION = "fcemu-pid-tune/3"
-REFERENCE = ("iris", "iris")  # (airframe, preset) the start is carried over from
 GYRO_NOISE = 0.01  # rad/s white noise per sample, a MEMS gyro's order at 1 kHz
 SMOOTHNESS_CAP = 1.2  # motor |Δpwm| on the noisy gyro, at most this × the noise allowance
 # The allowance is the start's roughness on the noisy gyro, but never below the reference tune's on its
@@ -75,30 +84,7 @@ GAIN_KNOBS = (("kp", (0, 1, 2), 1.3, (0.5, 40.0)), ("ki", (0, 1, 2), 1.5, (1.0, 
 # axis's gains also move together (`AxisGains`), by AXIS_GAIN_STEP at first.
 GAIN_SLACK = 10.0
 AXIS_GAIN_STEP = 2.0
-FILTER_KNOBS = (("gyro_lowpass_hz", 1.4, (50.0, 450.0)), ("dterm_lowpass_hz", 1.4, (20.0, 250.0)),
-                ("ff_lowpass_hz", 1.4, (10.0, 250.0)))
 PIDSUM_KNOB = (1.25, (0.2, 1.0))
-
-
-def per_axis(values: np.ndarray) -> dict[str, float]:
-    return {a: round(float(v), 2) for a, v in zip(AXES, values, strict=True)}
-
-
-@dataclass(frozen=True)
-class LoopPhysics:
-    """What sets an airframe's loop gain and crossover (module doc)."""
-
-    authority: np.ndarray  # (3,) B: rad/s² per unit of PID output at hover, roll/pitch/yaw
-    lag_s: float  # τ: the motor's mean time constant plus the ESC and gyro delays
-
-    def to_json(self) -> dict[str, Any]:
-        return {"authority_rad_s2": per_axis(self.authority), "lag_s": round(self.lag_s, 5)}
-
-
-def nominal(airframe: Airframe) -> Airframe:
-    """The airframe with every effect at its nominal-twin default (what `rig_constants` reads)."""
-    defaults = {f.name: f.default for f in fields(Airframe) if f.name in effect_fields()}
-    return replace(airframe, **defaults)
 
 
 def settle_limits(airframe: Airframe, commands: np.ndarray) -> dict[str, Any]:
@@ -127,45 +113,6 @@ def settle_limits(airframe: Airframe, commands: np.ndarray) -> dict[str, Any]:
     over = (np.abs(np.asarray(commands)) > np.array(largest)).sum(axis=0)
     return {"max_angular_acceleration_rad_s2": per_axis(accel), "largest_settleable_rad_s": per_axis(largest),
             "unsettleable_commands": {a: int(n) for a, n in zip(AXES, over, strict=True)}}
-
-
-def loop_physics(airframe: Airframe, mixer: QuadXMixer | None = None, dt: float = 0.001) -> LoopPhysics:
-    from fcemu.evaluation.bound import rig_constants
-
-    mixer = mixer or QuadXMixer()
-    rig = rig_constants(nominal(airframe), dt)
-    m = airframe.motor
-    hover = airframe.hover_rotor_speed()
-    speed_per_demand = mixer.out_range * m.max_rotor_speed / (m.pwm_max - m.pwm_min)
-    thrust_per_demand = 2.0 * m.kf * hover * speed_per_demand  # d(kf·ω²)/d(demand) at hover
-    table = np.array(mixer.table)  # (4 motors, 3 axes)
-    authority = np.array([rig.B[j] @ table[:, j] for j in range(3)]) * thrust_per_demand
-    lag = 0.5 * (m.tau_up + m.tau_down) + dt * (airframe.esc_delay_ticks + airframe.gyro_delay_ticks)
-    return LoopPhysics(authority, lag)
-
-
-def gain_scale(ref: LoopPhysics, new: LoopPhysics) -> tuple[np.ndarray, float, dict[str, np.ndarray]]:
-    """(B_r/B per axis, τ_r/τ, each gain's factor from the reference airframe to the new: module doc)."""
-    gain = ref.authority / new.authority
-    speed = ref.lag_s / new.lag_s
-    return gain, speed, {"kp": gain * speed, "ki": gain * speed**2, "kd": gain, "kff": gain}
-
-
-def carried_over(reference: dict[str, Any], ref: LoopPhysics, new: LoopPhysics) -> dict[str, Any]:
-    """The reference preset's gains carried over to an airframe of other physics (module doc)."""
-    gain, speed, scale = gain_scale(ref, new)
-    preset = json.loads(json.dumps(reference))
-    pid = preset["pid"]
-    for key, factor in scale.items():
-        pid[key] = [float(f"{v * f:.9g}") for v, f in zip(pid[key], factor, strict=True)]
-    # An axis with less authority than the reference's gets at least the reference's angular
-    # acceleration at the limit, as far as the whole output range allows.
-    pid["pidsum_limit"] = [float(f"{min(1.0, v * max(1.0, g)):.9g}")
-                           for v, g in zip(pid["pidsum_limit"], gain, strict=True)]
-    for key, _, (_, highest) in FILTER_KNOBS:
-        if pid.get(key, 0.0) > 0.0:
-            pid[key] = float(f"{min(pid[key] * speed, highest):.9g}")
-    return preset
 
 
 def knobs_for(ref: LoopPhysics, new: LoopPhysics, reference: dict[str, Any]) -> list[Move]:

@@ -93,7 +93,7 @@ def _log_without(flown, tmp_path, topic: str) -> str:
 
 @pytest.mark.parametrize(("case", "line"), [
     ("text", "not a PX4 ULog"),
-    ("truncated", "truncated: its last message stops"),
+    ("header only", "ends at byte 300 before any logged data: no flight to read (cut off?)"),
     ("no gyro", "no vehicle_angular_velocity topic"),
     ("no motors", "no actuator_motors or actuator_outputs topic"),
     ("disarmed", "never armed (actuator_armed): a ground-only log"),
@@ -103,9 +103,9 @@ def test_a_log_that_cannot_be_identified_is_one_line_and_exit_2(case, line, flow
     if case == "text":
         log = tmp_path / "notes.ulg"
         log.write_text("not a log\n")
-    elif case == "truncated":
+    elif case == "header only":
         log = tmp_path / "cut.ulg"
-        log.write_bytes((flown / "flight.ulg").read_bytes()[:-7])
+        log.write_bytes((flown / "flight.ulg").read_bytes()[:300])  # cut inside its format definitions
     elif case == "no gyro":
         log = _log_without(flown, tmp_path, "vehicle_angular_velocity")
     elif case == "no motors":
@@ -118,6 +118,22 @@ def test_a_log_that_cannot_be_identified_is_one_line_and_exit_2(case, line, flow
     err = capsys.readouterr().err
     assert err.startswith(f"fcemu: error: {log}: ") and line in err and err.count("\n") == 1
     assert not (tmp_path / "out.json").exists()
+
+
+def test_a_log_cut_off_mid_message_is_read_up_to_the_cut_and_says_so(flown, tmp_path, capsys) -> None:
+    whole = (flown / "flight.ulg").read_bytes()
+    log = tmp_path / "cut.ulg"
+    log.write_bytes(whole[:-7])  # the battery pulled while its last message was written
+    assert main(["identify", str(log), "--out", str(tmp_path / "cut.json")]) == 0
+    read = read_flight_log(log)
+    cut = int(read.notes[0].split("read up to byte ")[1].split(" of ")[0])
+    assert read.notes[0] == f"the log ends cut off (power lost?): read up to byte {cut} of {len(whole) - 7}"
+    assert len(whole) - 7 - 200 < cut < len(whole) - 7
+    assert read.notes[0] in (tmp_path / "report.md").read_text()
+    assert read.notes[0] in json.loads((tmp_path / "cut.json").read_text())["source"]
+    # cut far earlier, mid-flight: the flight before the cut is what is read
+    (tmp_path / "earlier.ulg").write_bytes(whole[:len(whole) * 9 // 10 + 5])
+    assert read_flight_log(tmp_path / "earlier.ulg").t[-1] < read.t[-1] - 1.0
 
 
 def test_identify_takes_a_log_or_fly_not_both(tmp_path, capsys) -> None:

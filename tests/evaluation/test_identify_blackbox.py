@@ -93,7 +93,7 @@ def _header_end(data: bytes) -> int:
 
 @pytest.mark.parametrize(("case", "line"), [
     ("header only", "0 data frames decoded: no flight in the log (truncated?)"),
-    ("cleanflight", "a Cleanflight blackbox log; only Betaflight's units are read"),
+    ("cleanflight", "a Cleanflight blackbox log (Cleanflight "),
     ("no motors", "no motor[0..3] fields (the motor outputs): clear blackbox_disable_motors"),
     ("no gyro", "no gyroADC or gyroUnfilt fields (the gyro): clear blackbox_disable_gyro"),
     ("cut short", "with the motors armed and above idle, at least 1 s needed: a ground-only log"),
@@ -105,6 +105,7 @@ def test_a_blackbox_log_that_cannot_be_identified_is_one_line_and_exit_2(case, l
         data = data[:_header_end(data)]
     elif case == "cleanflight":
         data = data.replace(b"H Firmware type:Betaflight", b"H Firmware type:Cleanflight", 1)
+        data = data.replace(b"H Firmware revision:Betaflight", b"H Firmware revision:Cleanflight", 1)
     elif case == "no motors":  # the fields under other names of the same length: decoded, not found
         data = data.replace(b"motor[", b"mOtor[")
     elif case == "no gyro":

@@ -125,3 +125,16 @@ def test_a_good_run_is_unchanged(tmp_path: Path) -> None:
                  "--quiet", cwd=tmp_path)
     assert proc.returncode == 0 and "200 ticks" in proc.stdout, proc.stderr
     assert "fcemu: error" not in proc.stderr
+
+
+@pytest.mark.parametrize("args", [("train", "--steps", "1"), ("fit", "--airframe", "iris"),
+                                  ("distill", "policy.onnx")])
+def test_a_command_without_its_extra_names_it_in_one_line(tmp_path: Path, args: tuple[str, ...]) -> None:
+    """As after `make demo` (the runtime only): torch is not there."""
+    script = ("import sys; sys.modules['torch'] = None; from fcemu.cli import main; "
+              f"sys.exit(main({[*args, '--out', str(tmp_path / 'out')]!r}))")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path)
+    assert done.returncode == 2, done.stderr[-1500:]
+    assert done.stderr.count("\n") == 1 and "pip install 'fcemu[train]'" in done.stderr
+    assert not (tmp_path / "out").exists()

@@ -129,3 +129,36 @@ def test_custom_table_and_validation():
         QuadXMixer("hexa")
     with pytest.raises(ValueError, match="idle"):
         QuadXMixer(idle=1.5)
+
+
+def test_props_out_reverse_the_yaw_column_as_betaflights_yaw_motors_reversed() -> None:
+    from fcemu.firmware.mixer import QuadXMixer
+
+    ahead, reversed_ = QuadXMixer(), QuadXMixer(yaw_reversed=True)
+    yaw = [0.0, 0.0, 0.2]
+    a, r = ahead.mix(yaw, 0.5), reversed_.mix(yaw, 0.5)
+    np.testing.assert_allclose(np.array(a) - 1500.0, -(np.array(r) - 1500.0), atol=1e-9)
+    np.testing.assert_allclose(ahead.mix([0.1, -0.2, 0.0], 0.5), reversed_.mix([0.1, -0.2, 0.0], 0.5))
+
+
+def test_a_props_out_airframe_flies_the_pid_with_yaw_reversed_and_refuses_a_policy(tmp_path) -> None:
+    import json
+
+    from fcemu.firmware.controllers import ControllerSpecError, default_controller, load_controller
+    from fcemu.sim_bridge.airframe import AIRFRAME_DIR
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    raw = json.loads((AIRFRAME_DIR / "iris.json").read_text())
+    for rotor in raw["motors"]:
+        rotor["spin"] = "ccw" if rotor["spin"] == "cw" else "cw"
+    raw["name"] = "iris_props_out"
+    path = tmp_path / "iris_props_out.json"
+    path.write_text(json.dumps(raw))
+    spec = airframe_spec(str(path))
+    assert spec.props_out and not airframe_spec("iris").props_out
+    assert load_controller("pid:pid_iris", 1000.0, spec).mixer.yaw_reversed
+    assert not load_controller("pid:pid_iris", 1000.0, airframe_spec("iris")).mixer.yaw_reversed
+    policy = default_controller()
+    if policy.endswith(".onnx"):
+        with pytest.raises(ControllerSpecError, match="props spin out"):
+            load_controller(policy, 1000.0, spec)

@@ -12,7 +12,7 @@ import pytest
 from fcemu.sim_bridge.airframe import EFFECT_KEYS, effect_fields, load_airframe
 from fcemu.sim_bridge.env import RateControlEnv
 from fcemu.sim_bridge.plant import AirframeEffects, DelayLine, MotorModel, body_torque
-from fcemu.sim_bridge.twin import Twin, TwinState
+from fcemu.sim_bridge.twin import Twin, TwinState, hover_state
 from fcemu.sim_bridge.vec_env import BatchedRateEnv
 from tests.sim_bridge.test_vec_env import _assert_matches_single_envs
 
@@ -47,7 +47,9 @@ def test_nominal_has_every_effect_off_and_the_realistic_one_every_effect_on_with
         assert all(len(s) > 10 for s in sources.values())
     for name in effect_fields():
         # full 3S in both; the telemetry on time in both (a late bus is a fault or a training range)
-        if name not in ("battery_voltage_full", "battery_drawn_at_start", "esc_telemetry_delay_ticks"):
+        # nor a centre of mass off the rotors' centre: a trim is a real quad's own, read from its log
+        if name not in ("battery_voltage_full", "battery_drawn_at_start", "esc_telemetry_delay_ticks",
+                        "centre_of_mass_offset"):
             assert getattr(REALISTIC, name) != getattr(IRIS, name), name
     # the realistic airframe is the nominal one plus effects
     assert REALISTIC.mass == IRIS.mass and REALISTIC.motor == IRIS.motor
@@ -101,6 +103,27 @@ def test_damping_opposes_the_rate():
     torque = body_torque(np.array([2.0, -3.0, 4.0]), np.zeros(4), np.zeros(4), np.array([0.1, 0.2, 0.3]), 0.0,
                          IRIS.spin.astype(float), DT)
     np.testing.assert_allclose(torque, [-0.2, 0.6, -1.2], rtol=1e-15)
+
+
+# ── a centre of mass off the rotors' centre: the thrust turns the body ────────────────
+def test_thrust_off_the_centre_of_mass_rolls_and_pitches_by_the_offset_times_the_thrust():
+    thrust = np.array([1.0, 2.0, 3.0, 4.0])
+    torque = body_torque(np.zeros(3), np.zeros(4), np.zeros(4), np.zeros(3), 0.0, IRIS.spin.astype(float), DT,
+                         np.array([0.01, -0.02, 0.0]), thrust)
+    np.testing.assert_allclose(torque, [-0.02 * 10.0, -0.01 * 10.0, 0.0], rtol=1e-15)
+
+
+def test_a_centre_of_mass_to_the_right_rolls_the_hovering_twin_right():
+    offset = (0.0, 0.01, 0.0)  # 1 cm right of the rotors' centre
+    twin = Twin(replace(IRIS, centre_of_mass_offset=offset))
+    twin.reset(state=hover_state(IRIS, IRIS.hover_throttle()))
+    hover = np.full(4, IRIS.hover_pwm())
+    for _ in range(50):
+        twin.step(hover)
+    weight = IRIS.mass * 9.81
+    expected = 0.01 * weight * 0.05 / rig_inertia(twin)[0, 0]  # torque over inertia, for 50 ms
+    np.testing.assert_allclose(twin.truth().body_rates[0], expected, rtol=0.05)
+    assert replace(IRIS, centre_of_mass_offset=offset).body_torques
 
 
 # ── rotor inertia: spin-up reaction and gyroscopic moment ─────────────────────────────
