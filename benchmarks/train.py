@@ -48,7 +48,7 @@ class _CappedRace(PidRaceCallback):
 
 
 def bench_train(args) -> int:
-    from fcemu.training.cli import user_error
+    from fcemu.firmware.errors import UserError
     from fcemu.training.config import from_args
 
     with tempfile.TemporaryDirectory(prefix="fcemu-bench-train-") as tmp:
@@ -58,9 +58,9 @@ def bench_train(args) -> int:
             cfg = from_args(args, out=args.out or str(Path(tmp) / "run"),
                             progress=not args.json and sys.stderr.isatty())
         except ValueError as exc:
-            return user_error(str(exc))
+            raise UserError(str(exc)) from None
         if cfg.eval_every <= 0:
-            return user_error("the race needs --eval-every > 0")
+            raise UserError("the race needs --eval-every > 0")
         load_before = os.getloadavg()
         race = _CappedRace(cfg, cfg.eval_every, args.target, args.max_minutes * 60.0)
         summary = train(cfg, race=race)

@@ -39,7 +39,10 @@ def bound_command(args) -> int:
                  "controllers": []}
     if args.gyro_passes:
         out["estimate_sum"] = round(float(np.mean([b.estimate for b in found])), 2)
-    cfg = EvalConfig(task="episodic", episodes=args.episodes, seed=args.seed, airframe=args.airframe)
+    from fcemu.evaluation.evaluate import fallback_for
+
+    cfg = EvalConfig(task="episodic", episodes=args.episodes, seed=args.seed, airframe=args.airframe,
+                     fallback=fallback_for(args.airframe, args.fallback, args.controller or []))
     for spec in args.controller or []:
         traces = run_controller(spec, cfg, progress=progress)
         m = compute_metrics(traces)

@@ -26,7 +26,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "true quad behind a file `fcemu identify` wrote, with a policy fitted on that file")
     p.add_argument("--fallback", default="pid", metavar="PID",
                    help="the PID a policy hands over to when its input is unhealthy (default pid: the "
-                        "airframe's own tune; pid:DIR/pid.json for one `fcemu tune` wrote)")
+                        "airframe's own tune, else the one pid:FILE flown as a --controller; "
+                        "pid:DIR/pid.json for one `fcemu tune` wrote)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--report", metavar="DIR", help="write a Markdown report with figures into DIR")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save the traces (one file per controller)")
@@ -60,5 +61,8 @@ def register_bound(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=0, help="worker processes (default: one per usable CPU)")
     p.add_argument("--controller", action="append", default=None,
                    help="also fly pid, pid:<preset> or FILE.onnx on the same commands and compare")
+    p.add_argument("--fallback", default="pid", metavar="PID",
+                   help="the PID a policy hands over to (as fcemu eval's: the airframe's own tune, else the "
+                        "one pid:FILE flown as a --controller)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(handler="fcemu.evaluation.bound_cli:bound_command")

@@ -63,12 +63,28 @@ def _airframes(args) -> tuple[list[PerturbedAirframe], str | None]:
     return perturbed_airframes(ranges, args.perturb, args.perturb_seed), str(ranges.path)
 
 
+def fallback_for(airframe: str, fallback: str, controllers: list[str]) -> str:
+    """The PID a policy hands over to: `fallback`, but where that is the airframe's own tune and none is
+    shipped, the one PID preset flown beside the policy (`--controller pid:DIR/pid.json`)."""
+    from fcemu.firmware.controllers import ControllerSpecError, airframe_preset
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    presets = [c for c in controllers if c.startswith("pid:")]
+    if fallback != "pid" or len(presets) != 1:
+        return fallback
+    try:
+        airframe_preset(airframe_spec(airframe))
+    except ControllerSpecError:
+        return presets[0]
+    return fallback
+
+
 def eval_command(args) -> int:
     specs = args.controller or ["pid"]
     try:
         cfg = EvalConfig(task=args.task, episodes=args.episodes, seed=args.seed, episode_s=args.episode_s,
-                         throttle=args.throttle, airframe=args.airframe, fallback=args.fallback,
-                         twin=args.twin)
+                         throttle=args.throttle, airframe=args.airframe,
+                         fallback=fallback_for(args.airframe, args.fallback, specs), twin=args.twin)
         if args.perturb < 0:
             raise ValueError(f"--perturb must be >= 0, got {args.perturb}")
         if args.twin is not None and args.perturb:

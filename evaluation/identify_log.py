@@ -161,13 +161,16 @@ def read_flight_log(path: str | Path, motor_poles: int | None = None) -> FlightL
         rotor = None
         notes += (f"esc_status at {esc_hz:.0f} Hz against the gyro's {gyro_hz:.0f} Hz is too slow for the "
                   "motor lag: its rpm is left out (log esc_status at the loop rate: docs/identify.md)",)
-    throttle = None
+    throttle = setpoint = None
     setpoint_set = _dataset(log, "vehicle_rates_setpoint")
-    if setpoint_set is not None and "thrust_body[2]" in setpoint_set.data:
+    if setpoint_set is not None:
         s = setpoint_set.data
-        st = _times(s, "timestamp")
-        throttle = -s["thrust_body[2]"][np.clip(np.searchsorted(st, t_us, side="right") - 1, 0, len(st) - 1)]
-    return flown_stretch(path, t_us, gyro, command, keep, rotor, throttle, source, notes)
+        at = np.clip(np.searchsorted(_times(s, "timestamp"), t_us, side="right") - 1, 0, None)
+        if "thrust_body[2]" in s:
+            throttle = -s["thrust_body[2]"][at]
+        if all(axis in s for axis in ("roll", "pitch", "yaw")):
+            setpoint = np.stack([s[axis][at] for axis in ("roll", "pitch", "yaw")], axis=1).astype(np.float64)
+    return flown_stretch(path, t_us, gyro, command, keep, rotor, throttle, source, notes, setpoint=setpoint)
 
 
 def flown_stretch(path: Path, t_us: np.ndarray, gyro: np.ndarray, command: np.ndarray, keep: np.ndarray,

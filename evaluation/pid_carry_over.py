@@ -89,14 +89,24 @@ def carried_over(reference: dict[str, Any], ref: LoopPhysics, new: LoopPhysics) 
     return preset
 
 
+def mixer_for(preset: dict[str, Any], airframe: Airframe) -> dict[str, Any]:
+    """The preset's mixer settings for `airframe`: yaw reversed where its props spin out (motor 1
+    counter-clockwise), as Betaflight's yaw_motors_reversed and fcemu's firmware fly it."""
+    mixer = dict(preset.get("mixer", {}))
+    if airframe.spin[0] > 0:
+        mixer["yaw_reversed"] = True
+    return mixer
+
+
 def iris_tune_carried_over(airframe: Airframe) -> dict[str, Any]:
     """The reference tune carried over to `airframe` by the loop's physics, as a preset."""
     from fcemu.firmware.pid_controller import load_preset
     from fcemu.sim_bridge.airframe import load_airframe
 
     reference = load_preset(REFERENCE[1])
-    mixer = QuadXMixer(**reference["mixer"])
-    start = carried_over(reference, loop_physics(load_airframe(REFERENCE[0]), mixer),
-                         loop_physics(airframe, mixer))
+    ref_physics = loop_physics(load_airframe(REFERENCE[0]), QuadXMixer(**reference["mixer"]))
+    new_physics = loop_physics(airframe, QuadXMixer(**mixer_for(reference, airframe)))
+    start = carried_over(reference, ref_physics, new_physics)
     start["name"] = f"pid_{airframe.name}"
+    start["mixer"] = mixer_for(reference, airframe)
     return start

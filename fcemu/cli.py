@@ -1,4 +1,4 @@
-"""The `fcemu` console script.
+"""fcemu: a MAVLink flight-controller emulator for neural rate control; `fcemu COMMAND --help`.
 
 Each package owns its subcommands: it registers them here with a cheap
 `register(subparsers)` (argparse only) and names its handler as "module:function",

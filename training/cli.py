@@ -84,11 +84,3 @@ def register_tune(sub: argparse._SubParsersAction) -> None:
                    help="most rounds of the search per stage, if the budget lasts (default 12)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.set_defaults(handler="fcemu.training.pid_tune_cli:tune_command")
-
-
-def user_error(message: str) -> int:
-    """`fcemu: error: ...` on one line, exit status 2."""
-    import sys
-
-    print(f"fcemu: error: {message}", file=sys.stderr)
-    return 2

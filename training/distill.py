@@ -356,16 +356,16 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
 
 
 def distill_command(args) -> int:
-    from fcemu.training.cli import user_error
+    from fcemu.firmware.errors import UserError
 
     try:
         cfg = from_args(args)
     except ValueError as exc:
-        return user_error(str(exc))
+        raise UserError(str(exc)) from None
     try:
         summary = distill(cfg)
     except ValueError as exc:  # DistillError, a bad TrainConfig value, an ExportError
-        return user_error(str(exc))
+        raise UserError(str(exc)) from None
     if args.json:
         print(json.dumps(summary, default=float))
     else:

@@ -292,6 +292,18 @@ def shipped_pid(airframe: str) -> str | None:
         return None
 
 
+def tuned_in(out: Path, airframe: str) -> str | None:
+    """DIR/pid.json where `fcemu tune` (or an earlier fit) tuned it for this airframe: not tuned again."""
+    from fcemu.sim_bridge.airframe import load_airframe
+
+    path = out / "pid.json"
+    try:
+        tuned_for = json.loads(path.read_text()).get("tuning", {}).get("airframe")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return str(path) if tuned_for == load_airframe(airframe).name else None
+
+
 def fit_command(args: Any) -> int:
     import importlib.util
 
@@ -313,7 +325,7 @@ def fit_command(args: Any) -> int:
     if args.pid and args.tune:
         raise UserError("fit: --pid or --tune, not both")
     out = checked_airframe_and_out("fit", args.airframe, args.out)
-    pid = args.pid or (None if args.tune else shipped_pid(args.airframe))
+    pid = args.pid or (None if args.tune else shipped_pid(args.airframe) or tuned_in(out, args.airframe))
     opts = FitOptions(args.airframe, str(out), args.seed, args.episodes, args.tune_budget_s,
                       args.lag_multiple, args.rounds, args.steps, args.envs, args.fit_steps,
                       tuple(args.net_arch), args.jobs or available_cpus(), not args.no_mcu,
@@ -358,7 +370,8 @@ def register(sub: Any) -> None:
                    help="the policy's hidden layers, tanh")
     p.add_argument("--jobs", type=int, default=0, help="worker processes and torch threads (0: the CPUs)")
     p.add_argument("--pid", metavar="PRESET", help="a PID already tuned for this airframe (a preset name or "
-                                                   "file): no tune (default: a shipped airframe's own)")
+                                                   "file): no tune (default: a shipped airframe's own, or "
+                                                   "the one `fcemu tune` wrote to OUT/pid.json for it)")
     p.add_argument("--tune", action="store_true", help="tune a PID anew even where the airframe's ships")
     p.add_argument("--no-mcu", action="store_true", help="skip the STM32F405 time (fcemu bench mcu)")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")

@@ -42,9 +42,10 @@ from fcemu.evaluation.pid_carry_over import (
     FILTER_KNOBS,
     REFERENCE,
     LoopPhysics,
-    carried_over,
     gain_scale,
+    iris_tune_carried_over,
     loop_physics,
+    mixer_for,
     nominal,
     per_axis,
 )
@@ -227,11 +228,9 @@ class Tuner:
         self.t0 = time.monotonic()
         self.airframe = load_airframe(opts.airframe)
         reference = load_preset(REFERENCE[1])
-        mixer = QuadXMixer(**reference["mixer"])
-        self.ref_physics = loop_physics(load_airframe(REFERENCE[0]), mixer)
-        self.physics = loop_physics(self.airframe, mixer)
-        self.start = carried_over(reference, self.ref_physics, self.physics)
-        self.start["name"] = f"pid_{self.airframe.name}"
+        self.ref_physics = loop_physics(load_airframe(REFERENCE[0]), QuadXMixer(**reference["mixer"]))
+        self.physics = loop_physics(self.airframe, QuadXMixer(**mixer_for(reference, self.airframe)))
+        self.start = iris_tune_carried_over(self.airframe)
         self.knobs = knobs_for(self.ref_physics, self.physics, reference)
         self.tuning = episodic_commands(opts.seed, opts.episodes)
         self.held_out = episodic_commands(opts.seed + 1, opts.check_episodes)

@@ -322,18 +322,19 @@ def saved_spec(raw: dict[str, Any], spec: SweepSpec) -> dict[str, Any]:
 
 
 def sweep_command(args) -> int:
-    from fcemu.training.cli import SWEEP_DEFAULTS, user_error
+    from fcemu.firmware.errors import UserError
+    from fcemu.training.cli import SWEEP_DEFAULTS
 
     out = Path(args.out or "runs/sweep")
     try:
         spec = spec_from_args(args, SWEEP_DEFAULTS)
     except ValueError as exc:
-        return user_error(str(exc))
+        raise UserError(str(exc)) from None
     saved = out / "sweep.json"
     stored = json.dumps(dataclasses.asdict(spec), sort_keys=True, default=list)
     if saved.is_file() and json.dumps(saved_spec(json.loads(saved.read_text()), spec),
                                       sort_keys=True, default=list) != stored:
-        return user_error(f"{out} holds a different sweep (its spec: {saved}); choose another --out")
+        raise UserError(f"{out} holds a different sweep (its spec: {saved}); choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     saved.write_text(json.dumps(dataclasses.asdict(spec), indent=2, default=list) + "\n")
 

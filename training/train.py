@@ -330,17 +330,17 @@ def print_summary(summary: dict[str, Any]) -> None:
 
 # ── 8. Command line ───────────────────────────────────────────────────────────────────
 def train_command(args) -> int:
-    from fcemu.training.cli import user_error
+    from fcemu.firmware.errors import UserError
     from fcemu.training.config import from_args
 
     try:
         cfg = from_args(args)
     except ValueError as exc:
-        return user_error(str(exc))
+        raise UserError(str(exc)) from None
     try:
         summary = train(cfg)
     except InitError as exc:
-        return user_error(str(exc))
+        raise UserError(str(exc)) from None
     if args.json:
         print(json.dumps(summary, default=float))
     else:

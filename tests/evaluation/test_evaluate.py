@@ -186,3 +186,13 @@ def test_the_twin_can_fly_another_airframe_than_the_firmware_is_set_up_for(tmp_p
                      "--report", str(tmp_path / "report"))
     assert reported.returncode == 0, reported.stderr
     assert f"airframe `iris` (the twin flies `{heavy}`)" in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_a_policy_on_an_airframe_without_a_shipped_tune_falls_back_to_the_pid_flown_beside_it() -> None:
+    from fcemu.evaluation.evaluate import fallback_for
+
+    fitted = ["pid:runs/x500/pid.json", "runs/x500/policy.onnx"]
+    assert fallback_for("x500", "pid", fitted) == "pid:runs/x500/pid.json"  # x500 ships no tune
+    assert fallback_for("iris", "pid", fitted) == "pid"  # its own tune first
+    assert fallback_for("x500", "pid:other.json", fitted) == "pid:other.json"  # as asked
+    assert fallback_for("x500", "pid", [*fitted, "pid:b.json"]) == "pid"  # which one: not guessed

@@ -188,3 +188,16 @@ def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teach
     assert student["teacher"] == "inversion:0.5" and taught["order"] == [0.35, 0.5]
     assert speed == {"lag_multiple": 0.35, "order": [0.35, 0.5], "pid_smoothness": 1e-6}  # as given
     assert "the next slower teacher" in lines[0] and "next slower" not in lines[1]
+
+
+def test_fit_takes_the_pid_fcemu_tune_wrote_for_the_airframe_in_its_folder(tmp_path) -> None:
+    import json
+
+    from fcemu.training.fit import tuned_in
+
+    assert tuned_in(tmp_path, "x500") is None  # nothing there: it tunes
+    (tmp_path / "pid.json").write_text(json.dumps({"pid": {}, "tuning": {"airframe": "x500"}}))
+    assert tuned_in(tmp_path, "x500") == str(tmp_path / "pid.json")
+    assert tuned_in(tmp_path, "racer5") is None  # tuned for another airframe
+    (tmp_path / "pid.json").write_text("not json")
+    assert tuned_in(tmp_path, "x500") is None

@@ -1,17 +1,19 @@
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fcemu.cli import main
+from fcemu.evaluation.pid_carry_over import carried_over, iris_tune_carried_over
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.mixer import QuadXMixer
 from fcemu.firmware.pid_controller import load_preset
 from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.training.pid_search import Score
-from fcemu.training.pid_tune import SMOOTHNESS_CAP, carried_over, cost, knobs_for, loop_physics, settle_limits
+from fcemu.training.pid_tune import SMOOTHNESS_CAP, cost, knobs_for, loop_physics, settle_limits
 
 
 def test_loop_physics_follows_inertia_thrust_and_motor_lag():
@@ -146,3 +148,11 @@ def test_an_out_that_cannot_be_written_is_one_line(tmp_path: Path, capsys):
     assert main(["tune", "--airframe", "iris", "--out", str(blocker / "sub")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("fcemu: error:") and "not a writable directory" in err and "\n" not in err
+
+
+def test_a_props_out_airframe_starts_from_the_iris_tune_with_yaw_reversed() -> None:
+    iris = load_airframe("iris")
+    out = replace(iris, name="iris_out", spin=-iris.spin)
+    start = iris_tune_carried_over(out)
+    assert start["mixer"]["yaw_reversed"] and "yaw_reversed" not in iris_tune_carried_over(iris)["mixer"]
+    assert start["pid"] == iris_tune_carried_over(iris)["pid"]  # the same physics, yaw mixed the other way
