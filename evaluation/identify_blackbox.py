@@ -29,6 +29,7 @@ import contextlib
 import io
 import logging
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,7 @@ PWM_ZERO, PWM_SPAN = 1000.0, 1000.0  # Betaflight's analog outputs, µs
 BOXARM_BIT = 1  # flightModeFlags is Betaflight's rcModeActivationMask; BOXARM is box 0
 MAX_LOG_INTERVAL_S = 1 / 200  # slower than 200 Hz the rates' response (tens of ms) is a handful of samples
 INTRA = "fcemu:intra"  # the column _frames adds: 1 for an intra (key) frame
+MIN_THROTTLE = 0.05  # of the pilot's throttle range, held by no quad that flies
 MIN_MOTOR_TRAVEL = 0.02  # of the output range: motors that never move say nothing of the vehicle
 
 
@@ -171,6 +173,11 @@ def read_blackbox_logs(path: Path, motor_poles: int | None = None) -> list[Fligh
             refused.append((sizes[index - 1], exc))
     if not logs:
         raise max(refused, key=lambda pair: pair[0])[1]
+    if refused:
+        why = str(max(refused, key=lambda pair: pair[0])[1]).removeprefix(f"{path}: ")
+        note = (f"{len(refused)} of the {len(starts)} logs in the file hold no flight fcemu reads "
+                f"(the longest of them: {why})")
+        logs[0] = replace(logs[0], notes=(*logs[0].notes, note))
     return logs
 
 
@@ -214,6 +221,7 @@ def read_blackbox_log(path: Path, motor_poles: int | None = None, index: int | N
             raise LogError(f"{path}: the arm switch is never on (flightModeFlags): a ground-only log")
         keep &= armed
     check_motors_move(path, command[keep])
+    check_throttle_leaves_idle(path, _mixer_throttle(names, table)[keep])
     rotor, rotor_note = _rotor_speed(names, table, headers, motor_poles)
     if rotor_note:
         notes.append(rotor_note)
@@ -248,6 +256,22 @@ def check_motors_move(path: Path, armed_command: np.ndarray) -> None:
     if len(armed_command) and np.ptp(armed_command, axis=0).max() < MIN_MOTOR_TRAVEL:
         raise LogError(f"{path}: the motors never move (their outputs span less than {MIN_MOTOR_TRAVEL:.0%} "
                        "of the range): a ground-only or bench log")
+
+
+def _mixer_throttle(names: list[str], table: np.ndarray) -> np.ndarray:
+    """(N,) the pilot's throttle 0..1 over the mixer's range: `setpoint[3]` (‰), else the stick (3.x)."""
+    if "setpoint[3]" in names:
+        return np.nan_to_num(table[:, names.index("setpoint[3]")]) / 1000.0
+    if "rcCommand[3]" in names:
+        return np.clip((np.nan_to_num(table[:, names.index("rcCommand[3]")]) - 1000.0) / 1000.0, 0.0, 1.0)
+    return np.ones(len(table))  # not logged: not judged
+
+
+def check_throttle_leaves_idle(path: Path, armed_throttle: np.ndarray) -> None:
+    """`armed_throttle` 0..1 of the mixer's range: refused where it stays at idle (armed on the ground)."""
+    if len(armed_throttle) and np.percentile(armed_throttle, 95) < MIN_THROTTLE:
+        raise LogError(f"{path}: the throttle stays below {MIN_THROTTLE:.0%} for 95 % of the armed time: "
+                       "armed on the ground, not flown")
 
 
 def _setpoint(names: list[str], table: np.ndarray, headers: dict) -> np.ndarray | None:

@@ -11,7 +11,12 @@ import numpy as np
 import pytest
 
 from fcemu.cli import main
-from fcemu.evaluation.identify_blackbox import check_motors_move, check_rate, read_blackbox_logs
+from fcemu.evaluation.identify_blackbox import (
+    check_motors_move,
+    check_rate,
+    check_throttle_leaves_idle,
+    read_blackbox_logs,
+)
 from fcemu.evaluation.identify_log import LogError, joined
 from fcemu.firmware.pid_controller import PIDRateController
 from fcemu.sim_bridge.airframe import load_airframe
@@ -128,7 +133,7 @@ def test_another_firmwares_log_is_one_line_naming_it(tmp_path: Path, capsys, rev
     assert not out.parent.exists()
 
 
-def test_a_log_too_slow_for_a_rate_twin_or_whose_motors_never_move_is_refused() -> None:
+def test_a_log_too_slow_or_not_flown_is_refused() -> None:
     check_rate(Path("ok.bbl"), 0.004)  # 250 Hz is enough
     with pytest.raises(LogError, match=r"logged at 100 Hz: a rate twin needs at least 200 Hz"):
         check_rate(Path("slow.bbl"), 0.01)
@@ -136,6 +141,9 @@ def test_a_log_too_slow_for_a_rate_twin_or_whose_motors_never_move_is_refused() 
     with pytest.raises(LogError, match="the motors never move"):
         check_motors_move(Path("bench.bbl"), still)
     check_motors_move(Path("flown.bbl"), still + np.linspace(0, 0.2, 500)[:, None])
+    with pytest.raises(LogError, match="armed on the ground, not flown"):
+        check_throttle_leaves_idle(Path("ground.bbl"), np.r_[np.zeros(980), np.full(20, 0.5)])
+    check_throttle_leaves_idle(Path("flown.bbl"), np.r_[np.zeros(100), np.full(900, 0.3)])
 
 
 def test_replay_of_a_log_without_a_tune_of_its_own_needs_a_controller(tmp_path: Path, capsys) -> None:
