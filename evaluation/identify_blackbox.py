@@ -202,11 +202,7 @@ def read_blackbox_log(path: Path, motor_poles: int | None = None, index: int | N
     frd = np.array([1.0, -1.0, -1.0])  # Betaflight's axes to FRD
     gyro = np.radians(gyro_deg / scale) * frd
     low, high = _output_range(headers, motors)
-    protocol = _header_int(headers, "motor_pwm_protocol")
-    if protocol is None:
-        protocol = _header_int(headers, "fast_pwm_protocol")  # 3.x's name
-    digital = protocol in DSHOT_PROTOCOLS if protocol is not None else high > 2000
-    zero, span = (DSHOT_ZERO, DSHOT_SPAN) if digital else (PWM_ZERO, PWM_SPAN)
+    digital, zero, span = _protocol_scale(headers, high)
     command = np.clip((motors - zero) / span, 0.0, 1.0)
     source = f"motor[0..3] ({'DShot 48-2047' if digital else '1000-2000 µs'})"
     throttle = None
@@ -352,16 +348,22 @@ def _samples(t_us: np.ndarray, raw_gyro: np.ndarray) -> tuple[np.ndarray, np.nda
     return times, index, note
 
 
+def _protocol_scale(headers: dict, high: float) -> tuple[bool, float, float]:
+    """(digital, the output at command 0, the span to command 1) of the motor protocol the header
+    names (`motor_pwm_protocol`, 3.x `fast_pwm_protocol`), else guessed from the outputs' top."""
+    protocol = _header_int(headers, "motor_pwm_protocol")
+    if protocol is None:
+        protocol = _header_int(headers, "fast_pwm_protocol")
+    digital = protocol in DSHOT_PROTOCOLS if protocol is not None else high > 2000
+    return (True, DSHOT_ZERO, DSHOT_SPAN) if digital else (False, PWM_ZERO, PWM_SPAN)
+
+
 def mixer_throttle(header: dict, command: float) -> float:
     """Betaflight's mixer throttle (0..1 of `motorOutput`) for a motor command (0..1 of the protocol)."""
-    protocol = _header_int(header, "motor_pwm_protocol")
-    if protocol is None:
-        protocol = _header_int(header, "fast_pwm_protocol")
     value = header.get("motorOutput")
     paired = isinstance(value, list) and len(value) == 2
     low, high = (float(value[0]), float(value[1])) if paired else (0.0, 1.0)
-    digital = protocol in DSHOT_PROTOCOLS if protocol is not None else high > 2000
-    zero, span = (DSHOT_ZERO, DSHOT_SPAN) if digital else (PWM_ZERO, PWM_SPAN)
+    _, zero, span = _protocol_scale(header, high)
     if high <= low:
         return command
     return float(np.clip((zero + span * command - low) / (high - low), 0.0, 1.0))
