@@ -68,16 +68,6 @@ def _frames(path: Path, fields: list[str], count: int) -> np.ndarray:
                     dtype=float)
 
 
-@pytest.fixture(scope="module")
-def gecko() -> dict:
-    return _headers(GECKO)
-
-
-@pytest.fixture(scope="module")
-def cs110() -> dict:
-    return _headers(CS110)
-
-
 def test_firmware_of_real_and_other_betaflight_headers(gecko: dict, cs110: dict) -> None:
     assert firmware(gecko, GECKO) == (4, 2, 8)  # Firmware type:Cleanflight, revision Betaflight
     assert firmware(cs110, CS110) == (3, 1, 5)

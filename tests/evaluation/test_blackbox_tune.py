@@ -4,9 +4,7 @@ versions, each taken as it is by fcemu's own PID loader."""
 
 from __future__ import annotations
 
-import logging
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,22 +20,6 @@ from fcemu.firmware.pid_controller import PIDRateController
 from tests.evaluation.test_blackbox_header import BF46, CS110, GECKO, V32
 
 pytestmark = pytest.mark.no_wall_clock
-
-
-def _headers(path: Path) -> dict:
-    orangebox = pytest.importorskip("orangebox", reason="the blackbox decoder is the extra fcemu[blackbox]")
-    logging.getLogger("orangebox").setLevel(logging.ERROR)
-    return orangebox.Parser.load(str(path), 1).headers
-
-
-@pytest.fixture(scope="module")
-def gecko() -> dict:
-    return _headers(GECKO)
-
-
-@pytest.fixture(scope="module")
-def cs110() -> dict:
-    return _headers(CS110)
 
 
 def test_log_tune_of_the_gecko(gecko: dict) -> None:
