@@ -9,7 +9,7 @@ does. Optional field `rate_error_rms` (3): the leaky root-mean-square of the sca
 error, R_k = √P_k with P_k = μ·P_{k−1} + (1 − μ)·e_k², over about one period of the
 limit cycles a fast policy can fall into on a slow airframe (17–60 Hz): a 16 ms history
 sees less than a period, and the integral averages an oscillation to zero. (Trained with
-it, a policy softens its steps instead: docs/training_notes.md, 2026-11-24, an oscillation
+it, a policy softens its steps instead: docs/archive/training_notes.md, 2026-11-24, an oscillation
 feature.) Optional field `rate` (3): the gyro's body rates Ω themselves, scaled as the error;
 the error alone hides where the rates are, and so the body's gyroscopic torque Ω × IΩ.
 Optional field `motor_output` (4): the motor outputs u = (PWM − 1000) / 1000 the

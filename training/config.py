@@ -32,7 +32,7 @@ from fcemu.sim_bridge.reward import REWARDS
 # episode; γ 0.98 / λ 0.9 (~50 ms) beat the tuned PID on 1 seed of 4, γ 0.99 on 2 of 3.
 # Exploration is state-dependent (gSDE, noise redrawn once per rollout): white noise on
 # every 1 ms action is filtered away by the motors, tells the critic nothing, and PPO
-# with it drifts into spinning the vehicle (docs/training_notes.md).
+# with it drifts into spinning the vehicle (docs/archive/training_notes.md).
 _ON_POLICY_NET = {"net_arch": {"pi": [64, 64], "vf": [64, 64]}, "log_std_init": -1.0}
 _OFF_POLICY = {"learning_rate": 1e-3, "gamma": 0.98, "batch_size": 256, "buffer_size": 1_000_000,
                "learning_starts": 10_000, "train_freq": 1, "gradient_steps": 1, "tau": 0.005,

@@ -160,7 +160,7 @@ def as_mixed(pred: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
     range the mixer clips both to the same action (`firmware.action`), so there is no error there.
     Without this the fit pulled every saturated output back inside the range, and a student came
     out slow wherever the teacher saturates: the racer's 0.969 × its PID, 0.948 × with it
-    (docs/training_notes.md, 2026-11-28, the clipped label)."""
+    (docs/archive/training_notes.md, 2026-11-28, the clipped label)."""
     past = ((label >= 1.0) & (pred > 1.0)) | ((label <= -1.0) & (pred < -1.0))
     return torch.where(past, label, pred)
 

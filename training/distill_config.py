@@ -68,7 +68,7 @@ class DistillConfig:
     # (Iris, held-out commands: 0.969× the PID from rest with it, 0.942× without). The default
     # policy's recipe turns it on with iris_sensors: its 16-step student flies 2 ms late rpm at 1.9×
     # its Error instead of 5× (policies/README.md); `fcemu fit` on an airframe whose sensors are not
-    # the truth, with a four-tick student (docs/training_notes.md, 2026-11-27).
+    # the truth, with a four-tick student (docs/archive/training_notes.md, 2026-11-27).
     privileged: bool = option(
         False, "where the twins' gyro or ESC telemetry is late or lossy, the teacher reads the readings as "
                "sampled and the student its own (off: both read the firmware's); the model-based teacher "

@@ -60,23 +60,23 @@ class FitOptions:
     braking: float | None = None  # the teacher's braking share (None: chosen)
 
 
-# The student's recipe for the inversion teacher (docs/training_notes.md, 2026-11-27, fitting the
+# The student's recipe for the inversion teacher (docs/archive/training_notes.md, 2026-11-27, fitting the
 # student): half the episodes start in flight, as the check's second task does (a student fitted from
 # rest only lost 7 % to its teacher there); a faster fit; no gain match, whose nudges straddle the
 # saturation's kinks. Episodes are the check's whole second: Success is judged from 0.5 to 1 s, and a
 # student that never saw a yaw still saturated there (the X500's) settled roll and pitch off beside it
-# (docs/training_notes.md, 2026-11-28, the exact label).
+# (docs/archive/training_notes.md, 2026-11-28, the exact label).
 STUDENT_RECIPE = {"learning_rate": 3e-3, "gain_weight": 0.0, "inflight_share": 0.5}
 # Where the airframe's sensors are not the truth (gyro noise, vibration or delay; a late or lossy ESC
 # bus), the teacher reads the true rates and rotor speeds and the student the last SENSED_MEMORY ticks
 # of its own, so it can average the noise the teacher never saw: on an identified Iris with noise
 # and vibration, 0.97 × the PID at 0.37 × its motor roughness, against 1.01 × at 3.1 × for a
-# one-tick student of the same view (docs/training_notes.md, 2026-11-27, a teacher for real sensors).
+# one-tick student of the same view (docs/archive/training_notes.md, 2026-11-27, a teacher for real sensors).
 # Four ticks fit an F405's budget with the 48-48 network (231 µs); eight do not (318 µs).
 SENSED_MEMORY = 4
 # Steps per twin and DAgger round: 1000, one 1 s episode. A student of SENSED_MEMORY ticks (40 inputs,
 # noise to average) needs twice the transients: on an identified Iris with every effect on, 1.011 × its
-# PID with 1000 steps, 0.968 × with 2000 (docs/training_notes.md, 2026-11-28, the exact label).
+# PID with 1000 steps, 0.968 × with 2000 (docs/archive/training_notes.md, 2026-11-28, the exact label).
 STUDENT_STEPS = {"exact": 1000, "sensed": 2000}
 
 

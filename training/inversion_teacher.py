@@ -17,12 +17,12 @@ observes (rate error, rates, rotor speeds) it asks, per tick:
    ω²·e per second, so the motors are no rougher than the tuned PID's, and it overshoots a few
    percent where a first-order law (`damping` None: α* = (e − dt·α_now)/T_c) rises on an
    exponential tail; on the racer the second-order law's student flies 0.995 × the PID against
-   the first-order's 1.128 × (docs/training_notes.md, 2026-11-27, a teacher of second order).
+   the first-order's 1.128 × (docs/archive/training_notes.md, 2026-11-27, a teacher of second order).
    The α the law steers toward, ω·e/2ζ, is held under the braking curve √(2·J·|e|): no more
    than the motors can take back by the time the error closes (`braking`, `BRAKING_SHARE`). Where the rotors
    carry momentum, the yaw their speeds lend the body is counted in the yaw error (`lent_yaw`): they
    take it back as they return, and without it a drawn Iris's teacher rose in yaw 24 ms late with
-   2.3 % more Error (docs/training_notes.md, 2026-11-29, the rotors' momentum);
+   2.3 % more Error (docs/archive/training_notes.md, 2026-11-29, the rotors' momentum);
 2. the thrusts that give it, within what each rotor can reach by the next tick (its lag from
    its present speed). Two allocations are tried, and the one whose torque lands nearer α*
    (roll and pitch weighted 10 to yaw's 1) is taken: the change of torque with roll and pitch
@@ -51,12 +51,13 @@ from fcemu.sim_bridge.plant import body_torque
 from fcemu.sim_bridge.tasks import OMEGA_MAX
 
 ROLL_PITCH_WEIGHT = 10.0  # the torque error's weight on roll and pitch against yaw's 1
-LAG_MULTIPLE = 0.5  # T_c = 1/ω in motor lags (docs/training_notes.md, 2026-11-27, a teacher of second order)
+# T_c = 1/ω in motor lags (docs/archive/training_notes.md, 2026-11-27, a teacher of second order)
+LAG_MULTIPLE = 0.5
 DAMPING = 0.7  # ζ: about 4 % of overshoot (0.5: 15 %, more Error for a faster Rise)
 # Yaw's speed where its authority cannot move its rate by a command's size within a motor lag: its
 # large steps then ride the motors' range at any speed of the law, and a fast law only shakes the
 # motors on its small ones. At half the speed the hummingbird's teacher flies 721.4 against 722.0
-# with its motors 1.35 µs/step against 1.68 (docs/training_notes.md, 2026-11-28, each axis's speed
+# with its motors 1.35 µs/step against 1.68 (docs/archive/training_notes.md, 2026-11-28, each axis's speed
 # from its authority). A Crazyflie's yaw moves 25 rad/s in a lag, and slowed it rose 7 ms late.
 SATURATED_YAW_SPEED = 0.5
 # The braking curve's jerk J, per axis: this share of its authority per motor lag. A law much faster
@@ -64,15 +65,15 @@ SATURATED_YAW_SPEED = 0.5
 # overshoots; under the curve, on 20 tuning commands, Error 554.2 → 535.8, Peak 118 → 113 %, motors
 # 3.29 → 2.86 µs/step, Rise the same (37.8 → 38.3 ms); a share of 0.25 brakes early (Peak 103 %, Rise
 # 41.7 ms). The default; `fcemu fit` brings it in where that pays: the Iris's teacher overshoots roll
-# by 12 % at 0.5 and 2 % at 0.2, with 3 % less Error (docs/training_notes.md, 2026-11-28, a braking
+# by 12 % at 0.5 and 2 % at 0.2, with 3 % less Error (docs/archive/training_notes.md, 2026-11-28, a braking
 # curve for the teacher; 2026-11-29, the teacher's shape).
 BRAKING_SHARE = 0.5
 # A share of yaw's need served before roll and pitch while they gather speed. Served after them, yaw
 # waits some 45 ms on large mixed steps, and the rotors' momentum it then meets lends it late; 0.3
 # took 2.1-2.3 % off three identified Irises' teachers, every effect on (0.5 no more). Not while roll
 # or pitch brake: there it only adds their overshoot (a drawn Iris's roll Peak 114.7 % against 112.7,
-# the Error the same). `fcemu fit` takes it where it pays on the tuning commands (docs/training_notes.md,
-# 2026-11-29, yaw first while roll and pitch gather speed).
+# the Error the same). `fcemu fit` takes it where it pays on the tuning commands
+# (docs/archive/training_notes.md, 2026-11-29, yaw first while roll and pitch gather speed).
 YAW_FIRST = 0.3
 BISECTIONS = 30
 SPEC_FIELDS = (*FIELDS, RATE)

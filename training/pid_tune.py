@@ -72,7 +72,8 @@ SMOOTHNESS_CAP = 1.2  # motor |Δpwm| on the noisy gyro, at most this × the noi
 # own airframe: a motor command is |Δpwm| in µs whatever the airframe, and the reference tune flies real
 # Betaflight at that level. Relative to the start alone, a start the physics made quiet (the
 # Crazyflie's, its filters carried down by τ_iris/τ: 1.05 µs against the Iris tune's 8.8) left a wall
-# at an eighth of what every other tune carries (docs/training_notes.md, 2026-11-28, the noise allowance).
+# at an eighth of what every other tune carries (docs/archive/training_notes.md, 2026-11-28, the noise
+# allowance).
 SETTLE_MARGIN_PCT = 6.0
 TIMES_BOUND_LINE = 1.3
 SUCCESS_LINE = 99.8
