@@ -29,7 +29,8 @@ import numpy as np
 
 from fcemu.evaluation.bound import rig_constants
 from fcemu.training.pid_search import CandidatePool, Knob, Move, Score, SearchState, pattern_search
-from fcemu.training.pid_tune import SUCCESS_LINE, TuneOptions, Tuner, cached_bounds
+from fcemu.training.pid_tune import SUCCESS_LINE, Tuner, cached_bounds
+from fcemu.training.tune_options import TuneOptions
 
 
 def error_cost(s: Score, start: Score, cap: float | None) -> float:
@@ -63,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
 
-    tuner = Tuner(TuneOptions(args.airframe, jobs=args.jobs))
+    tuner = Tuner(TuneOptions(airframe=args.airframe, jobs=args.jobs))
     start = json.loads(Path(args.start).read_text()) if args.start else tuner.start
     if start["pid"]["kd"][2] <= 0.0:
         start["pid"]["kd"][2] = args.yaw_d

@@ -62,7 +62,7 @@ def bench_train(args) -> int:
         if cfg.eval_every <= 0:
             raise UserError("the race needs --eval-every > 0")
         load_before = os.getloadavg()
-        race = _CappedRace(cfg, cfg.eval_every, args.target, args.max_minutes * 60.0)
+        race = _CappedRace(cfg, cfg.eval_every, args.target, args.budget_s)
         summary = train(cfg, race=race)
     train_s = summary["train_wall_s"]  # with the warm start
     warm_s = summary.get("warm_start", {}).get("wall_s", 0.0)
@@ -80,7 +80,7 @@ def bench_train(args) -> int:
         "steps_to_beat_pid": None if reached is None else reached["steps"],
         "warm_start_env_steps": summary.get("warm_start", {}).get("env_steps", 0),
         "warm_start_s": warm_s,
-        "cap_s": args.max_minutes * 60.0,
+        "cap_s": args.budget_s,
         "pid": race.history[-1]["best_pid"] if race.history else None,
         "pid_error_sum": race.history[-1]["pid_error_sum"] if race.history else None,
         "eval_commands": cfg.eval_commands,

@@ -9,7 +9,8 @@ Defined once here and used by `fcemu train --select bar`, `fcemu bench train --t
 - Success ≥ 99.8 % on every axis;
 - smoothness (mean |Δpwm| per step) ≤ 1.5 × the PID's.
 
-On perturbed airframes (`--perturb 20`): Error ≤ the PID's and Success ≥ 99 % on every axis.
+On perturbed airframes (`--perturb 20`), from rest and in flight: Error ≤ the PID's and Success
+≥ 99 % on every axis.
 And it fits a flight controller: inference ≤ 25 % of the 1 kHz period on an STM32F405 at
 168 MHz (`fcemu bench mcu`) and a host median ≤ 10 µs (`fcemu bench inference`).
 """

@@ -52,7 +52,7 @@ from scipy import sparse
 from scipy.optimize import linprog
 from tqdm import tqdm
 
-from fcemu.evaluation.rate_boxes import GYRO_PAIRS, Boxes, RateBoxes, gyro_coefficients
+from fcemu.evaluation.rate_boxes import GYRO_PAIRS, Boxes, RateBoxes, RigConstants, gyro_coefficients
 from fcemu.evaluation.runner import EvalConfig
 from fcemu.firmware.errors import UserError
 from fcemu.sim_bridge.airframe import FLU_FROM_FRD, Airframe, load_airframe
@@ -67,17 +67,6 @@ BOX_MARGIN = 1e-6  # rad/s added to each box edge: the twin's rounding, the solv
 # HiGHS's simplex stalls on a few degenerate programmes (minutes on one where its interior-point
 # method takes a second); past this it is stopped and the interior-point method solves the programme.
 SIMPLEX_TIME_LIMIT_S = 20.0
-
-
-@dataclass(frozen=True)
-class RigConstants:
-    B: np.ndarray  # (3, 4) FRD rad/s² per newton of each motor's thrust
-    inertia: np.ndarray  # (3,) the rig's principal moments (kg·m², diagonal mass matrix)
-    kf: float  # the motor model's (sim_bridge.plant.MotorModel)
-    w_max: float
-    a_up: float
-    a_down: float
-    dt: float
 
 
 def unmodelled_effects(airframe: Airframe) -> list[str]:

@@ -12,8 +12,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="the paper's metrics for --controller pid|FILE.onnx (repeatable)")
     p.add_argument("--controller", action="append", default=None,
                    help="pid, pid:<preset> or a policy .onnx; repeat to compare (default: pid)")
-    p.add_argument("--episodes", type=int, default=1000)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--episodes", type=int, default=1000, help="commands flown by each controller")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the commands, and of the twin's sensor noise and the faults' times: the "
+                        "same seed flies the same")
     p.add_argument("--task", choices=EVAL_TASKS, default="episodic",
                    help="episodic: steps from rest (the paper); inflight: the same steps from steady "
                         "hover, after a warm-up; continuous: pulse schedules")
@@ -24,10 +26,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--twin", default=None, metavar="NAME|FILE",
                    help="the airframe the twin flies, where the firmware is set up for --airframe: e.g. the "
                         "true quad behind a file `fcemu identify` wrote, with a policy fitted on that file")
-    p.add_argument("--fallback", default="pid", metavar="PID",
-                   help="the PID a policy hands over to when its input is unhealthy (default pid: the "
-                        "airframe's own tune, else the one pid:FILE flown as a --controller; "
-                        "pid:DIR/pid.json for one `fcemu tune` wrote)")
+    p.add_argument("--fallback", default=None, metavar="PID",
+                   help="the PID a policy hands over to when its input is unhealthy, e.g. pid:DIR/pid.json "
+                        "for one `fcemu tune` wrote (default: the one the policy names, as `fcemu fit`'s "
+                        "does its pid.json; else pid, the airframe's own tune, else the one pid:FILE "
+                        "flown as a --controller)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.add_argument("--report", metavar="DIR", help="write a Markdown report with figures into DIR")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save the traces (one file per controller)")
@@ -50,19 +53,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 def register_bound(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bound", help="a lower bound on the Error any controller can reach on the nominal "
                                      "twin (linear programmes per command)")
-    p.add_argument("--episodes", type=int, default=200)
-    p.add_argument("--seed", type=int, default=0, help="the evaluator's command seed (as fcemu eval)")
+    p.add_argument("--episodes", type=int, default=200, help="commands the bound is solved for")
+    p.add_argument("--seed", type=int, default=0, help="seed of the commands, as fcemu eval's")
     p.add_argument("--horizon", type=int, default=400, help="steps optimised; later error counts as 0")
     add_env_arguments(p, ("airframe",), notes={"airframe": "one with any effect on (e.g. iris_realistic) is "
                                                            "refused: the programme does not model them"})
     p.add_argument("--gyro-passes", type=int, default=0,
                    help="also re-solve with the previous solution's gyroscopic term "
                         "(an estimate, not a bound)")
-    p.add_argument("--jobs", type=int, default=0, help="worker processes (default: one per usable CPU)")
+    p.add_argument("--jobs", type=int, default=0,
+                   help="worker processes solving the programmes (0: one per CPU this process may use)")
     p.add_argument("--controller", action="append", default=None,
                    help="also fly pid, pid:<preset> or FILE.onnx on the same commands and compare")
-    p.add_argument("--fallback", default="pid", metavar="PID",
-                   help="the PID a policy hands over to (as fcemu eval's: the airframe's own tune, else the "
-                        "one pid:FILE flown as a --controller)")
+    p.add_argument("--fallback", default=None, metavar="PID",
+                   help="the PID a policy hands over to (default as fcemu eval's: the one the policy names, "
+                        "else pid, the airframe's own tune, else the one pid:FILE flown as a --controller)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(handler="fcemu.evaluation.bound_cli:bound_command")

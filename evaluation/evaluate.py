@@ -63,20 +63,14 @@ def _airframes(args) -> tuple[list[PerturbedAirframe], str | None]:
     return perturbed_airframes(ranges, args.perturb, args.perturb_seed), str(ranges.path)
 
 
-def fallback_for(airframe: str, fallback: str, controllers: list[str]) -> str:
-    """The PID a policy hands over to: `fallback`, but where that is the airframe's own tune and none is
-    shipped, the one PID preset flown beside the policy (`--controller pid:DIR/pid.json`)."""
-    from fcemu.firmware.controllers import ControllerSpecError, airframe_preset
+def fallback_for(airframe: str, fallback: str | None, controllers: list[str]) -> str:
+    """The PID a policy hands over to (`firmware.controllers.resolve_fallback`): `fallback` where given,
+    else the one a policy names, else the airframe's own tune, or where none is shipped, the one PID
+    preset flown beside the policy (`--controller pid:DIR/pid.json`)."""
+    from fcemu.firmware.controllers import resolve_fallback
     from fcemu.sim_bridge.airframe_spec import airframe_spec
 
-    presets = [c for c in controllers if c.startswith("pid:")]
-    if fallback != "pid" or len(presets) != 1:
-        return fallback
-    try:
-        airframe_preset(airframe_spec(airframe))
-    except ControllerSpecError:
-        return presets[0]
-    return fallback
+    return resolve_fallback(fallback, controllers, lambda: airframe_spec(airframe))
 
 
 def eval_command(args) -> int:

@@ -10,6 +10,16 @@ from pathlib import Path
 
 from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
 
+# Typical seconds on 2 cores, for the estimate of the time left: per second flown, the firmware loop
+# with its ULog recorder; per second of log, writing, reading and fitting it; per flight of the
+# closed-loop refinement; the report. The stages in CALIBRATED are scaled by the pace the finished
+# ones showed.
+FLY_S_PER_S = 0.1
+FIT_S_PER_S = 0.15
+REFINE_S_PER_FLIGHT = 0.3
+REPORT_S = 1.0
+CALIBRATED = frozenset({"fly", "fit", "refine", "report"})
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("identify", help="an airframe file from a PX4 ULog or a Betaflight blackbox log (rate "
@@ -38,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--controller", default="pid",
                    help="with --fly: what flies it (default: its PID; betaflight: Betaflight 4.6's SITL, "
                         "its own blackbox kept as flight.BFL)")
-    p.add_argument("--seed", type=int, default=0, help="with --fly: the twin's sensor-noise seed")
+    p.add_argument("--seed", type=int, default=0, help="with --fly: seed of the twin's sensor noise")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(handler="fcemu.evaluation.identify_cli:identify_command")
 
@@ -66,9 +76,32 @@ def _load_base(name: str):
     return load_airframe(name)
 
 
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _fly_stages(truth, controller: str):
+    """The stages of `identify --fly`, each's seconds expected from the flight's length."""
+    from fcemu.evaluation.identify_closed_loop import planned_flights
+    from fcemu.evaluation.identify_flight import excitation
+    from fcemu.evaluation.progress import Stages
+
+    flight_s = len(excitation(1000.0, truth.hover_throttle())[0]) / 1000.0
+    if controller != "betaflight":
+        return Stages({"fly": FLY_S_PER_S * flight_s, "fit": FIT_S_PER_S * flight_s, "report": REPORT_S},
+                      _say, calibrate=CALIBRATED), flight_s
+    from fcemu.evaluation.identify_betaflight import SPEED
+
+    # Betaflight's SITL flies against the wall clock, at the same pace on any machine.
+    return Stages({"fly": flight_s / SPEED, "fit": FIT_S_PER_S * flight_s,
+                   "refine": REFINE_S_PER_FLIGHT * planned_flights(truth), "report": REPORT_S},
+                  _say, calibrate=CALIBRATED - {"fly"}), flight_s
+
+
 def identify_command(args) -> int:
     from fcemu.evaluation.identify_airframe import identified_document, identify, write_airframe
     from fcemu.evaluation.identify_report import write_report
+    from fcemu.evaluation.progress import Stages
     from fcemu.firmware.errors import UserError
 
     if bool(args.log) == (args.fly is not None):
@@ -80,6 +113,9 @@ def identify_command(args) -> int:
     if args.fly is not None:
         out_dir = Path(args.out)
         truth = _flown_airframe(args.fly, args.perturb_seed, out_dir)
+        stages, flight_s = _fly_stages(truth, args.controller)
+        stages.start("fly", f"flying the identification flight on {truth.name}'s twin ({flight_s:.0f} s of "
+                            f"flight, {'Betaflight' if args.controller == 'betaflight' else 'lockstep'})")
         if args.controller == "betaflight":
             log_path = _fly_betaflight(truth, out_dir)
         else:
@@ -88,6 +124,7 @@ def identify_command(args) -> int:
             controller, flown_by = identification_controller(truth, args.controller, out_dir)
             log_path = fly_identification(truth, controller, seed=args.seed).write(
                 out_dir / "flight.ulg", {"ver_hw": f"fcemu SITL {truth.name}"})
+        stages.start("fit", f"identifying the twin from {log_path}")
         airframe_path = out_dir / "airframe.json"
         name = f"{truth.name}_identified"
     else:
@@ -96,19 +133,27 @@ def identify_command(args) -> int:
             raise UserError(f"--out {airframe_path}: a folder; name the airframe file to write")
         out_dir = airframe_path.parent
         name = airframe_path.stem
-    from fcemu.evaluation.identify_log import joined, read_flight_logs
+        # Quiet until the log is read and fitted: a log that cannot be is refused in one line.
+        stages = Stages({}, _say, calibrate=CALIBRATED)
+        stages.start("fit", None)
+    from fcemu.evaluation.flight_logs import read_flight_logs
+    from fcemu.evaluation.identify_log import joined
     from fcemu.evaluation.replay import span_of
 
     log = span_of(joined(read_flight_logs(args.log or [log_path])), args.span)
     log_path = log.path
+    if args.fly is None:
+        stages.expect("fit", FIT_S_PER_S * float(log.t[-1] - log.t[0]))
     ident = identify(log, base, args.base)
     document = identified_document(ident, name)
     airframe = write_airframe(document, airframe_path)
     refinement = None
     if log.header is not None:
-        refinement = _refined(log, document, airframe_path, out_dir, args.refine)
+        refinement = _refined(log, document, airframe_path, out_dir, args.refine, stages)
         airframe = write_airframe(document if refinement is None else refinement[1], airframe_path)
         refinement = None if refinement is None else refinement[0]
+    stages.expect("report", REPORT_S)
+    stages.start("report", "writing the report" if args.fly is not None or refinement is not None else None)
     report, figures = write_report(ident, airframe, airframe_path, out_dir, truth, flown_by=flown_by,
                                    refinement=refinement)
     if args.json:
@@ -124,11 +169,26 @@ def identify_command(args) -> int:
     return 0
 
 
-def _refined(log, document: dict, airframe_path: Path, out_dir: Path, refine: bool):
+def refined_with_progress(log, airframe, controller: str, stream=None):
+    """`identify_closed_loop.refine`, its flights counted on stderr (a bar on a terminal, else a line at
+    each quarter) with the time left: the seconds per flight so far times the most flights left."""
+    from fcemu.evaluation.identify_closed_loop import planned_flights, refine
+    from fcemu.evaluation.progress import Counted
+
+    least = float("inf")
+    with Counted("closed-loop refinement", planned_flights(airframe), "flight", stream) as count:
+        def progress(done: int, planned: int, mismatch: float) -> None:
+            nonlocal least
+            least = min(least, mismatch)
+            count.update(done, planned, f"least mismatch {least:.4f}")
+
+        return refine(log, airframe, controller, progress)
+
+
+def _refined(log, document: dict, airframe_path: Path, out_dir: Path, refine: bool, stages):
     """The log's own tune written as pid_log.json; with `refine`, (the refinement, the refined file)."""
     from fcemu.evaluation.identify_blackbox import own_tune
-    from fcemu.evaluation.identify_closed_loop import refine as refine_twin
-    from fcemu.evaluation.identify_closed_loop import refined_document
+    from fcemu.evaluation.identify_closed_loop import STRETCH_S, planned_flights, refined_document
     from fcemu.sim_bridge.airframe import load_airframe
 
     tune_path = out_dir / "pid_log.json"
@@ -137,13 +197,15 @@ def _refined(log, document: dict, airframe_path: Path, out_dir: Path, refine: bo
     print(f"the log's own tune: {tune_path} (what fcemu's PID does not model is listed in it)",
           file=sys.stderr)
     if not refine:
+        stages.skip("refine")
         return None
-
-    def progress(flights: int, mismatch: float) -> None:
-        if flights % 20 == 0:
-            print(f"  closed-loop refinement: {flights} flights, mismatch {mismatch:.4f}", file=sys.stderr)
-
-    refinement = refine_twin(log, load_airframe(airframe_path), f"pid:{tune_path}", progress)
+    airframe = load_airframe(airframe_path)
+    planned = planned_flights(airframe)
+    stages.expect("refine", REFINE_S_PER_FLIGHT * planned)
+    stages.expect("report", REPORT_S)
+    stages.start("refine", f"refining the twin in closed loop: the log's own tune flies it on "
+                           f"{STRETCH_S:g} s of the log, {planned} flights at most")
+    refinement = refined_with_progress(log, airframe, f"pid:{tune_path}")
     return refinement, refined_document(document, refinement, log.name)
 
 

@@ -15,6 +15,7 @@ This is the output-error method of system identification; its price is a few doz
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -82,11 +83,26 @@ def mismatch(log: FlightLog, airframe: Airframe, controller: str) -> np.ndarray:
     return np.where(np.isfinite(out), np.minimum(out, 100.0), 100.0)
 
 
-def refine(log: FlightLog, airframe: Airframe, controller: str, progress=None) -> Refinement:
-    """The least-squares `airframe` refined by flying it with `controller` on the log's busiest stretch."""
+def delays_tried(airframe: Airframe) -> list[int]:
+    """The gyro delays the refinement tries, ticks: the least-squares one and up to three shorter."""
+    return sorted({max(0, airframe.gyro_delay_ticks - k) for k in range(4)})
+
+
+def planned_flights(airframe: Airframe) -> int:
+    """The most flights `refine` flies: each delay's optimiser's, the twin before and after."""
+    return len(delays_tried(airframe)) * MAX_EVALUATIONS + 2
+
+
+def refine(log: FlightLog, airframe: Airframe, controller: str,
+           progress: Callable[[int, int, float], None] | None = None) -> Refinement:
+    """The least-squares `airframe` refined by flying it with `controller` on the log's busiest stretch.
+    `progress(flights, planned, mismatch)` after each flight: the flights flown, the most there will be
+    (fewer once an optimiser stops early), the flight's summed mismatch."""
     stretch = busiest_stretch(log)
     part = span_of(log, stretch)
+    delays = delays_tried(airframe)
     flights = 0
+    planned = planned_flights(airframe)
 
     def cost(theta: np.ndarray, delay: int) -> float:
         nonlocal flights
@@ -98,22 +114,24 @@ def refine(log: FlightLog, airframe: Airframe, controller: str, progress=None) -
         except ValueError:  # no rigid body: MuJoCo refuses it
             value = 300.0
         if progress is not None:
-            progress(flights, value)
+            progress(flights + 1, planned, value)
         return value
 
     before = mismatch(part, airframe, controller)
     best = None
-    start = airframe.gyro_delay_ticks
-    for delay in sorted({max(0, start - k) for k in range(4)}):
+    for i, delay in enumerate(delays):
         result = minimize(cost, np.zeros(5), args=(delay,), method="Nelder-Mead",
                           options={"maxfev": MAX_EVALUATIONS, "xatol": 0.02, "fatol": 1e-3,
                                    "initial_simplex": np.vstack([np.zeros(5), 0.5 * np.eye(5)])})
         if best is None or result.fun < best[0]:
             best = (float(result.fun), delay, result.x)
+        planned = flights + (len(delays) - i - 1) * MAX_EVALUATIONS + 2
     _, delay, theta = best
     factors = np.exp(np.clip(theta, -np.log(FACTOR_BOUND), np.log(FACTOR_BOUND)))
     refined = replace(with_factors(airframe, *factors), gyro_delay_ticks=delay)
     after = mismatch(part, refined, controller)
+    if progress is not None:
+        progress(flights + 2, flights + 2, float(after.sum()))
     if after.sum() >= before.sum():
         refined, factors, delay, after = airframe, np.ones(5), airframe.gyro_delay_ticks, before
     names = ("roll_effectiveness", "pitch_effectiveness", "yaw_effectiveness", "motor_time_constant",

@@ -113,14 +113,9 @@ def _times(data: dict, key: str = "timestamp_sample") -> np.ndarray:
     return (data[key] if key in data else data["timestamp"]).astype(np.int64)
 
 
-def read_flight_log(path: str | Path, motor_poles: int | None = None) -> FlightLog:
-    """The flight in a PX4 ULog or a Betaflight blackbox log (`identify_blackbox`; `motor_poles`
-    turns its eRPM into rotor speed where the log's header does not say)."""
+def read_ulog(path: str | Path) -> FlightLog:
+    """The flight in a PX4 ULog (`flight_logs.read_flight_log` reads a Betaflight log as well)."""
     path = Path(path)
-    from fcemu.evaluation.identify_blackbox import is_blackbox, read_blackbox_log
-
-    if is_blackbox(path):
-        return read_blackbox_log(path, motor_poles)
     log = _read(path)
     gyro_set = _dataset(log, GYRO)
     motors_set = _dataset(log, "actuator_motors")
@@ -219,17 +214,6 @@ def _rotor_speed(log, t_us: np.ndarray) -> tuple[np.ndarray | None, float]:
     out = np.stack(speeds, axis=1)
     rate = 1e6 / max(float(np.median(np.diff(esc.data["timestamp"].astype(np.int64)))), 1.0)
     return (out if np.abs(out).max() > 0 else None), rate
-
-
-def read_flight_logs(paths: list[str | Path], motor_poles: int | None = None) -> list[FlightLog]:
-    """Every flight in the logs: a blackbox file's every arming that flew, a ULog's flight."""
-    from fcemu.evaluation.identify_blackbox import is_blackbox, read_blackbox_logs
-
-    logs: list[FlightLog] = []
-    for path in map(Path, paths):
-        logs += (read_blackbox_logs(path, motor_poles) if is_blackbox(path)
-                 else [read_flight_log(path, motor_poles)])
-    return logs
 
 
 def joined(logs: list[FlightLog]) -> FlightLog:

@@ -16,8 +16,7 @@ import numpy as np
 from scipy import sparse
 from scipy.optimize import linprog
 
-from fcemu.evaluation.bound import RigConstants
-from fcemu.evaluation.rate_boxes import GYRO_PAIRS, gyro_coefficients
+from fcemu.evaluation.rate_boxes import GYRO_PAIRS, RigConstants, gyro_coefficients
 from fcemu.sim_bridge.env_config import DEFAULT_AIRFRAME
 from fcemu.sim_bridge.twin import Twin
 

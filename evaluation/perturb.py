@@ -75,8 +75,7 @@ class PerturbedResult:
         """The airframes grouped by each drawn loop delay (ESC, then gyro), each group pooled.
 
         A network that reads the rotor speeds can ring on an ESC delay that a PID, which sees
-        only the total delay, holds (docs/archive/training_notes.md, 2026-11-24, five seeds of the RMS
-        recipe). Pooled over all the airframes, such a group hides among the rest.
+        only the total delay, holds; pooled over all the airframes, such a group hides among the rest.
         """
         groups = []
         for key, label in DELAY_FACTORS:

@@ -23,18 +23,25 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from fcemu.evaluation.bound import RigConstants
 
 GYRO_PAIRS = ((1, 2), (0, 2), (0, 1))  # g_roll ∝ q·r, g_pitch ∝ p·r, g_yaw ∝ p·q
 HUGE = 1e6  # rad/s: stands for "unbounded" in interval arithmetic (its square stays finite)
 START_LIMITS = (15.0, 25.0, 40.0, 60.0, 100.0)  # rad/s: |Ω| caps tried as the crude box's start
 BISECTIONS = 16
 EDGE = 1e-7  # rad/s: "just past" a box edge
+
+
+@dataclass(frozen=True)
+class RigConstants:
+    B: np.ndarray  # (3, 4) FRD rad/s² per newton of each motor's thrust
+    inertia: np.ndarray  # (3,) the rig's principal moments (kg·m², diagonal mass matrix)
+    kf: float  # the motor model's (sim_bridge.plant.MotorModel)
+    w_max: float
+    a_up: float
+    a_down: float
+    dt: float
 
 
 @dataclass(frozen=True)

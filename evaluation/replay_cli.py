@@ -32,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_span_option(p, "replay this stretch only")
     p.add_argument("--out", default=None, metavar="DIR",
                    help="write replay.json, replay.png, step_response.png "
-                        "and the tune flown (pid_log.json) here")
+                        "and the tune flown (pid_log.json) here (default: none; nothing written)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     p.set_defaults(handler="fcemu.evaluation.replay_cli:replay_command")
 
@@ -48,7 +48,8 @@ def _base_of(airframe_path: str) -> str:
 
 
 def _flight(path: Path, index: int | None):
-    from fcemu.evaluation.identify_log import LogError, read_flight_logs
+    from fcemu.evaluation.flight_logs import read_flight_logs
+    from fcemu.evaluation.identify_log import LogError
 
     flights = read_flight_logs([path])
     if index is None:

@@ -14,28 +14,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("checkpoint", help="a run directory (runs/NAME) or a checkpoint .zip in it; "
                                       "with --target c, a policy .onnx")
     p.add_argument("--out", required=True, help="the .onnx file to write (--target c: a directory)")
-    p.add_argument("--target", choices=("onnx", "c", "betaflight"), default="onnx")
+    p.add_argument("--target", choices=("onnx", "c", "betaflight"), default="onnx",
+                   help="onnx: a checkpoint to ONNX; c: an ONNX policy to C99 sources; betaflight: "
+                        "Betaflight with the policy built in")
     p.add_argument("--betaflight-targets", default="SITL,STM32F405,STM32H743", metavar="T1,T2",
                    help="--target betaflight: what to build (SITL, STM32F405, STM32H743)")
-    p.add_argument("--parity-samples", type=int, default=10_000)
+    p.add_argument("--parity-samples", type=int, default=10_000,
+                   help="observations the export's outputs are checked on against its source's")
     _add_tanh(p)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="print the report as one JSON object on stdout")
     p.set_defaults(handler="fcemu.export.cli:export_command")
 
 
 def _add_tanh(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tanh", choices=("fast", "libm"), default="fast",
                    help="--target c: the network's tanh, a rational approximation within 7 ULP "
-                        "(fast, default) or libm's tanhf")
+                        "(fast) or libm's tanhf")
 
 
 def register_bench(bench_sub: argparse._SubParsersAction) -> None:
     p = bench_sub.add_parser("mcu", help="the policy as C on a Cortex-M4F under QEMU: parity, size, "
                                          "instructions and estimated time per inference")
     p.add_argument("--model", default=None, help="a policy .onnx (default: the shipped policy)")
-    p.add_argument("--out", default=None, help="keep the exported sources and the firmware image here")
+    p.add_argument("--out", default=None, help="keep the exported sources and the firmware image here "
+                                               "(default: none; built in a temporary folder)")
     _add_tanh(p)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="print the figures as one JSON object on stdout")
     p.set_defaults(handler="fcemu.export.cli:bench_mcu_command")
 
 

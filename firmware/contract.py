@@ -12,6 +12,7 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -37,6 +38,9 @@ LEGACY_SCALE_TOLERANCE = 0.01
 # outputs beyond this bound was not trained for this action space.
 OUTPUT_LIMIT = 100.0
 _SPEC_KEYS = {"memory", "rate_scale", "rotor_speed_scale", "fields", "version", *LEAKS}
+# The PID a policy was fitted against (`fcemu fit`: pid.json), a path relative to the policy file, so
+# that the folder can be moved: what it hands over to unless --fallback names another.
+FALLBACK_META = "fallback"
 
 
 class PolicyContractError(UserError, ValueError):
@@ -135,6 +139,17 @@ class PolicyContract:
             raise PolicyContractError(
                 f"{where}: outputs up to {float(np.abs(finite).max()):.3g} on ordinary observations; "
                 f"actions are in [-1, 1] (at most ±{OUTPUT_LIMIT:g} accepted before clipping)")
+
+
+def named_fallback(meta: Mapping[str, str], policy: str | Path) -> Path | None:
+    """The PID preset file the policy's metadata names as its fallback, beside `policy`; None if none."""
+    text = meta.get(FALLBACK_META)
+    if text is None:
+        return None
+    if not text or Path(text).is_absolute():
+        raise PolicyContractError(f"{policy}: {META_PREFIX}{FALLBACK_META} {_short(text)} is not a path "
+                                  "relative to the policy file")
+    return Path(policy).parent / text
 
 
 def _short(value: object, limit: int = 40) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from importlib.resources import files
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from fcemu.firmware.pid_controller import PRESET_DIR
 # Package data, so an installed wheel flies it as a checkout does.
 DEFAULT_POLICY = Path(str(files("fcemu.firmware") / "policies" / "iris_rate_ppo.onnx"))
 FALLBACK_CONTROLLER = "pid"  # what flies when a policy faults, and in LAND and HOLD
+PROPS_OUT = "props spin out (motor 1 counter-clockwise) and a policy is made for props in"
 
 
 class ControllerSpecError(UserError, ValueError):
@@ -43,6 +45,47 @@ def airframe_preset(airframe: AirframeSpec) -> Path:
         "(or `fcemu fit`), then pid:DIR/pid.json as --controller, or as --fallback under a policy")
 
 
+def policy_fallback(policy: str) -> str | None:
+    """`pid:FILE` of the PID an ONNX policy names as its fallback in its metadata (`fcemu fit`'s
+    DIR/pid.json beside DIR/policy.onnx), or None; a named file that is missing is refused."""
+    if not policy.endswith(".onnx") or not Path(policy).is_file():
+        return None
+    from fcemu.firmware.contract import named_fallback
+    from fcemu.firmware.neural import read_metadata
+
+    try:
+        meta = read_metadata(policy)
+    except Exception:  # onnxruntime raises several unrelated types for a bad file; loading it says which
+        return None
+    path = named_fallback(meta, policy)
+    if path is None:
+        return None
+    if not path.is_file():
+        raise ControllerSpecError(f"policy {policy} names its fallback PID {path}, which is missing: "
+                                  "name one with --fallback pid:FILE")
+    return f"pid:{path}"
+
+
+def resolve_fallback(fallback: str | None, controllers: Sequence[str],
+                     airframe: Callable[[], AirframeSpec]) -> str:
+    """The PID a policy among `controllers` hands over to (and CTRL_SEL's pid): `fallback` where given;
+    else the one PID file the policies name (`policy_fallback`); else `pid`, the airframe's own tune,
+    but where none ships (`airframe()`, asked only then), the one pid:FILE flown beside the policy."""
+    if fallback is None:
+        named = {f for f in map(policy_fallback, controllers) if f is not None}
+        if len(named) == 1:
+            return named.pop()
+        fallback = FALLBACK_CONTROLLER
+    presets = [c for c in controllers if c.startswith("pid:")]
+    if fallback != FALLBACK_CONTROLLER or len(presets) != 1:
+        return fallback
+    try:
+        airframe_preset(airframe())
+    except ControllerSpecError:
+        return presets[0]
+    return fallback
+
+
 def load_controller(spec: str, loop_rate_hz: float | None = None,
                     airframe: AirframeSpec | None = None) -> RateController:
     """`loop_rate_hz`: the rate the loop will run it at; a policy trained for another rate is refused.
@@ -62,8 +105,7 @@ def load_controller(spec: str, loop_rate_hz: float | None = None,
             controller.mixer = _yaw_reversed(controller.mixer)
         return controller
     if airframe is not None and airframe.props_out:
-        raise ControllerSpecError(f"controller {spec!r}: {airframe.name}'s props spin out (motor 1 "
-                                  "counter-clockwise) and a policy is made for props in: fly the PID")
+        raise ControllerSpecError(f"controller {spec!r}: {airframe.name}'s {PROPS_OUT}: fly the PID")
     if spec.endswith(".onnx"):
         from fcemu.firmware.neural import NeuralRateController
 

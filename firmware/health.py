@@ -46,80 +46,39 @@ firmware's answers"):
   (latched until the next arming) and is said once; the PID does not read rotor speed, so the
   vehicle flies on. While the PID flies (`policy_flying` False, set by the loop each tick) there
   is nothing to hand over and nothing is said about rotor speed.
+
+Each rule's judgment is a pure function in firmware/health_checks.py that returns the named fault
+it finds; `HealthMonitor` keeps the state those functions are given and acts on what they return.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from fcemu.firmware.airframe_spec import AirframeSpec
+from fcemu.firmware.health_checks import (
+    Fault,
+    HealthRules,
+    explained_lag,
+    gyro_implausible,
+    gyro_plausible,
+    gyro_stale,
+    gyro_stuck,
+    handover,
+    pwm_moved,
+    rotor_implausible,
+    rotor_lagging,
+    rotor_late,
+    rotor_losing_frames,
+    rotor_off_model,
+    rotor_stale,
+    rotor_too_old,
+    torque_asked,
+)
 from fcemu.firmware.sensors import SensorFrame
 
-CRITICAL, WARNING = 2, 4  # MAV_SEVERITY
 _ZERO3 = np.zeros(3)
-
-
-@dataclass(frozen=True)
-class HealthRules:
-    """The thresholds; the motors' (top speed, PWM range, speed model) come from `for_airframe`."""
-
-    rotor_speed_max: float = field(kw_only=True)  # rad/s at pwm_max
-    motor_tau_s: float = field(kw_only=True)  # the speed model's time constant (both directions)
-    motor_tau_up_s: float | None = field(default=None, kw_only=True)  # spinning up; None: motor_tau_s
-    motor_tau_down_s: float | None = field(default=None, kw_only=True)  # spinning down; None: motor_tau_s
-    pwm_min: float = field(kw_only=True)
-    pwm_max: float = field(kw_only=True)
-    gyro_range: float = math.radians(2000.0)  # rad/s
-    gyro_jump: float = 5.0  # rad/s in one tick (5000 rad/s² at 1 kHz)
-    gyro_fail_score: float = 20.0
-    gyro_stuck_ticks: int = 50
-    torque_spread_us: float = 20.0  # max − min PWM of the four motors
-    recovery: float = 0.25  # score taken off per good sample
-    rotor_tolerance: float = 0.3  # × rotor_speed_max
-    rotor_fail_score: float = 10.0
-    rotor_stale_ticks: int = 20
-    stale_pwm_us: float = 5.0
-    # NN_GYRO_MAX_AGE: PX4's mc_nn_control refuses a gyro sample older than 10 ms; a rate loop on
-    # older feedback rings (a 5 ms delay already costs the PID 8× its Error, docs/results/faults.md).
-    gyro_max_age_s: float = 0.010
-    # NN_ESC_MAX_AGE: about one motor time constant (the Iris's spin-up 12.5 ms, spin-down 25 ms):
-    # a held reading older than that says little of the rotor now.
-    esc_max_age_s: float = 0.020
-    # NN_ESC_LOSS_MAX over NN_ESC_LOSS_WIN: bidirectional DShot loses a fraction of a percent to a
-    # few percent of frames in normal flight; a fifth of them lost over 100 ms is a failing link.
-    esc_loss_max: float = 0.2
-    esc_loss_window_s: float = 0.1
-    # NN_ESC_MAX_LAG: telemetry that fits the commanded speed best more than 3 ms late is late
-    # beyond the ESC's own pipeline (1-2 ticks on a real board, iris_realistic.json) and is brought
-    # forward by the model; fitted over the last 50 ms, held 10 ticks, and only while the model
-    # moves more than `esc_lag_motion` × the top speed (RMS per tick): a still rotor tells no lag.
-    esc_max_lag_s: float = 0.003
-    esc_lag_window_s: float = 0.05
-    esc_lag_ticks: int = 10
-    esc_lag_motion: float = 0.002
-    # The fit's own settings (module docstring): the model's slope taken over 6 ms (twice the
-    # limit, so a 3-5 ms lag interpolates within it). A lag worth judging moves the reading by
-    # 0.9 % of the top speed RMS (10 rad/s on the Iris; a 5 ms lag of the in-flight task moves it
-    # 11-28) and explains 60 % of what a gain error leaves (a 5 ms lag: 62-100 %; a sagging
-    # battery's transient 2-13 %; iris_realistic's 1-tick ESC, sagging battery and noisy gyro
-    # together 45-66 %, RMS 7-12). A late copy of the speed has no gain error; a dead motor or a
-    # 0.75 battery one of 0.25.
-    esc_lag_base_s: float = 0.006
-    esc_lag_misfit: float = 0.009
-    esc_lag_explains: float = 0.6
-    esc_lag_gain_max: float = 0.1
-
-    @classmethod
-    def for_airframe(cls, airframe: AirframeSpec, **thresholds: float) -> HealthRules:
-        """The rules for `airframe`: its top rotor speed and PWM range, a speed model between its
-        motors' spin-up and spin-down time constants; `thresholds` replace the defaults above."""
-        return cls(rotor_speed_max=airframe.max_rotor_speed, pwm_min=airframe.pwm_min,
-                   pwm_max=airframe.pwm_max, **thresholds,
-                   motor_tau_s=0.5 * (airframe.motor_tau_up + airframe.motor_tau_down),
-                   motor_tau_up_s=airframe.motor_tau_up, motor_tau_down_s=airframe.motor_tau_down)
 
 
 def read_ahead_ticks(esc_lag_base_s: float, esc_max_age_s: float, dt: float) -> int:
@@ -137,13 +96,10 @@ class HealthMonitor:
         self._keep_up = math.exp(-1e-6 / (r.motor_tau_up_s or r.motor_tau_s))
         self._keep_down = math.exp(-1e-6 / (r.motor_tau_down_s or r.motor_tau_s))
         self._dt_us = round(dt * 1e6)
-        self._gyro_max_age_us = r.gyro_max_age_s * 1e6
-        self._esc_max_age_us = r.esc_max_age_s * 1e6
         self._loss_gain = 1.0 - math.exp(-dt / r.esc_loss_window_s)
         self._lag_base = max(1, round(r.esc_lag_base_s / dt))
         self._max_lag = read_ahead_ticks(r.esc_lag_base_s, r.esc_max_age_s, dt)
         self._speed_per_us = r.rotor_speed_max / (r.pwm_max - r.pwm_min)
-        self._tolerance = r.rotor_tolerance * r.rotor_speed_max
         self.outbox: list[tuple[int, str]] = []
         self.policy_flying = True  # the loop says which controller flies; only a policy hands over
         self.reset()
@@ -176,23 +132,23 @@ class HealthMonitor:
         self._past_at = 0
         self._bus_late = False  # every motor's readings brought forward by the model, each over its own lag
 
-    # ---- verdicts ----
-    def _declare(self, what: str, severity: int, text: str) -> None:
-        if what not in self.detected:
-            self.detected[what] = self.ticks
-            self.outbox.append((severity, text))
+    # ---- acting on a fault ----
+    def _declare(self, fault: Fault) -> None:
+        if fault.verdict not in self.detected:
+            self.detected[fault.verdict] = self.ticks
+            self.outbox.append((fault.severity, fault.text))
 
-    def _hand_over(self, why: str) -> None:
-        if self.policy_trusted and self.policy_flying:
+    def _hand_over(self, fault: Fault | None) -> None:
+        if fault is not None and self.policy_trusted and self.policy_flying:
             self.policy_trusted = False
-            self.handover = why
-            self._declare("handover", WARNING, f"Policy hands over to PID: {why}")
+            self.handover = fault.name
+            self._declare(fault)
 
-    def _fail_gyro(self, why: str) -> None:
+    def _fail_gyro(self, fault: Fault) -> None:
         self.gyro_failed = True
-        self.failsafe = f"gyro {why}"
-        self._declare("gyro_failed", CRITICAL, f"Gyro {why}: rate feedback lost")
-        self._hand_over(f"gyro {why}")
+        self.failsafe = fault.name
+        self._declare(fault)
+        self._hand_over(handover(fault.name))
 
     # ---- the tick ----
     def check(self, frame: SensorFrame, pwm: np.ndarray) -> SensorFrame:
@@ -213,31 +169,30 @@ class HealthMonitor:
             return _ZERO3
         fresh = True  # a sample with a new time (a frame without times: every sample is)
         if sampled is not None:
-            if t_us - sampled > self._gyro_max_age_us:
-                self._fail_gyro("stale")
+            fault = gyro_stale(t_us, sampled, r)
+            if fault is not None:
+                self._fail_gyro(fault)
                 return _ZERO3
             fresh = self._gyro_t is None or sampled > self._gyro_t
             self._gyro_t = sampled
         last = self._last_good
-        g0, g1, g2 = g
-        top, jump = r.gyro_range, r.gyro_jump
-        valid = (abs(g0) <= top and abs(g1) <= top and abs(g2) <= top
-                 and (last is None or max(abs(g0 - last[0]), abs(g1 - last[1]), abs(g2 - last[2])) <= jump))
-        if not valid:  # NaN fails every comparison above
+        if not gyro_plausible(g, last, r):
             self.glitches += 1
             self._gyro_score += 1.0
-            if self._gyro_score >= r.gyro_fail_score:
-                self._fail_gyro("implausible")
+            fault = gyro_implausible(self._gyro_score, r)
+            if fault is not None:
+                self._fail_gyro(fault)
                 return _ZERO3
             if self._held is None:
                 self._held = np.array(last) if last is not None else _ZERO3
             return self._held
         self._gyro_score = max(0.0, self._gyro_score - r.recovery)
         if g == last:
-            if fresh and max(p) - min(p) > r.torque_spread_us:
+            if fresh and torque_asked(p, r):
                 self._stuck += 1
-                if self._stuck >= r.gyro_stuck_ticks:
-                    self._fail_gyro("stuck")
+                fault = gyro_stuck(self._stuck, r)
+                if fault is not None:
+                    self._fail_gyro(fault)
                     return _ZERO3
         else:
             self._stuck = 0
@@ -290,19 +245,21 @@ class HealthMonitor:
                     replaced[i] = held_speed[i]
             if not judging:
                 continue
-            if t_us - sample_t[i] > self._esc_max_age_us:
-                self._hand_over(f"rotor speed {i + 1} too old")
-            if loss[i] > r.esc_loss_max:
-                self._hand_over(f"rotor speed {i + 1} losing frames")
+            # A hand-over is latched: of the faults found here, the first in this order is the one said.
+            fault = rotor_too_old(i, t_us, sample_t[i], r) or rotor_losing_frames(i, loss[i], r)
+            if fault is not None:
+                self._hand_over(fault)
             if new:
                 self._judge_sample(i, v, pi, first)
-                if not first and self._lag[i].late(v, expected[i], slope) and not self._bus_late:
-                    self._bus_late = True
-                    self._declare("esc_late", WARNING, f"Rotor speed {i + 1} late: read ahead by the model")
+                if not first:
+                    self._lag[i].add(v, expected[i], slope)
+                    over = self._lag[i].over  # judged as the other counts are, on the ticks it rises
+                    if over and not self._bus_late and (fault := rotor_late(i, over, r)) is not None:
+                        self._bus_late = True
+                        self._declare(fault)
             if self._bus_late:
                 lag = self._lag[i].lag
-                if lag > self._max_lag:
-                    self._hand_over(f"rotor speed {i + 1} lagging")
+                self._hand_over(rotor_lagging(i, lag, self._max_lag))
                 if replaced is None:
                     replaced = list(w)
                 d = min(max(round(lag), 0), self._max_lag)
@@ -315,10 +272,9 @@ class HealthMonitor:
         if v == self._prev_speed[i]:
             if self._pwm_at_change[i] != self._pwm_at_change[i]:  # NaN: no reference yet
                 self._pwm_at_change[i] = pi
-            elif abs(pi - self._pwm_at_change[i]) > r.stale_pwm_us:
+            elif pwm_moved(pi, self._pwm_at_change[i], r):
                 self._stale[i] += 1
-                if self._stale[i] >= r.rotor_stale_ticks:
-                    self._hand_over(f"rotor speed {i + 1} stale")
+                self._hand_over(rotor_stale(i, self._stale[i], r))
         else:
             self._stale[i] = 0
             # The first frame after arming was read under the PWM written before it (disarmed),
@@ -326,17 +282,16 @@ class HealthMonitor:
             self._pwm_at_change[i] = math.nan if first else pi
             self._prev_speed[i] = v
         assert self._expected is not None
-        if abs(v - self._expected[i]) > self._tolerance:
+        if rotor_off_model(v, self._expected[i], r):
             self._rotor_score[i] += 1.0
-            if self._rotor_score[i] >= r.rotor_fail_score:
-                self._hand_over(f"rotor speed {i + 1} implausible")
+            self._hand_over(rotor_implausible(i, self._rotor_score[i], r))
         elif self._rotor_score[i]:
             self._rotor_score[i] = max(0.0, self._rotor_score[i] - r.recovery)
 
 
 class LagFit:
     """One motor's lag fit (the module docstring): decaying sums of ṁ², ṁ·m, m², (m − w)·ṁ,
-    (m − w)·m and (m − w)², the least-squares fit's normal equations and its misfit."""
+    (m − w)·m and (m − w)², from which `explained_lag` solves the least-squares fit."""
 
     def __init__(self, rules: HealthRules, dt: float) -> None:
         self.rules = r = rules
@@ -345,13 +300,12 @@ class LagFit:
         self.motion = (r.esc_lag_motion * r.rotor_speed_max) ** 2 / (1.0 - keep)
         self.misfit = (r.esc_lag_misfit * r.rotor_speed_max) ** 2 / (1.0 - keep)
         self.sums = [0.0] * 6
-        self.over = 0  # ticks in a row the fit has been late
+        self.over = 0  # ticks in a row the fit has been late (`rotor_late` judges them)
         self.lag = 0.0  # the last lag the fit judged (ticks): how far a late bus is read ahead
 
-    def late(self, v: float, m: float, dm: float) -> bool:
-        """Add the sample `v` against the model's speed `m` and slope `dm`; True once the fit has put
-        the telemetry more than the limit late for `esc_lag_ticks` ticks in a row."""
-        keep, sums, r = self.keep, self.sums, self.rules
+    def add(self, v: float, m: float, dm: float) -> None:
+        """Add the sample `v` against the model's speed `m` and slope `dm`, and refit."""
+        keep, sums = self.keep, self.sums
         miss = m - v
         sums[0] = sums[0] * keep + dm * dm
         sums[1] = sums[1] * keep + dm * m
@@ -359,16 +313,9 @@ class LagFit:
         sums[3] = sums[3] * keep + miss * dm
         sums[4] = sums[4] * keep + miss * m
         sums[5] = sums[5] * keep + miss * miss
-        det = sums[0] * sums[2] - sums[1] * sums[1]
+        lag = explained_lag(sums, self.motion, self.misfit, self.rules)
         late = False
-        if sums[0] > self.motion and det > 0.0:
-            lag = (sums[3] * sums[2] - sums[1] * sums[4]) / det
-            gain_error = (sums[0] * sums[4] - sums[1] * sums[3]) / det
-            left_by_gain = sums[5] - sums[4] * sums[4] / sums[2]
-            left = sums[5] - lag * sums[3] - gain_error * sums[4]
-            if (abs(gain_error) < r.esc_lag_gain_max and left_by_gain > self.misfit
-                    and left_by_gain - left > r.esc_lag_explains * left_by_gain):
-                self.lag = lag  # a fit the delay explains; an early or still one can be anything
-                late = lag > self.limit
+        if lag is not None:
+            self.lag = lag
+            late = lag > self.limit
         self.over = self.over + 1 if late else 0
-        return self.over >= r.esc_lag_ticks

@@ -8,10 +8,10 @@ m = 1 has no other memory, so it cannot remove a steady offset the way a PID's I
 does. Optional field `rate_error_rms` (3): the leaky root-mean-square of the scaled rate
 error, R_k = √P_k with P_k = μ·P_{k−1} + (1 − μ)·e_k², over about one period of the
 limit cycles a fast policy can fall into on a slow airframe (17–60 Hz): a 16 ms history
-sees less than a period, and the integral averages an oscillation to zero. (Trained with
-it, a policy softens its steps instead: docs/archive/training_notes.md, 2026-11-24, an oscillation
-feature.) Optional field `rate` (3): the gyro's body rates Ω themselves, scaled as the error;
-the error alone hides where the rates are, and so the body's gyroscopic torque Ω × IΩ.
+sees less than a period, and the integral averages an oscillation to zero; a policy trained
+with it softens its steps instead of oscillating. Optional field `rate` (3): the gyro's body
+rates Ω themselves, scaled as the error; the error alone hides where the rates are, and so
+the body's gyroscopic torque Ω × IΩ.
 Optional field `motor_output` (4): the motor outputs u = (PWM − 1000) / 1000 the
 controller commanded on the previous tick. A penalty on |Δu| in the reward depends on them,
 and the rotor speeds show them only through the motors' lag; at a start there is no previous tick, and u is
@@ -20,11 +20,12 @@ taken as the steady-state command of the rotors' speeds, clip(ω · rotor_speed_
 travels in the model's metadata and the firmware refuses a model whose spec differs.
 
 `FIELD_DEFS` declares each field (its source signal, the spec's scale for it, whether it
-is integrated) and `ObservationSpec.column_sources`/`column_scales` flatten it per column;
-`observe_step` and `ObservationHistory` compute from that, and a generator of C code can
-read the same table. One formula serves one vehicle (plain floats, written into a
-preallocated batch of one: numpy's per-call overhead on 3-vectors would cost more than
-the model) and a batch (arrays with any leading shape), with the same IEEE operations.
+is integrated); `ObservationSpec.columns` gives each field's columns by name, and
+`column_sources`/`column_scales` flatten it per column; `observe_step` and
+`ObservationHistory` compute from that, and a generator of C code can read the same table.
+One formula serves one vehicle (plain floats, written into a preallocated batch of one:
+numpy's per-call overhead on 3-vectors would cost more than the model) and a batch (arrays
+with any leading shape), with the same IEEE operations.
 """
 
 from __future__ import annotations
@@ -39,7 +40,9 @@ import numpy as np
 OBS_VERSION = 1
 DEFAULT_LEAK = 0.995  # λ per step: τ = 200 steps (0.2 s at 1 kHz)
 DEFAULT_RMS_LEAK = 0.98  # μ per step: τ = 50 steps, one period at 20 Hz
-FIELDS = ("rate_error", "rotor_speed")  # the default; the shipped policy's spec
+RATE_ERROR = "rate_error"
+ROTOR_SPEED = "rotor_speed"
+FIELDS = (RATE_ERROR, ROTOR_SPEED)  # the default; the shipped policy's spec
 INTEGRAL = "rate_error_integral"
 RMS = "rate_error_rms"
 MOTOR_OUTPUT = "motor_output"
@@ -76,8 +79,8 @@ class FieldDef:
 
 
 FIELD_DEFS: dict[str, FieldDef] = {
-    "rate_error": FieldDef("rate_error", "rate_scale"),
-    "rotor_speed": FieldDef("rotor_speed", "rotor_speed_scale"),
+    RATE_ERROR: FieldDef("rate_error", "rate_scale"),
+    ROTOR_SPEED: FieldDef("rotor_speed", "rotor_speed_scale"),
     INTEGRAL: FieldDef("rate_error", "rate_scale", leak="integral_leak"),
     RMS: FieldDef("rate_error", "rate_scale", leak="rms_leak", rms=True),
     MOTOR_OUTPUT: FieldDef("motor_output", None),
@@ -138,6 +141,11 @@ class ObservationSpec:
             out.append((slice(start, start + d.size), d, scale))
             start += d.size
         return tuple(out)
+
+    @cached_property
+    def columns(self) -> dict[str, slice]:
+        """Each field's columns within one step (the newest, the observation's first), by name."""
+        return {name: cols for name, (cols, *_) in zip(self.fields, self.layout, strict=True)}
 
     @cached_property
     def column_sources(self) -> tuple[int, ...]:

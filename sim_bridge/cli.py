@@ -24,18 +24,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     twin_sub = twin.add_subparsers(dest="twin_command", required=True, metavar="WHAT")
 
     serve = twin_sub.add_parser("serve", help="run the twin as a UDP lockstep simulator")
-    serve.add_argument("--host", default="127.0.0.1")
-    serve.add_argument("--port", type=int, default=9002)
-    serve.add_argument("--rig", choices=("rig", "free"), default="rig")
-    serve.add_argument("--airframe", default=DEFAULT_AIRFRAME, help="airframe name or JSON file")
+    serve.add_argument("--host", default="127.0.0.1", help="the address to listen on")
+    serve.add_argument("--port", type=int, default=9002, help="the UDP port to listen on (0: a free one)")
+    serve.add_argument("--rig", choices=("rig", "free"), default="rig",
+                       help="rig: the vehicle turns on a ball joint at a fixed point; free: it flies")
+    serve.add_argument("--airframe", default=DEFAULT_AIRFRAME, metavar="NAME|FILE",
+                       help="the airframe the twin simulates: sim_bridge/airframes/NAME.json or a file")
     serve.add_argument("--quiet", action="store_true", help="no periodic status line")
     serve.add_argument("--fault", type=fault_spec, action="append", default=None, metavar="SPEC",
                        help="inject this fault from the first frame of every session (repeatable), as "
                             "fcemu eval --fault: TARGET:KIND[:VALUE], e.g. esc-telemetry:1:off, "
                             "gyro:delayed:5ms, esc-telemetry:burst:20ms@1%%")
+    serve.add_argument("--json", action="store_true",
+                       help="print the summary when it stops (steps, resets, bad packets) as one JSON object "
+                            "on stdout; the line saying where it listens goes to stderr")
     serve.set_defaults(handler="fcemu.sim_bridge.twin_server:serve_command")
 
     demo = twin_sub.add_parser("demo", help="open-loop showcase: hover, then roll/pitch/yaw")
     demo.add_argument("--out", default="out/twin_demo.png", help="where to write the plot")
+    demo.add_argument("--json", action="store_true",
+                      help="print the figures (hover, each axis's response) as one JSON object on stdout")
     demo.set_defaults(handler="fcemu.sim_bridge.showcase:main")
 

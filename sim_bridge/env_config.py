@@ -284,13 +284,16 @@ def scalar(hint: Any) -> tuple[Any, bool]:
 def add_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: str, hint: Any, default: Any,
                metadata: Mapping[str, Any], only_given: bool = False) -> None:
     """`--name` for a value of type `hint`: its help and argparse keywords from `metadata`,
-    the default shown in the help. With `only_given`, an option not on the command line is
-    absent from the namespace."""
-    meta = {k: v for k, v in metadata.items() if k != "parse"}
+    the default shown in the help. `metadata["flags"]` spells the option otherwise: its name
+    first, then former spellings still accepted. With `only_given`, an option not on the
+    command line is absent from the namespace."""
+    meta = {k: v for k, v in metadata.items() if k not in ("parse", "flags")}
     kind, _ = scalar(hint)
-    flag = "--" + name.replace("_", "-")
+    flags = metadata.get("flags", ("--" + name.replace("_", "-"),))
     if kind is bool:
-        parser.add_argument(flag, action=argparse.BooleanOptionalAction,
+        if default is not None and "%(default)" not in meta["help"]:
+            meta["help"] += f" (default: {'on' if default else 'off'})"
+        parser.add_argument(*flags, dest=name, action=argparse.BooleanOptionalAction,
                             default=argparse.SUPPRESS if only_given else default, **meta)
         return
     if typing.get_origin(hint) is tuple:
@@ -298,7 +301,8 @@ def add_option(parser: argparse.ArgumentParser | argparse._ArgumentGroup, name: 
     if default not in (None, (), [], {}) and "%(default)" not in meta["help"]:
         shown = " ".join(map(str, default)) if isinstance(default, tuple) else default
         meta["help"] += f" (default: {shown})"
-    parser.add_argument(flag, type=kind, default=argparse.SUPPRESS if only_given else default, **meta)
+    parser.add_argument(*flags, dest=name, type=kind, default=argparse.SUPPRESS if only_given else default,
+                        **meta)
 
 
 def add_env_arguments(parser: argparse.ArgumentParser, names: tuple[str, ...],

@@ -25,67 +25,40 @@ import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
 from fcemu.sim_bridge.airframe import AIRFRAME_DIR, DEFAULT_AIRFRAME, Airframe, load_airframe
+from fcemu.sim_bridge.randomization_parameters import (
+    BUS_PARAMETERS,
+    GYRO_KEYWORDS,
+    PARAMETERS,
+    Parameter,
+    RandomizationError,
+    known_parameters,
+)
+from fcemu.sim_bridge.relative_ranges import absolute_ranges, is_relative
 
 SUFFIX = ".randomization.json"
 RELATIVE = "relative"  # the shipped ranges relative to any airframe (sim_bridge.relative_ranges)
 NOMINAL_RTOL = 1e-9
-
-class Parameter(NamedTuple):
-    nominal: Callable[[Airframe], float]  # the airframe's value
-    keyword: str  # the Airframe.scaled keyword it sets
-    axis: int | None = None  # for per-axis keywords
-    kind: str = "scale"  # scale: a factor of the nominal; value: the drawn value; ticks: a whole number
-
-
-def _axis(name: str, axis: int) -> Parameter:
-    return Parameter(lambda a: getattr(a, name)[axis], name, axis, "value")
-
-
-def _effect(name: str, kind: str = "value") -> Parameter:
-    return Parameter(lambda a: getattr(a, name), name, None, kind)
-
-
-PARAMETERS: dict[str, Parameter] = {
-    "mass": Parameter(lambda a: a.mass, "mass"),
-    "inertia_xx": Parameter(lambda a: a.base_inertia[0], "inertia", 0),
-    "inertia_yy": Parameter(lambda a: a.base_inertia[1], "inertia", 1),
-    "inertia_zz": Parameter(lambda a: a.base_inertia[2], "inertia", 2),
-    "kf": Parameter(lambda a: a.motor.kf, "kf"),
-    "km": Parameter(lambda a: a.motor.km, "km"),
-    "tau_up": Parameter(lambda a: a.motor.tau_up, "tau_up"),
-    "tau_down": Parameter(lambda a: a.motor.tau_down, "tau_down"),
-    "rate_damping_roll": _axis("rate_damping", 0),
-    "rate_damping_pitch": _axis("rate_damping", 1),
-    "rate_damping_yaw": _axis("rate_damping", 2),
-    "rotor_inertia": _effect("rotor_inertia"),
-    "esc_delay_ticks": _effect("esc_delay_ticks", "ticks"),
-    "gyro_delay_ticks": _effect("gyro_delay_ticks", "ticks"),
-    "gyro_noise_std": _effect("gyro_noise_std"),
-    "gyro_vibration_roll": _axis("gyro_vibration", 0),
-    "gyro_vibration_pitch": _axis("gyro_vibration", 1),
-    "gyro_vibration_yaw": _axis("gyro_vibration", 2),
-    "battery_sag_per_charge": _effect("battery_sag_per_charge"),
-    "battery_resistance": _effect("battery_resistance"),
-    "battery_current_per_thrust": _effect("battery_current_per_thrust"),
-    "battery_drawn_at_start": _effect("battery_drawn_at_start"),
-    # last: ranges without them draw every other parameter as before
-    "esc_telemetry_delay_ticks": _effect("esc_telemetry_delay_ticks", "ticks"),
-    "esc_telemetry_loss": _effect("esc_telemetry_loss"),
-}
-# The ESC telemetry bus. The bus-aware training ranges draw it (iris_sensors, the default's); the
-# perturbation ranges (iris, relative) do not: a late bus is judged by the health rules (read
-# ahead) and the faults table, and on a perturbed airframe it would mix them into the bar's lines.
-BUS_PARAMETERS = frozenset({"esc_telemetry_delay_ticks", "esc_telemetry_loss"})
-GYRO_KEYWORDS = frozenset({"gyro_noise_std", "gyro_vibration", "gyro_delay_ticks"})
-
-
-class RandomizationError(ValueError):
-    """A randomisation file that is missing, malformed or inconsistent with its airframe."""
+__all__ = [
+    "BUS_PARAMETERS",
+    "GYRO_KEYWORDS",
+    "PARAMETERS",
+    "RELATIVE",
+    "SUFFIX",
+    "Parameter",
+    "ParameterRange",
+    "Randomization",
+    "RandomizationError",
+    "known_parameters",
+    "load_randomization",
+    "parse_randomization",
+    "randomization_path",
+    "ranges_for",
+]
 
 
 @dataclass(frozen=True)
@@ -213,8 +186,6 @@ def load_randomization(name_or_path: str | Path = DEFAULT_AIRFRAME,
         raw = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise RandomizationError(f"{path}: cannot read as JSON: {exc}") from None
-    from fcemu.sim_bridge.relative_ranges import absolute_ranges, is_relative
-
     if is_relative(raw):
         if airframe is None:
             raise RandomizationError(f"{path}: the ranges are relative to the airframe they are applied to: "
@@ -242,17 +213,6 @@ def ranges_for(airframe: Airframe | str | Path, name_or_path: str | Path | None 
         own = AIRFRAME_DIR / f"{airframe.name}{SUFFIX}"
         name_or_path = own if own.exists() else RELATIVE
     return load_randomization(name_or_path, airframe)
-
-
-def known_parameters(raw: dict, where: str) -> dict:
-    """The file's "parameters" object, refused unless non-empty and every key is in `PARAMETERS`."""
-    params = raw.get("parameters")
-    if not isinstance(params, dict) or not params:
-        raise RandomizationError(f"{where}: \"parameters\" must be a non-empty object")
-    unknown = sorted(set(params) - set(PARAMETERS))
-    if unknown:
-        raise RandomizationError(f"{where}: unknown parameter(s) {unknown}; known: {list(PARAMETERS)}")
-    return params
 
 
 def parse_randomization(raw: Any, where: str = "ranges") -> Randomization:

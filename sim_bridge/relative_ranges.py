@@ -20,7 +20,7 @@ from typing import Any
 
 from fcemu.sim_bridge.airframe import Airframe
 from fcemu.sim_bridge.airframe_file import GRAVITY
-from fcemu.sim_bridge.randomization import PARAMETERS, RandomizationError, known_parameters
+from fcemu.sim_bridge.randomization_parameters import PARAMETERS, RandomizationError, known_parameters
 
 AIR_DENSITY = 1.225  # kg/m³, ISA sea level
 # PX4 SITL's Iris rotor drag (gazebo_motor_model rotorDragCoefficient) for its 10-inch props; the

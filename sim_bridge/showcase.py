@@ -6,6 +6,7 @@ differential in the ball-joint rig. No controller: this shows the plant itself.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -57,20 +58,30 @@ def main(args) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    as_json = getattr(args, "json", False)
+    say = (lambda _text: None) if as_json else print
     hover = hover_run()
     twin = Twin(rig="free")
-    print(f"Iris twin: mass {twin.airframe.mass:.3f} kg, hover at {twin.airframe.hover_pwm():.0f} µs "
-          f"({twin.airframe.hover_rotor_speed():.0f} rad/s per rotor)")
-    print(f"free rig: spun up past hover to lift off, then hover PWM from 2 s: after {hover['t'][-1]:.1f} s "
-          f"altitude {hover['altitude'][-1]:.2f} m, climb rate {hover['climb'][-1]:+.2f} m/s "
-          f"(held since 2 s: {hover['climb'][2000]:+.2f} m/s)")
+    say(f"Iris twin: mass {twin.airframe.mass:.3f} kg, hover at {twin.airframe.hover_pwm():.0f} µs "
+        f"({twin.airframe.hover_rotor_speed():.0f} rad/s per rotor)")
+    say(f"free rig: spun up past hover to lift off, then hover PWM from 2 s: after {hover['t'][-1]:.1f} s "
+        f"altitude {hover['altitude'][-1]:.2f} m, climb rate {hover['climb'][-1]:+.2f} m/s "
+        f"(held since 2 s: {hover['climb'][2000]:+.2f} m/s)")
+    summary = {"airframe": twin.airframe.name, "mass_kg": twin.airframe.mass,
+               "hover_pwm_us": float(twin.airframe.hover_pwm()),
+               "hover_rotor_speed_rad_s": float(twin.airframe.hover_rotor_speed()),
+               "free_rig": {"seconds": float(hover["t"][-1]), "altitude_m": float(hover["altitude"][-1]),
+                            "climb_m_s": float(hover["climb"][-1]),
+                            "climb_at_2s_m_s": float(hover["climb"][2000])},
+               "differential_us": 60.0, "differentials": {}}
     runs = {axis: differential_run(axis) for axis in AXES}
     for k, axis in enumerate(AXES):
         g = runs[axis]["gyro"]
         peak = g[np.argmax(np.abs(g[:, k])), k]
         others = np.abs(np.delete(g, k, axis=1)).max()
-        print(f"ball-joint rig, {axis} differential ±60 µs for 0.2 s: {axis} rate peaked at "
-              f"{peak:+.2f} rad/s (largest cross-axis rate {others:.2f} rad/s)")
+        summary["differentials"][axis] = {"peak_rate_rad_s": float(peak), "cross_axis_rad_s": float(others)}
+        say(f"ball-joint rig, {axis} differential ±60 µs for 0.2 s: {axis} rate peaked at "
+            f"{peak:+.2f} rad/s (largest cross-axis rate {others:.2f} rad/s)")
 
     fig, ax = plt.subplots(4, 2, figsize=(12, 11))
     ax[0, 0].plot(hover["t"], hover["altitude"])
@@ -98,5 +109,8 @@ def main(args) -> int:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=90)
-    print(f"plot: {out}")
+    if as_json:
+        print(json.dumps({**summary, "plot": str(out)}))
+    else:
+        print(f"plot: {out}")
     return 0

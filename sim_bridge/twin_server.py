@@ -12,6 +12,7 @@ starts them over, so a session is the in-process twin with the same faults, ages
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import select
 import signal
@@ -332,6 +333,7 @@ def serve_command(args) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     twin = Twin(args.airframe, rig=args.rig)
     faults = args.fault or []
+    as_json = getattr(args, "json", False)
     server = UdpTwinServer(twin, args.host, args.port, faults=faults)
     host, port = server.address
     done = threading.Event()
@@ -350,15 +352,19 @@ def serve_command(args) -> int:
         # The line `spawn_server` waits for: printed only once SIGTERM stops us cleanly.
         injected = "".join(f"{f.describe()}, " for f in faults)
         print(f"fcemu twin serve: {twin.airframe.name}, {_RIG_NAMES.get(args.rig, args.rig)}, {injected}"
-              f"lockstep on udp://{host}:{port}", flush=True)
+              f"lockstep on udp://{host}:{port}", flush=True, file=sys.stderr if as_json else sys.stdout)
         server.serve_forever()
     except KeyboardInterrupt:
         pass
     finally:
         done.set()
         server.stop()
-    if not args.quiet:
-        c = server.counters
+    c = server.counters
+    if as_json:
+        print(json.dumps({"airframe": twin.airframe.name, "rig": args.rig, "address": f"udp://{host}:{port}",
+                          "faults": [f.describe() for f in faults], "steps": c["steps"],
+                          "resets": c["resets"], "bad_packets": server.bad_packets}), flush=True)
+    elif not args.quiet:
         print(f"fcemu twin serve: stopped after {c['steps']:,} steps, {c['resets']:,} resets, "
               f"{server.bad_packets:,} bad packets", file=sys.stderr)
     return 0

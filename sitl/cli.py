@@ -71,7 +71,7 @@ _peer = _accepted_by(_check_peer)
 def add_airframe_option(p: argparse.ArgumentParser, what: str = "the twin flies and the firmware is "
                         "configured for (its PID tune, health rules, hover throttle)") -> None:
     p.add_argument("--airframe", default=DEFAULT_AIRFRAME, metavar="NAME|FILE",
-                   help=f"the airframe {what}: sim_bridge/airframes/NAME.json or a file (default iris)")
+                   help=f"the airframe {what}: sim_bridge/airframes/NAME.json or a file")
 
 
 def add_mavlink_options(p: argparse.ArgumentParser) -> None:
@@ -99,19 +99,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     sitl = sub.add_parser("sitl", help="fly the twin with the firmware loop (software in the loop)")
     sitl.add_argument("--controller", default=None,
                       help="pid, pid:<preset> or a policy .onnx (default: the shipped policy)")
-    sitl.add_argument("--fallback", default="pid",
+    sitl.add_argument("--fallback", default=None,
                       help="under a policy, the PID it hands over to and CTRL_SEL=0 selects: pid (the "
-                           "airframe's own tune) or pid:<preset|FILE>, e.g. `fcemu fit`'s DIR/pid.json")
-    sitl.add_argument("--rig", choices=("free", "rig"), default="free")
+                           "airframe's own tune) or pid:<preset|FILE> (default: the one the policy names, "
+                           "as `fcemu fit`'s does its DIR/pid.json, else pid)")
+    sitl.add_argument("--rig", choices=("free", "rig"), default="free",
+                      help="free: the vehicle flies; rig: it turns on a ball joint at a fixed point")
     sitl.add_argument("--speed", type=_speed, default="realtime",
                       help="realtime, max (lockstep, as fast as it goes) or N for N× real time")
-    sitl.add_argument("--duration", type=seconds, default=None, help="seconds of flight (default: forever)")
+    sitl.add_argument("--duration", type=seconds, default=None,
+                      help="the flight's length in simulated seconds, not a budget (default: until Ctrl-C)")
     sitl.add_argument("--rate", type=loop_rate, default=1000.0, help="loop rate in Hz")
     sitl.add_argument("--quiet", action="store_true", help="no live status line")
     sitl.add_argument("--no-mavlink", action="store_true", help="fly the scripted doublets, no MAVLink")
     sitl.add_argument("--ulog", default=None, metavar="FILE.ulg",
                       help="write the flight's PX4 ULog here when it ends (gyro, rate setpoints, motor "
                            "commands and outputs, ESC rpm at the loop rate; docs/identify.md)")
+    sitl.add_argument("--json", action="store_true",
+                      help="print the summary at the end as one JSON object on stdout (the live status line "
+                           "stays on stderr)")
     add_airframe_option(sitl)
     add_mavlink_options(sitl)
     sitl.set_defaults(handler="fcemu.sitl.sitl:sitl_command")
@@ -120,25 +126,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--controller", default=None, help="pid, pid:<preset> or a policy .onnx")
     demo.add_argument("--speed", type=_speed, default="3", help="N× real time (default 3)")
     demo.add_argument("--out", default="runs/demo", help="where the plot, tlog and summary go")
-    demo.add_argument("--json", action="store_true")
+    demo.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
     demo.set_defaults(handler="fcemu.sitl.demo:demo_command")
 
     p = sub.add_parser("betaflight", help="real Betaflight 4.6 SITL flies seeded rate steps on the rig "
                                           "(--crosscheck: against fcemu's pid:betaflight, or with "
                                           "--firmware, a policy built into Betaflight against fcemu)")
-    p.add_argument("--episodes", type=int, default=10)
-    p.add_argument("--seed", type=int, default=0, help="the evaluator's command seed (as fcemu eval)")
-    p.add_argument("--episode-s", type=_positive_seconds, default=1.0)
+    p.add_argument("--episodes", type=int, default=10, help="--rig rig: commands flown")
+    p.add_argument("--seed", type=int, default=0, help="seed of the commands, as fcemu eval's")
+    p.add_argument("--episode-s", type=_positive_seconds, default=1.0, help="--rig rig: seconds per command")
     p.add_argument("--rig", choices=("rig", "free"), default="rig",
                    help="rig: seeded steps on the ball joint; free: take-off, doublets and descent, "
                         "all from RC sticks")
-    p.add_argument("--duration", type=_positive_seconds, default=8.0, help="--rig free: seconds of flight")
+    p.add_argument("--duration", type=_positive_seconds, default=8.0,
+                   help="--rig free: the flight's length in seconds, not a budget")
     p.add_argument("--crosscheck", action="store_true",
                    help="also fly fcemu's pid:betaflight preset on the same commands and compare")
     p.add_argument("--speed", type=float, default=0.25,
-                   help="pace of the twin against wall time (Betaflight follows the FDM timestamps; "
-                        "default 0.25): episodes on the rig measure the SITL's clock against the twin's, "
-                        "and a PID run drifting more than 5 %% (median episode) or 15 %% (any) is refused")
+                   help="pace of the twin against wall time (Betaflight follows the FDM timestamps): "
+                        "episodes on the rig measure the SITL's clock against the twin's, and a PID run "
+                        "drifting more than 5 %% (median episode) or 15 %% (any) is refused")
     p.add_argument("--firmware", default=None, metavar="DIR",
                    help="a Betaflight built with a policy (`fcemu export POLICY --target betaflight --out "
                         "DIR`): it flies with NEURAL on (--crosscheck: against fcemu flying the same C "
@@ -147,7 +154,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="Betaflight's linear ACTUAL rate at full stick, deg/s (the stick resolution)")
     p.add_argument("--run-dir", default=None, help="where the SITL keeps eeprom.bin and its log "
                                                    "(default: a fresh temporary directory)")
-    p.add_argument("--out", default=None, help="--crosscheck: write the report (Markdown, JSON, plot) here")
+    p.add_argument("--out", default=None, help="--crosscheck: write the report (Markdown, JSON, plot) into "
+                                                "this folder (default: none; the summary is printed only)")
     p.add_argument("--save-traces", metavar="FILE.npz", help="save Betaflight's traces (fcemu eval's format)")
     p.add_argument("--blackbox", metavar="FILE.BFL",
                    help="keep Betaflight's own blackbox (blackbox_device VIRTUAL, every PID loop): its logs, "

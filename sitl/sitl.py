@@ -7,6 +7,7 @@ and the MAVLink process (firmware/mavlink) carries ground stations' requests to 
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sys
@@ -129,15 +130,17 @@ def flying_line(controller: str) -> str:
 
 
 def load_controllers(controller: str, rate_hz: float, airframe: AirframeSpec,
-                     fallback: str = FALLBACK) -> tuple[dict, str]:
+                     fallback: str | None = None) -> tuple[dict, str]:
     """The loop's controllers by CTRL_SEL name ('pid', 'neural') and which one `controller` picks,
     each for `airframe` (a policy outside its envelope, or `pid` where none is tuned, is refused).
-    `fallback`: the PID a policy hands over to, and CTRL_SEL's pid (`fcemu fit`'s DIR/pid.json)."""
-    from fcemu.firmware.controllers import is_policy
+    `fallback`: the PID a policy hands over to, and CTRL_SEL's pid (None: the one the policy names,
+    as `fcemu fit`'s does its DIR/pid.json, else the airframe's own tune)."""
+    from fcemu.firmware.controllers import is_policy, resolve_fallback
 
     if is_policy(controller):
+        pid = resolve_fallback(fallback, [controller], lambda: airframe)
         return {"neural": load_controller(controller, rate_hz, airframe),
-                FALLBACK: load_controller(fallback, airframe=airframe)}, "neural"
+                FALLBACK: load_controller(pid, airframe=airframe)}, "neural"
     return {FALLBACK: load_controller(controller, rate_hz, airframe)}, FALLBACK
 
 
@@ -154,7 +157,7 @@ def build_sitl(controller: str, rig: str = "free", rate_hz: float = 1000.0, real
                commander: Commander | None = None, sinks: Sequence[TelemetrySink] = (),
                twin_address: tuple[str, int] | None = None, speed: float = 1.0,
                spin_us: int | None = None, airframe: str | object = DEFAULT_AIRFRAME,
-               fallback: str = FALLBACK) -> Sitl:
+               fallback: str | None = None) -> Sitl:
     """`airframe` (a name, a file or an Airframe): the twin's, and what the firmware's controllers,
     health rules and scripted hover are for (over UDP, the remote twin must fly the same one).
     `fallback`: the PID under a policy (`load_controllers`)."""
@@ -237,7 +240,8 @@ class VehicleSitl:
 
 def start_vehicle_sitl(controller: str, rig: str, rate_hz: float, speed: float | None, config,
                        explicit_controller: bool = True, spin_us: int | None = None,
-                       airframe: str | object = DEFAULT_AIRFRAME, fallback: str = FALLBACK) -> VehicleSitl:
+                       airframe: str | object = DEFAULT_AIRFRAME,
+                       fallback: str | None = None) -> VehicleSitl:
     """Build the loop with a `Vehicle` commander and start its MAVLink process (`config`)."""
     from fcemu.firmware.mavlink.bridge import LinkedVehicle, start_mavlink
     from fcemu.firmware.params import ParamTable
@@ -357,14 +361,34 @@ def sitl_command(args) -> int:
     if status is not None:
         sys.stderr.write("\n")
     summary = sitl.loop.stats.summary()
+    written = None
+    if ulog is not None and len(ulog):
+        written = ulog.write(args.ulog, {"ver_hw": f"fcemu SITL {args.airframe}"})
+    if getattr(args, "json", False):
+        samples = len(ulog) if ulog is not None else 0
+        print(json.dumps(flight_summary(controller, args, summary, sitl.loop.faults, written, samples, vs,
+                                        mav_stats)))
+        return 0
     print(f"controller {controller}  rig {args.rig}  {summary['ticks']} ticks at {args.rate:.0f} Hz"
           f"  misses {summary['deadline_misses']}  p99 period error "
           f"{summary['period_error_us']['p99']:.0f} µs  p99 compute {summary['compute_us']['p99']:.0f} µs"
           + (f"  faults {sitl.loop.faults}" if sitl.loop.faults else ""))
-    if ulog is not None and len(ulog):
-        written = ulog.write(args.ulog, {"ver_hw": f"fcemu SITL {args.airframe}"})
+    if written is not None:
         print(f"ulog: {written}, {len(ulog)} samples per topic")
     if vs is not None:
         print(f"vehicle: {vs.vehicle.counters or 'no events'}  ipc dropped {vs.linked.dropped}  "
               f"mavlink: {mav_stats or 'no stats'}")
     return 0
+
+
+def flight_summary(controller: str, args, timing: dict, faults: dict[str, int], ulog_path: Path | None,
+                   ulog_samples: int, vs: VehicleSitl | None, mav_stats: dict) -> dict:
+    """`fcemu sitl --json`: what the flight's last lines say, as one JSON object."""
+    out = {"controller": controller, "rig": args.rig, "airframe": args.airframe, "rate_hz": args.rate,
+           "timing": timing, "faults": faults, "ulog": None}
+    if ulog_path is not None:
+        out["ulog"] = {"path": str(ulog_path), "samples_per_topic": ulog_samples}
+    if vs is not None:
+        out["vehicle"] = {"events": vs.vehicle.counters, "ipc_dropped": vs.linked.dropped,
+                          "mavlink": mav_stats}
+    return out

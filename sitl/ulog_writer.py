@@ -18,6 +18,7 @@ import os
 import struct
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NamedTuple, get_args, get_origin, get_type_hints
 
 import numpy as np
 from pyulog import ULog
@@ -30,7 +31,6 @@ RPM_PER_RAD_S = 60.0 / (2.0 * math.pi)
 ESC_MAX = 8  # esc_status.CONNECTED_ESC_MAX
 ESC_CONNECTION_TYPE_DSHOT = 5
 ACTUATOR_FUNCTION_MOTOR1 = 101
-COLUMNS = 19  # per tick: 3 times, gyro, rate setpoint, throttle, 4 PWM, 4 rotor speeds, armed
 CHUNK = 60_000  # ticks per block of memory: a minute at 1 kHz, 9 MB
 
 # PX4's message definitions (msg/*.msg), as the logger writes their formats (padding left out).
@@ -52,6 +52,30 @@ FORMATS = {
 }
 TOPICS = ("vehicle_angular_velocity", "vehicle_rates_setpoint", "actuator_motors", "actuator_outputs",
           "esc_status", "actuator_armed")
+
+
+class Row(NamedTuple):
+    """What the recorder keeps of one tick, by name; `ROW_DTYPE`, the rows' numpy form, is built from it."""
+
+    t_us: float  # when the tick published: every topic's timestamp
+    gyro_t_us: float  # when the gyro sample the controller read was taken: the rates' timestamp_sample
+    frame_t_us: float  # when the frame was taken: actuator_motors' timestamp_sample, esc_status's timestamp
+    gyro: tuple[float, float, float]  # FRD rad/s
+    rate_setpoint: tuple[float, float, float]  # FRD rad/s
+    throttle: float  # 0..1
+    pwm: tuple[float, float, float, float]  # µs
+    rotor_speed: tuple[float, float, float, float]  # rad/s, as the ESCs reported them
+    armed: float  # 1 armed, 0 not
+
+
+def _row_dtype(cls: type) -> np.dtype:
+    """float64 per field, a tuple field as one column of its length."""
+    hints = get_type_hints(cls)
+    return np.dtype([(name, np.float64, (len(get_args(hints[name])),)) if get_origin(hints[name]) is tuple
+                     else (name, np.float64) for name in cls._fields])
+
+
+ROW_DTYPE = _row_dtype(Row)
 
 
 class _ArrayULog(ULog):
@@ -79,19 +103,24 @@ class ULogRecorder:
 
     def __init__(self, boot_us: int = BOOT_US) -> None:
         self.boot_us = boot_us
-        self._chunks: list[np.ndarray] = []  # float64 rows of COLUMNS values, CHUNK ticks each
+        self._chunks: list[np.ndarray] = []  # ROW_DTYPE rows, CHUNK ticks each
         self._n = 0
 
     def publish(self, sample: TickSample) -> None:
         k = self._n % CHUNK
         if k == 0:
-            self._chunks.append(np.empty((CHUNK, COLUMNS)))
+            self._chunks.append(np.empty(CHUNK, ROW_DTYPE))
         frame = sample.sensed or sample.frame  # the ESCs' rpm as reported, as PX4's esc_status logs it
         setpoint = sample.command.setpoint
-        self._chunks[-1][k] = (sample.t_us, frame.gyro_t_us if frame.gyro_t_us is not None else frame.t_us,
-                               frame.t_us, *frame.gyro, *setpoint.rates, setpoint.throttle,
-                               *sample.pwm, *frame.rotor_speed, sample.command.armed)
+        self._chunks[-1][k] = Row(
+            t_us=sample.t_us, gyro_t_us=frame.gyro_t_us if frame.gyro_t_us is not None else frame.t_us,
+            frame_t_us=frame.t_us, gyro=frame.gyro, rate_setpoint=setpoint.rates, throttle=setpoint.throttle,
+            pwm=sample.pwm, rotor_speed=frame.rotor_speed, armed=sample.command.armed)
         self._n += 1
+
+    def rows(self) -> np.ndarray:
+        """Every tick recorded, (n,) of ROW_DTYPE."""
+        return np.concatenate(self._chunks)[:self._n] if self._chunks else np.empty(0, ROW_DTYPE)
 
     def __len__(self) -> int:
         return self._n
@@ -100,15 +129,15 @@ class ULogRecorder:
         """Each topic's fields as PX4 names them (nested ones flattened, `esc[0].esc_rpm`)."""
         if not self._n:
             raise ValueError("nothing was recorded: the loop never ticked")
-        a = np.concatenate(self._chunks)[:self._n]
+        a = self.rows()
         n = len(a)
-        t = (a[:, 0] + self.boot_us).astype(np.uint64)
-        sampled = (a[:, 2] + self.boot_us).astype(np.uint64)  # when the frame the tick read was taken
-        gyro, rates, throttle = a[:, 3:6], a[:, 6:9], a[:, 9]
-        pwm, rotor, armed = a[:, 10:14], a[:, 14:18], a[:, 18].astype(np.int8)
+        t = (a["t_us"] + self.boot_us).astype(np.uint64)
+        sampled = (a["frame_t_us"] + self.boot_us).astype(np.uint64)  # when the frame the tick read was taken
+        gyro, rates, throttle = a["gyro"], a["rate_setpoint"], a["throttle"]
+        pwm, rotor, armed = a["pwm"], a["rotor_speed"], a["armed"].astype(np.int8)
         zeros = np.zeros(n, np.float32)
-        gyro_vel: dict[str, np.ndarray] = {"timestamp": t,
-                                           "timestamp_sample": (a[:, 1] + self.boot_us).astype(np.uint64)}
+        gyro_sampled = (a["gyro_t_us"] + self.boot_us).astype(np.uint64)
+        gyro_vel: dict[str, np.ndarray] = {"timestamp": t, "timestamp_sample": gyro_sampled}
         for i in range(3):
             gyro_vel[f"xyz[{i}]"] = gyro[:, i].astype(np.float32)
             gyro_vel[f"xyz_derivative[{i}]"] = zeros

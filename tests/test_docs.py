@@ -1,7 +1,9 @@
 """The README is a user's guide that stays honest, and the project speaks of itself only.
 
 Every `fcemu …` line in the README's code blocks names a subcommand that exists and options
-that its `--help` lists; the cheap ones run. No file of the project names how the work was
+that its `--help` lists; the cheap ones run. Its Measure table is the one
+`python -m fcemu.benchmarks.readme_figures` makes from docs/results/readme_figures.json, whose
+figures are those of the results pages they come from. No file of the project names how the work was
 organised (an issue or session number) instead of the thing itself.
 """
 
@@ -16,6 +18,8 @@ from functools import cache
 from pathlib import Path
 
 import pytest
+
+from fcemu.benchmarks import readme_figures
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -101,6 +105,31 @@ def test_the_cheap_readme_commands_run(tmp_path) -> None:
                               timeout=240, cwd=tmp_path)
         assert done.returncode == 0, done.stderr[-2000:]
         assert isinstance(json.loads(done.stdout), dict)
+
+
+def test_the_measure_table_is_made_from_the_results_file() -> None:
+    figures = readme_figures.load(ROOT)
+    readme = README.read_text()
+    assert readme_figures.with_table(readme, figures) == readme, \
+        "README.md's Measure table is stale: python -m fcemu.benchmarks.readme_figures"
+    for figure in figures:
+        assert {"figure", "text", "values", "command", "date", "machine"} <= set(figure), figure["figure"]
+        assert figure["command"].startswith("fcemu ") and re.fullmatch(r"\d{4}-\d\d-\d\d", figure["date"])
+        assert all({"value", "unit"} <= set(value) for value in figure["values"].values()), figure["figure"]
+
+
+def test_each_figure_is_the_one_its_results_page_gives() -> None:
+    figures = readme_figures.load(ROOT)
+    assert sum(len(v.get("sources", [])) for f in figures for v in f["values"].values()) >= 10
+    assert readme_figures.source_mismatches(ROOT, figures) == []
+
+
+def test_the_figures_check_sees_a_figure_its_page_does_not_give() -> None:
+    figures = readme_figures.load(ROOT)
+    mcu = next(f for f in figures if f["command"] == "fcemu bench mcu")
+    mcu["values"]["us"]["value"] = 259.8  # the default before the current one
+    found = readme_figures.source_mismatches(ROOT, figures)
+    assert len(found) == 2 and all(line.startswith(f"{mcu['figure']}: us in ") for line in found), found
 
 
 def project_text_files() -> list[Path]:

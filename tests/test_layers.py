@@ -1,8 +1,10 @@
-"""Imports point one way, downwards: firmware < sim_bridge < sitl < the tools.
+"""Imports point one way, downwards: firmware < sim_bridge < sitl < the tools; and no module
+imports itself through others.
 
-Every `import` and `from ... import` in the source tree, at module level or inside a
-function, is checked against the layer it is in. A package may import itself and what
-`ALLOWED` lists for it, nothing else of ours.
+Every `import` and `from ... import` in the source tree, at module level, inside a function or
+for type checking only, is checked against the layer it is in. A package may import itself and
+what `ALLOWED` lists for it, nothing else of ours. Within the tree the imports between modules
+form no cycle: two modules that need each other share a third they both import.
 """
 
 from __future__ import annotations
@@ -71,6 +73,53 @@ def violations(root: Path = ROOT, layers: dict[str, set[str]] = ALLOWED) -> list
     return bad
 
 
+def modules(root: Path = ROOT, layers: dict[str, set[str]] = ALLOWED) -> dict[str, Path]:
+    """Every module of the tree by its import name (`training/fit.py` → fcemu.training.fit)."""
+    found = {}
+    for package in layers:
+        for path in sorted((root / package).rglob("*.py")):
+            parts = [p for p in path.relative_to(root / package).with_suffix("").parts if p != "__init__"]
+            found[".".join(["fcemu", *([] if package == "fcemu" else [package]), *parts])] = path
+    return found
+
+
+def import_graph(root: Path = ROOT, layers: dict[str, set[str]] = ALLOWED) -> dict[str, set[str]]:
+    """Each module's imports of other modules of the tree: `from a.b import c` is a.b.c where that
+    is a module, else a.b (the longest of its prefixes that is one)."""
+    names = modules(root, layers)
+    graph: dict[str, set[str]] = {name: set() for name in names}
+    for name, path in names.items():
+        package = path.relative_to(root).parts[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                imported = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = f"fcemu.{package}" if node.level else node.module or ""
+                imported = [f"{base}.{alias.name}" for alias in node.names]
+            else:
+                continue
+            for target in imported:
+                while target and target not in names:
+                    target = target.rpartition(".")[0]
+                if target and target != name:
+                    graph[name].add(target)
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[set[str]]:
+    """The groups of more than one module each of which imports, through the others, every other."""
+    reach: dict[str, set[str]] = {}
+    for start in graph:
+        seen, todo = set(), [start]
+        while todo:
+            for target in graph[todo.pop()] - seen:
+                seen.add(target)
+                todo.append(target)
+        reach[start] = seen
+    groups = {frozenset({m, *(n for n in reach[m] if m in reach[n])}) for m in sorted(graph)}
+    return sorted((set(g) for g in groups if len(g) > 1), key=sorted)
+
+
 def test_every_package_is_in_a_layer() -> None:
     packages = {p.parent.name for p in ROOT.glob("*/__init__.py")} - {"tests"}
     assert packages == set(ALLOWED)
@@ -89,6 +138,22 @@ def test_the_checker_sees_function_level_imports(tmp_path) -> None:
     (tmp_path / "sim_bridge" / "twin.py").write_text("from fcemu.firmware.sensors import SensorFrame\n")
     layers = {"firmware": set(), "sim_bridge": {"firmware"}}
     assert violations(tmp_path, layers) == ["firmware/late.py:2: firmware imports fcemu.sim_bridge.twin"]
+
+
+def test_no_module_imports_itself_through_others() -> None:
+    assert [sorted(c) for c in import_cycles(import_graph())] == []
+
+
+def test_the_cycle_finder_sees_function_and_type_checking_imports(tmp_path) -> None:
+    (tmp_path / "training").mkdir()
+    (tmp_path / "training" / "a.py").write_text("from fcemu.training import b\n")
+    (tmp_path / "training" / "b.py").write_text("def f():\n    from fcemu.training.c import g\n")
+    (tmp_path / "training" / "c.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                                "    from fcemu.training.a import A\n")
+    (tmp_path / "training" / "d.py").write_text("import fcemu.training.a\n")
+    graph = import_graph(tmp_path, {"training": set()})
+    assert graph["fcemu.training.d"] == {"fcemu.training.a"}
+    assert import_cycles(graph) == [{"fcemu.training.a", "fcemu.training.b", "fcemu.training.c"}]
 
 
 @pytest.mark.timeout(120)

@@ -105,3 +105,24 @@ def test_the_motor_output_policy_observes_its_own_commands():
                            "motor_output")
     assert spec.memory == 16 and spec.size == 272
     assert [n.op_type for n in model.graph.node][:2] == ["Sub", "Gemm"]  # the export's centred fold
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task", ["episodic", "inflight"])
+def test_the_default_holds_the_perturbed_error_line_from_rest_and_in_flight(task: str):
+    """The bar's perturbed lines on airframes of a draw no recipe was chosen on (perturb seed 2), from
+    rest and from hover: Error ≤ the tuned PID's on the same airframes and commands; Success ≥ 99 %
+    on every axis from rest, and no lower than the PID's in flight, where an airframe with five ticks
+    of loop delay rings every controller shipped (docs/results/robustness.md)."""
+    from fcemu.evaluation.bar import PERTURBED_SUCCESS_BAR_PCT, error_sum
+    from fcemu.evaluation.perturb import fly_perturbed, perturbed_airframes
+    from fcemu.sim_bridge.randomization import ranges_for
+
+    airframes = perturbed_airframes(ranges_for("iris"), 20, seed=2)
+    cfg = EvalConfig(episodes=10, seed=7, task=task)
+    pid, default = (fly_perturbed(spec, cfg, airframes, 2).metrics for spec in ("pid", str(DEFAULT_POLICY)))
+    assert error_sum(default) <= error_sum(pid)
+    success = {a: default.stat("success_pct", a).mean for a in AXES}
+    floor = {a: PERTURBED_SUCCESS_BAR_PCT if task == "episodic" else pid.stat("success_pct", a).mean
+             for a in AXES}
+    assert all(success[a] >= floor[a] for a in AXES), (success, floor)

@@ -33,24 +33,31 @@ ROOT = Path(__file__).resolve().parents[1]
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(420)]
 
 
-def runtime_closure(requirements: list[str]) -> dict[str, Distribution]:
-    """The installed distributions that `requirements` need, transitively, without extras."""
+def runtime_closure(requirements: list[str], extras: tuple[str, ...] = ()) -> dict[str, Distribution]:
+    """The installed distributions that `requirements` need, transitively: without extras but
+    `extras` of the first level (as `pip install 'fcemu[train]'`), and each dependency's own
+    extras where a requirement names them (`ray[tune]`)."""
     found: dict[str, Distribution] = {}
-    todo = list(requirements)
+    seen: set[tuple[str, str]] = set()
+    todo = [(text, ("", *extras)) for text in requirements]
     while todo:
-        req = Requirement(todo.pop())
-        if req.marker is not None and not req.marker.evaluate({"extra": ""}):
+        text, active = todo.pop()
+        req = Requirement(text)
+        if req.marker is not None and not any(req.marker.evaluate({"extra": e}) for e in active):
             continue
         name = canonicalize_name(req.name)
-        if name in found:
+        wanted = tuple(e for e in ("", *sorted(req.extras)) if (name, e) not in seen)
+        if not wanted:
             continue
-        try:
-            dist = distribution(req.name)
-        except PackageNotFoundError:
-            pytest.fail(f"the wheel requires {req}, which the test's environment lacks")
-        assert dist.version in req.specifier or not req.specifier, f"{req}: installed {dist.version}"
-        found[name] = dist
-        todo += dist.requires or []
+        seen.update((name, e) for e in wanted)
+        if name not in found:
+            try:
+                dist = distribution(req.name)
+            except PackageNotFoundError:
+                pytest.fail(f"the wheel requires {req}, which the test's environment lacks")
+            assert dist.version in req.specifier or not req.specifier, f"{req}: installed {dist.version}"
+            found[name] = dist
+        todo += [(dep, wanted) for dep in found[name].requires or []]
     return found
 
 
@@ -74,21 +81,30 @@ def wheel_requirements(wheel: Path) -> list[str]:
 def installed(tmp_path_factory) -> Path:
     """A fresh venv with the wheel and its runtime dependencies; returns its bin directory."""
     work = tmp_path_factory.mktemp("wheel")
-    source = work / "source"  # a copy, so the build leaves nothing in the checkout
+    return install_wheel(build_wheel(work), work / "venv")
+
+
+def build_wheel(work: Path) -> Path:
+    """The wheel, built from a copy of the checkout so that the build leaves nothing in it."""
+    source = work / "source"
     shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(
         ".git", ".venv", "runs", "build", "out", "*.egg-info", "__pycache__", ".pytest_cache", ".ruff_cache"))
     dist = work / "dist"
     subprocess.run([sys.executable, "-m", "pip", "wheel", str(source), "--no-deps", "--no-build-isolation",
                     "-q", "-w", str(dist)], check=True, timeout=300)
-    wheel = next(dist.glob("fcemu-*.whl"))
-    venv = work / "venv"
+    return next(dist.glob("fcemu-*.whl"))
+
+
+def install_wheel(wheel: Path, venv: Path, extras: tuple[str, ...] = ()) -> Path:
+    """A fresh venv at `venv` with `wheel` and the closure of its requirements (with `extras`),
+    linked from the test's interpreter; returns its bin directory."""
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120, env=clean_env())
     python = venv / "bin" / "python"
     purelib = "import sysconfig; print(sysconfig.get_paths()['purelib'])"
     site = Path(subprocess.run([str(python), "-c", purelib], capture_output=True, text=True, check=True,
                                env=clean_env()).stdout.strip())
     assert site != Path(sysconfig.get_paths()["purelib"])
-    for dep in runtime_closure(wheel_requirements(wheel)).values():
+    for dep in runtime_closure(wheel_requirements(wheel), extras).values():
         link_distribution(dep, site)
     subprocess.run([str(python), "-m", "pip", "install", "-q", "--no-deps", "--no-index",
                     "--disable-pip-version-check", str(wheel)], check=True, timeout=300, env=clean_env())

@@ -36,7 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                   "`fcemu train` option; the command line wins")
     p.add_argument("--address", default=None, help="join this Ray cluster (e.g. ray://head:10001 or "
                                                    "auto) instead of starting Ray on this machine")
-    p.add_argument("--cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
+    p.add_argument("--jobs", "--cpus", dest="cpus", type=int, default=None, metavar="JOBS",
+                   help="CPUs the local Ray runs trials on, --cpus-per-trial each (default: all)")
     p.add_argument("--cpus-per-trial", type=int, default=1, help="CPUs per trial (also its torch threads)")
     p.add_argument("--gpus-per-trial", type=float, default=None,
                    help="GPUs per trial (default: none; the 64×64 networks train on the CPU)")
@@ -66,21 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def register_tune(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("tune", help="tune the Betaflight-style rate PID for an airframe: the Iris tune "
-                                    "carried over by physics, then searched; checked against `fcemu bound`")
-    p.add_argument("--airframe", required=True, metavar="NAME|FILE",
-                   help="sim_bridge/airframes/<name>.json or a path to an airframe file")
-    p.add_argument("--out", required=True, metavar="DIR", help="where pid.json and tune.json are written")
-    p.add_argument("--budget-s", type=float, default=540.0, metavar="S",
-                   help="wall time for the search and the held-out check, the bound's (solved once per "
-                        "airframe and cached) aside (default 540)")
-    p.add_argument("--seed", type=int, default=2018,
-                   help="seed of the tuning commands; the held-out commands are seed + 1 (default 2018)")
-    p.add_argument("--jobs", type=int, default=0, metavar="J",
-                   help="worker processes flying candidates (0: one per CPU this process may use)")
-    p.add_argument("--episodes", type=int, default=50, help="tuning commands (default 50)")
-    p.add_argument("--check-episodes", type=int, default=50, help="held-out commands (default 50)")
-    p.add_argument("--rounds", type=int, default=12,
-                   help="most rounds of the search per stage, if the budget lasts (default 12)")
-    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
-    p.set_defaults(handler="fcemu.training.pid_tune_cli:tune_command")
+    """`fcemu tune`, its options declared in `training.tune_options`."""
+    from fcemu.training.tune_options import register_tune as register
+
+    register(sub)

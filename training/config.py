@@ -27,12 +27,11 @@ from fcemu.sim_bridge.env_config import ENV_FIELDS, EnvConfig, add_option, comma
 from fcemu.sim_bridge.reward import REWARDS
 
 # ── Defaults per algorithm ─────────────────────────────────────────────────────────────
-# 1 ms steps and 1000-step episodes: a horizon of ~100 ms (γ 0.99, λ 0.95: a yaw rise
-# and its settling) credits an action with what it does to the rate, not with the whole
-# episode; γ 0.98 / λ 0.9 (~50 ms) beat the tuned PID on 1 seed of 4, γ 0.99 on 2 of 3.
-# Exploration is state-dependent (gSDE, noise redrawn once per rollout): white noise on
-# every 1 ms action is filtered away by the motors, tells the critic nothing, and PPO
-# with it drifts into spinning the vehicle (docs/archive/training_notes.md).
+# 1 ms steps and 1000-step episodes: a horizon of ~100 ms (γ 0.99, λ 0.95: a yaw rise and
+# its settling) credits an action with what it does to the rate, not with the whole episode.
+# Exploration is state-dependent (gSDE, noise redrawn once per rollout): the motors filter
+# away white noise on every 1 ms action, so it teaches the critic nothing and PPO drifts
+# into spinning the vehicle.
 _ON_POLICY_NET = {"net_arch": {"pi": [64, 64], "vf": [64, 64]}, "log_std_init": -1.0}
 _OFF_POLICY = {"learning_rate": 1e-3, "gamma": 0.98, "batch_size": 256, "buffer_size": 1_000_000,
                "learning_starts": 10_000, "train_freq": 1, "gradient_steps": 1, "tau": 0.005,
@@ -115,9 +114,14 @@ def parse_hp(items: list[str] | dict[str, Any] | None) -> dict[str, Any]:
     return hp
 
 
+# The parallelism of a command is --jobs; --threads is its former spelling, still accepted.
+JOBS_FLAGS = ("--jobs", "--threads")
+
+
 def option(default: Any, help: str, **argparse_kwargs: Any) -> Any:
     """A field with its command-line description: `help` plus any argparse keyword
-    (choices, nargs, metavar) and `parse`, applied to the parsed value."""
+    (choices, nargs, metavar), `parse`, applied to the parsed value, and `flags`, the
+    option's spellings where they are not the field's name (`env_config.add_option`)."""
     return field(default=default, metadata={"help": help, **argparse_kwargs})
 
 
@@ -126,7 +130,8 @@ def option(default: Any, help: str, **argparse_kwargs: Any) -> Any:
 class TrainConfig:
     algo: str = option("ppo", "RL algorithm (SB3 / sb3-contrib)", choices=tuple(ALGOS))
     steps: int = option(3_000_000, "environment steps (1 ms each)")
-    seed: int = option(0, "seed of the environments and the networks")
+    seed: int = option(0, "seed of the training twins (their commands, drawn airframes and noise) and of "
+                          "the networks' initial weights and exploration")
     out: str | None = option(None, "run directory (default runs/ALGO)")
     integral: bool = option(False, "add a leaky integral of the rate error to the observation "
                                    "(rate_error_integral)")
@@ -158,7 +163,8 @@ class TrainConfig:
     select: str = option("bar", "what `best` means: bar (meeting the shipped policy's bar first, then "
                                 "the Error ratio, penalised for motor roughness beyond the bar's 1.5 × "
                                 "the PID's) or error (the lowest Error ratio, however rough)", choices=SELECT)
-    threads: int = option(0, "torch threads (0: one per CPU this process may use)")
+    threads: int = option(0, "torch threads (0: one per CPU this process may use)", flags=JOBS_FLAGS,
+                          metavar="JOBS")
     progress: bool = option(True, "progress bar")
     warm_start: str | None = option(
         None, "before RL, fit the actor to a PID preset's outputs on the training flights (behaviour cloning "
@@ -193,7 +199,7 @@ class TrainConfig:
             if not 0.0 <= leak < 1.0:
                 raise ValueError(f"{flag} must be in [0, 1), got {leak}")
         if self.threads < 0:
-            raise ValueError(f"--threads must be >= 0 (0: one per available CPU), got {self.threads}")
+            raise ValueError(f"--jobs must be >= 0 (0: one per available CPU), got {self.threads}")
         self.threads = self.threads or available_cpus()
         if not (math.isfinite(self.obs_clip) and self.obs_clip >= 0.0):
             raise ValueError(f"--obs-clip must be finite and >= 0 (0: no clip), got {self.obs_clip}")

@@ -158,9 +158,8 @@ def differential_mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def as_mixed(pred: torch.Tensor, label: torch.Tensor) -> torch.Tensor:
     """The prediction as the mixer takes it, against a label: past a label at an end of the action
     range the mixer clips both to the same action (`firmware.action`), so there is no error there.
-    Without this the fit pulled every saturated output back inside the range, and a student came
-    out slow wherever the teacher saturates: the racer's 0.969 × its PID, 0.948 × with it
-    (docs/archive/training_notes.md, 2026-11-28, the clipped label)."""
+    Without this the fit pulls every saturated output back inside the range, and the student comes
+    out slow wherever the teacher saturates."""
     past = ((label >= 1.0) & (pred > 1.0)) | ((label <= -1.0) & (pred < -1.0))
     return torch.where(past, label, pred)
 

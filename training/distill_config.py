@@ -17,7 +17,7 @@ from typing import Any
 
 from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.env_config import add_option, own_ranges
-from fcemu.training.config import option, with_env_options
+from fcemu.training.config import JOBS_FLAGS, option, with_env_options
 
 OWN_RANGES = "own"  # --randomize's default: the airframe's training ranges (`training_ranges`)
 # The ranges a student is trained on by default, per airframe: the Iris's default was distilled
@@ -64,19 +64,19 @@ class DistillConfig:
              "of the student's action fitted to the teacher's, so the student's slopes match, not only its "
              "values (0: off)", metavar="W")
     gain_step: float = option(0.2, "the nudge, in standard deviations of each input", metavar="S")
-    # Off by default: a one-step student cannot tell from its late gyro what the teacher saw on time
-    # (Iris, held-out commands: 0.969× the PID from rest with it, 0.942× without). The default
-    # policy's recipe turns it on with iris_sensors: its 16-step student flies 2 ms late rpm at 1.9×
-    # its Error instead of 5× (policies/README.md); `fcemu fit` on an airframe whose sensors are not
-    # the truth, with a four-tick student (docs/archive/training_notes.md, 2026-11-27).
+    # Off by default: a one-step student cannot tell from its late gyro what the teacher saw on
+    # time. A student with a history of several ticks can, so the default policy's recipe
+    # (policies/README.md) and `fcemu fit` on late or noisy sensors turn it on.
     privileged: bool = option(
         False, "where the twins' gyro or ESC telemetry is late or lossy, the teacher reads the readings as "
                "sampled and the student its own (off: both read the firmware's); the model-based teacher "
                "`inversion` reads the true rates and rotor speeds, without noise or vibration either")
     foreign_teacher: bool = option(False, "distil a teacher made for another airframe than --airframe "
                                           "(its fcemu.airframe); refused unless given")
-    seed: int = option(0, "seed of the twins, the mixture and the network")
-    threads: int = option(0, "torch threads (0: one per CPU this process may use)")
+    seed: int = option(0, "seed of the twins (their commands, drawn airframes and noise), of which "
+                          "episodes the teacher flies, and of the student's initial weights and batches")
+    threads: int = option(0, "torch threads (0: one per CPU this process may use)", flags=JOBS_FLAGS,
+                          metavar="JOBS")
     progress: bool = option(True, "progress bar")
     extra: dict[str, Any] = field(default_factory=dict)
 

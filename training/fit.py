@@ -4,12 +4,13 @@
 
 Top to bottom, one stage each:
 
-1. **The PID**: a shipped airframe named by name has its shipped tune (`firmware/presets/`), the
-   PID `--controller pid` flies on it, so the policy meets the opponent a user has; `--pid` names
-   another. Otherwise (an airframe file, or `--tune`) `fcemu tune` (`training.pid_tune`) on the
-   tuning commands (seed S), with the `--tune-budget-s` share of the time: DIR/pid.json and
-   DIR/tune.json. Either way `fcemu bound`'s lower bound on the held-out commands (seed S + 1) is
-   solved, or read from its cache.
+1. **The PID**: DIR/pid.json where `fcemu tune` wrote it for this airframe (by the digest of the
+   airframe it records), tuned on purpose; else a shipped airframe named by name has its shipped
+   tune (`firmware/presets/`), the PID `--controller pid` flies on it, so the policy meets the
+   opponent a user has; `--pid` names another. Otherwise (an airframe file, or `--tune`) `fcemu
+   tune` (`training.pid_tune`) on the tuning commands (seed S), with the `--tune-budget-s` share of
+   the time: DIR/pid.json and DIR/tune.json. Either way `fcemu bound`'s lower bound on the held-out
+   commands (seed S + 1) is solved, or read from its cache.
 2. **The teacher**: the airframe's model inverted tick by tick (`training.inversion_teacher`);
    nothing to train. Its speed, then its shape (a share of yaw served first, its braking share,
    its damping), are chosen on the tuning commands, each flown alone through the action mapping
@@ -18,7 +19,8 @@ Top to bottom, one stage each:
 3. **The policy**: a student fitted to the teacher by DAgger on the airframe's twins
    (`fcemu distill inversion`), nominal and drawn from the airframe's ranges; where the sensors
    are not the truth the teacher reads the truth and the student `SENSED_MEMORY` ticks; exported
-   as DIR/policy.onnx with the airframe and its envelope in its metadata.
+   as DIR/policy.onnx with the airframe, its envelope and its fallback PID (pid.json beside it) in
+   its metadata.
 4. **The check**: the policy and the tuned PID on the same held-out commands, against the bar
    for an airframe of one's own (`evaluation.bar.airframe_bar_verdict`), the bound, and the
    policy's time on an STM32F405 (`fcemu bench mcu`, when the Cortex-M tools are installed).
@@ -31,71 +33,33 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from fcemu.firmware.errors import UserError
+from fcemu.training.fit_options import STUDENT_STEPS, FitCommand, FitOptions, shipped_pid
+from fcemu.training.options import add_arguments, from_args
 
-
-@dataclass(frozen=True)
-class FitOptions:
-    airframe: str
-    out: str
-    seed: int = 2018
-    episodes: int = 50  # tuning commands (seed) and held-out commands (seed + 1)
-    tune_budget_s: float = 540.0
-    lag_multiple: float | None = None  # the teacher's time constant in motor lags (None: its default)
-    rounds: int = 6
-    steps: int | None = None  # per twin and DAgger round (None: STUDENT_STEPS, more where sensed)
-    envs: int = 64
-    fit_steps: int = 3000  # Adam steps after each round
-    net_arch: tuple[int, ...] = (48, 48)  # the largest two layers of 10 inputs well inside an F405's budget
-    jobs: int = 2
-    mcu: bool = True
-    progress: bool = True
-    pid: str | None = None  # a preset already tuned for the airframe: no tune
-    damping: float | None = None  # the teacher's damping ratio (None: chosen, 0.7 or 0.85)
-    yaw_first: float | None = None  # the share of yaw the teacher serves first (None: chosen)
-    braking: float | None = None  # the teacher's braking share (None: chosen)
-
-
-# The student's recipe for the inversion teacher (docs/archive/training_notes.md, 2026-11-27, fitting the
-# student): half the episodes start in flight, as the check's second task does (a student fitted from
-# rest only lost 7 % to its teacher there); a faster fit; no gain match, whose nudges straddle the
-# saturation's kinks. Episodes are the check's whole second: Success is judged from 0.5 to 1 s, and a
-# student that never saw a yaw still saturated there (the X500's) settled roll and pitch off beside it
-# (docs/archive/training_notes.md, 2026-11-28, the exact label).
+# The student's recipe for the inversion teacher: half the episodes start in flight, as the check's second
+# task does; no gain match, whose nudges straddle the saturation's kinks. Episodes last the check's whole
+# second, so a student sees a saturated yaw settle as Success judges it (docs/results/fit.md).
 STUDENT_RECIPE = {"learning_rate": 3e-3, "gain_weight": 0.0, "inflight_share": 0.5}
-# Where the airframe's sensors are not the truth (gyro noise, vibration or delay; a late or lossy ESC
-# bus), the teacher reads the true rates and rotor speeds and the student the last SENSED_MEMORY ticks
-# of its own, so it can average the noise the teacher never saw: on an identified Iris with noise
-# and vibration, 0.97 × the PID at 0.37 × its motor roughness, against 1.01 × at 3.1 × for a
-# one-tick student of the same view (docs/archive/training_notes.md, 2026-11-27, a teacher for real sensors).
-# Four ticks fit an F405's budget with the 48-48 network (231 µs); eight do not (318 µs).
+# Where the sensors are not the truth the teacher reads the true rates and rotor speeds, and the student
+# its last SENSED_MEMORY ticks of sensors, so it can average the noise its teacher never saw. Four ticks
+# of the 48-48 network fit an F405's budget; eight do not (docs/results/fit.md).
 SENSED_MEMORY = 4
-# Steps per twin and DAgger round: 1000, one 1 s episode. A student of SENSED_MEMORY ticks (40 inputs,
-# noise to average) needs twice the transients: on an identified Iris with every effect on, 1.011 × its
-# PID with 1000 steps, 0.968 × with 2000 (docs/archive/training_notes.md, 2026-11-28, the exact label).
-STUDENT_STEPS = {"exact": 1000, "sensed": 2000}
-
-
 # A student is judged on SPEED_COMMANDS and checked on the held-out ones, where its motors' ratio to
-# the PID's moved by up to 3 % (the hummingbird's 1.48 × became 1.52 ×, over the bar's 1.5 ×): one is
-# kept only within this share of the bar's motor line.
+# the PID's moves by a few percent: one is kept only within this share of the bar's motor line.
 STUDENT_MOTOR_MARGIN = 0.95
 
 
-def _stage(log: Any, t0: float, text: str) -> None:
-    log(f"[{time.monotonic() - t0:5.0f} s] {text}")
-
-
 def tune_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
-    from fcemu.training.pid_tune import TuneOptions
     from fcemu.training.pid_tune_cli import dumps, tune
+    from fcemu.training.tune_options import TuneOptions
 
-    tune_opts = TuneOptions(opts.airframe, opts.seed, opts.episodes, opts.episodes, opts.tune_budget_s,
-                            opts.jobs)
+    tune_opts = TuneOptions(airframe=opts.airframe, seed=opts.seed, episodes=opts.episodes,
+                            check_episodes=opts.episodes, budget_s=opts.tune_budget_s, jobs=opts.jobs)
     preset, summary = tune(tune_opts, log=lambda line: log("  tune " + line))
     (out / "pid.json").write_text(dumps(preset))
     summary["preset"] = str(out / "pid.json")
@@ -104,8 +68,8 @@ def tune_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
 
 
 def given_pid_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
-    """A PID already tuned for the airframe (`--pid`): copied to DIR/pid.json; the held-out bound is
-    solved (or read from the tune's cache) as the tune would."""
+    """A PID already tuned for the airframe (`--pid`, or DIR/pid.json itself): copied to DIR/pid.json;
+    the held-out bound is solved (or read from the tune's cache) as the tune would."""
     from fcemu.evaluation.bound import error_bounds, rig_constants
     from fcemu.firmware.pid_controller import load_preset
     from fcemu.sim_bridge.airframe import load_airframe
@@ -117,7 +81,8 @@ def given_pid_stage(opts: FitOptions, out: Path, log: Any) -> dict[str, Any]:
         preset = load_preset(opts.pid)
     except (ValueError, KeyError, TypeError, OSError) as exc:
         raise UserError(f"fit: --pid {opts.pid}: {exc}") from None
-    (out / "pid.json").write_text(dumps(preset))
+    if not is_own_pid(opts.pid, out):  # the tune's own file kept as it wrote it
+        (out / "pid.json").write_text(dumps(preset))
     commands = episodic_commands(opts.seed + 1, opts.episodes)
     bound = None
     try:
@@ -165,6 +130,8 @@ def taught_student(opts: FitOptions, speed: dict[str, Any] | None, out: Path, lo
 
 
 def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
+    from fcemu.export.onnx_export import record_metadata
+    from fcemu.firmware.contract import FALLBACK_META
     from fcemu.sim_bridge.airframe import load_airframe
     from fcemu.training.distill import INVERSION, distill
     from fcemu.training.distill_config import DistillConfig
@@ -189,6 +156,8 @@ def distill_stage(opts: FitOptions, out: Path) -> dict[str, Any]:
     summary = distill(cfg)
     policy = out / "policy.onnx"
     policy.write_bytes(Path(summary["export"]["out"]).read_bytes())
+    # the PID beside it flies when it faults, without a --fallback to name it
+    record_metadata(policy, {FALLBACK_META: "pid.json"})
     return {"teacher": teacher, "rounds": opts.rounds, "net_arch": list(opts.net_arch),
             "teacher_reads_truth": sensed, "memory": cfg.memory or 1,
             "inputs": summary["inputs"], "steps": cfg.steps, "env_steps": summary["env_steps"],
@@ -200,7 +169,8 @@ def check_stage(opts: FitOptions, policy: Path, pid: Path, bound_sum: float | No
     from fcemu.evaluation.bar import airframe_bar_verdict
     from fcemu.evaluation.metrics import compute_metrics
     from fcemu.evaluation.runner import EvalConfig, run_controller
-    from fcemu.training.fit_report import metrics_json
+    from fcemu.evaluation.step_plots import plot_steps
+    from fcemu.training.fit_report import STEP_PLOT, metrics_json
 
     mcu_us, mcu_note = None, "not measured (--no-mcu)"
     if opts.mcu:
@@ -216,21 +186,26 @@ def check_stage(opts: FitOptions, policy: Path, pid: Path, bound_sum: float | No
                 mcu_note = "fcemu bench mcu: the cycle-level estimate at 168 MHz"
             except CExportError as exc:
                 mcu_note = f"not measured: {exc}"
-    tasks = {}
-    for task in ("episodic", "inflight"):
+    tasks, flown = {}, {}
+    for task, title in (("episodic", "from rest"), ("inflight", "in flight, from hover")):
         cfg = EvalConfig(task=task, episodes=opts.episodes, seed=opts.seed + 1, airframe=opts.airframe,
                          fallback=f"pid:{pid}")
-        pol = compute_metrics(run_controller(str(policy), cfg, progress=False))
-        ref = compute_metrics(run_controller(f"pid:{pid}", cfg, progress=False))
+        policy_flown = run_controller(str(policy), cfg, progress=False)
+        pid_flown = run_controller(f"pid:{pid}", cfg, progress=False)
+        flown[title] = {"PID": pid_flown, "policy": policy_flown}
+        pol, ref = compute_metrics(policy_flown), compute_metrics(pid_flown)
         verdict = airframe_bar_verdict(pol, ref, bound_sum if task == "episodic" else None, mcu_us)
         tasks[task] = {"policy": metrics_json(pol), "pid": metrics_json(ref), "bar": verdict}
+    plot = plot_steps(flown, out / STEP_PLOT, f"{opts.airframe}: the policy and the PID on held-out "
+                                              f"commands (seed {opts.seed + 1})")
     return {"seed": opts.seed + 1, "episodes": opts.episodes, "bound_sum": bound_sum, "mcu_us_f405": mcu_us,
-            "mcu_note": mcu_note, "tasks": tasks,
+            "mcu_note": mcu_note, "tasks": tasks, "step_plot": plot.name,
             "meets_bar": all(t["bar"]["meets_bar"] for t in tasks.values())}
 
 
 def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
     """The three stages and the check; the summary written as DIR/fit.json and DIR/report.md."""
+    from fcemu.training.fit_progress import fit_stages
     from fcemu.training.fit_report import command_line, write_report
     from fcemu.training.fit_teacher import teacher_stage
     from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING
@@ -238,32 +213,37 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
     log = log or (lambda line: None)
     out = Path(opts.out)
     t0 = time.monotonic()
+    stages = fit_stages(opts, log)
     times: dict[str, float] = {}
     if opts.pid is None:
-        _stage(log, t0, f"tuning the PID for {opts.airframe} ({opts.tune_budget_s:.0f} s, the bound aside)")
+        stages.start("tune", f"tuning the PID for {opts.airframe} in {opts.tune_budget_s:.0f} s, the bound "
+                             "aside")
         tuned = tune_stage(opts, out, log)
-        _stage(log, t0, f"PID: {tuned['held_out']['tuned']['error_sum']:.1f} on the held-out commands")
+        stages.finish()
+        stages.note(f"PID: {tuned['held_out']['tuned']['error_sum']:.1f} on the held-out commands")
     else:
-        _stage(log, t0, f"the PID: {opts.pid} (--tune to tune one anew)")
+        given = (f"the PID tuned in {opts.pid} by fcemu tune: not tuned again" if is_own_pid(opts.pid, out)
+                 else f"the PID: {opts.pid}")
+        stages.start("tune", f"{given} (--tune to tune one anew)")
         tuned = given_pid_stage(opts, out, log)
     times["tune"] = round(time.monotonic() - t0, 1)
     speed = None
     if opts.lag_multiple is None:
-        _stage(log, t0, "choosing the teacher's speed on the tuning commands")
+        stages.start("teacher", "choosing the teacher's speed on the tuning commands")
         t = time.monotonic()
         speed = teacher_stage(opts, out / "pid.json", log)
         times["teacher"] = round(time.monotonic() - t, 1)
     if speed is not None:
         opts = replace(opts, yaw_first=speed["yaw_first"], braking=speed["braking"], damping=speed["damping"])
     first = opts.lag_multiple if speed is None else speed["lag_multiple"]
-    _stage(log, t0, f"fitting the policy to the model-based teacher ({first:g} motor lags, "
-                    f"{opts.yaw_first or 0.0:g} of yaw first, braking {opts.braking or BRAKING_SHARE:g}, "
-                    f"damping {opts.damping or DAMPING:g})")
+    stages.start("policy", f"fitting the policy to the model-based teacher ({first:g} motor lags, "
+                           f"{opts.yaw_first or 0.0:g} of yaw first, braking "
+                           f"{opts.braking or BRAKING_SHARE:g}, damping {opts.damping or DAMPING:g})")
     t = time.monotonic()
     student = taught_student(opts, speed, out, log)
     opts = replace(opts, lag_multiple=student["speed"]["lag_multiple"]) if speed else opts
     times["policy"] = round(time.monotonic() - t, 1)
-    _stage(log, t0, f"policy written ({student['inputs']} inputs); checking it against the PID")
+    stages.start("check", f"policy written ({student['inputs']} inputs); checking it against the PID")
     t = time.monotonic()
     bound = tuned["held_out"].get("bound")
     check = check_stage(opts, Path(student["policy"]), out / "pid.json", bound and bound["sum"], out)
@@ -278,36 +258,46 @@ def fit(opts: FitOptions, log: Any = None) -> dict[str, Any]:
     return summary
 
 
-def shipped_pid(airframe: str) -> str | None:
-    """The shipped tune of a shipped airframe named by name (`firmware/presets/pid_<name>.json`), or
-    None. An airframe file is tuned anew, whatever name it gives itself."""
-    from fcemu.firmware.controllers import ControllerSpecError, airframe_preset
-    from fcemu.sim_bridge.airframe_spec import airframe_spec
-
-    if airframe.endswith(".json") or "/" in airframe:
-        return None
-    try:
-        return str(airframe_preset(airframe_spec(airframe)))
-    except ControllerSpecError:
-        return None
+def is_own_pid(pid: str, out: Path) -> bool:
+    """`pid` is DIR/pid.json itself."""
+    return Path(pid).resolve() == (out / "pid.json").resolve()
 
 
 def tuned_in(out: Path, airframe: str) -> str | None:
-    """DIR/pid.json where `fcemu tune` (or an earlier fit) tuned it for this airframe: not tuned again."""
+    """DIR/pid.json where `fcemu tune` (or an earlier fit) tuned it for this airframe: the digest of the
+    airframe it records is this one's (a file, its shipped name or a copy of it alike); where it records
+    none, its airframe's name or string is this one's."""
     from fcemu.sim_bridge.airframe import load_airframe
+    from fcemu.training.pid_tune_cli import airframe_digest
 
     path = out / "pid.json"
     try:
-        tuned_for = json.loads(path.read_text()).get("tuning", {}).get("airframe")
+        tuning = json.loads(path.read_text()).get("tuning", {})
+        tuned_for, digest = tuning.get("airframe"), tuning.get("airframe_sha256")
     except (OSError, ValueError, AttributeError):
         return None
-    return str(path) if tuned_for == load_airframe(airframe).name else None
+    if digest is not None:
+        return str(path) if digest == airframe_digest(airframe) else None
+    return str(path) if tuned_for in (airframe, load_airframe(airframe).name) else None
+
+
+def refuse_props_out(airframe: str) -> None:
+    """A fit makes a policy, and a policy flies props in only: refused before the tune's minutes."""
+    from fcemu.firmware.controllers import PROPS_OUT
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    try:
+        spec = airframe_spec(airframe)
+    except (OSError, ValueError, KeyError):
+        return  # `checked_airframe_and_out` says why it does not load
+    if spec.props_out:
+        raise UserError(f"fit: {spec.name}'s {PROPS_OUT}; fly its PID (`fcemu tune --airframe {airframe} "
+                        "--out DIR`)")
 
 
 def fit_command(args: Any) -> int:
     import importlib.util
 
-    from fcemu.firmware.timing import available_cpus
     from fcemu.training.pid_tune_cli import checked_airframe_and_out
 
     if importlib.util.find_spec("torch") is None:  # before the tune's minutes, not after them
@@ -322,57 +312,24 @@ def fit_command(args: Any) -> int:
         raise UserError("fit: --yaw-first must be in [0, 1]")
     if args.braking is not None and not args.braking > 0.0:
         raise UserError("fit: --braking must be > 0")
-    if args.pid and args.tune:
+    command = from_args(FitCommand, args)
+    if args.pid and command.tune:
         raise UserError("fit: --pid or --tune, not both")
+    refuse_props_out(args.airframe)
     out = checked_airframe_and_out("fit", args.airframe, args.out)
-    pid = args.pid or (None if args.tune else shipped_pid(args.airframe) or tuned_in(out, args.airframe))
-    opts = FitOptions(args.airframe, str(out), args.seed, args.episodes, args.tune_budget_s,
-                      args.lag_multiple, args.rounds, args.steps, args.envs, args.fit_steps,
-                      tuple(args.net_arch), args.jobs or available_cpus(), not args.no_mcu,
-                      progress=sys.stderr.isatty(), pid=pid, damping=args.damping,
-                      yaw_first=args.yaw_first, braking=args.braking)
+    # the folder's own tune before the shipped one: it was tuned for this airframe on purpose
+    pid = args.pid or (None if command.tune else tuned_in(out, args.airframe) or shipped_pid(args.airframe))
+    opts = from_args(FitOptions, args, out=str(out), pid=pid, progress=sys.stderr.isatty())
     summary = fit(opts, log=lambda line: print(line, file=sys.stderr, flush=True))
     verdict = "meets the bar" if summary["meets_bar"] else "does not meet the bar (see report.md)"
     print(f"wrote {summary['pid']}, {summary['policy']} and {out / 'report.md'} in "
           f"{summary['time_s']['total']:.0f} s; the policy {verdict}", file=sys.stderr)
-    if args.json:
+    if command.json:
         print(json.dumps(summary))
     return 0
 
 
 def register(sub: Any) -> None:
     p = sub.add_parser("fit", help="from an airframe to its tuned PID, a policy that beats it, and a report")
-    p.add_argument("--airframe", required=True, help="a shipped airframe's name or an airframe file")
-    p.add_argument("--out", required=True, help="directory for pid.json, policy.onnx, report.md, fit.json")
-    p.add_argument("--seed", type=int, default=2018, help="tuning commands' seed; held out: seed + 1")
-    p.add_argument("--episodes", type=int, default=50, help="commands tuned on, and held out")
-    p.add_argument("--tune-budget-s", type=float, default=540.0,
-                   help="the PID tune's search and check time, the bound's aside")
-    p.add_argument("--lag-multiple", type=float, default=None,
-                   help="the teacher's time constant in motor lags (default: the teacher's)")
-    p.add_argument("--damping", type=float, default=None,
-                   help="the teacher's damping ratio (default: 0.7, about 4 %% of overshoot, or 0.85 where "
-                        "that lowers the Peaks on the tuning commands)")
-    p.add_argument("--yaw-first", type=float, default=None, metavar="SHARE",
-                   help="the share of yaw's need the teacher serves before roll and pitch's while they "
-                        "gather speed (default: chosen on the tuning commands, 0 or 0.3)")
-    p.add_argument("--braking", type=float, default=None, metavar="SHARE",
-                   help="the teacher's braking curve's jerk, in shares of each axis's authority per motor "
-                        "lag (default: chosen on the tuning commands, 0.5, 0.3 or 0.2)")
-    p.add_argument("--rounds", type=int, default=6, help="DAgger rounds of the policy's fit")
-    p.add_argument("--steps", type=int, default=None,
-                   help="steps per twin and DAgger round (default: 1000, 2000 where the sensors are not "
-                        "the truth)")
-    p.add_argument("--envs", type=int, default=64, help="twins flown together in the policy's fit")
-    p.add_argument("--fit-steps", type=int, default=FitOptions.fit_steps,
-                   help="Adam steps after each DAgger round")
-    p.add_argument("--net-arch", type=int, nargs="+", default=[48, 48], metavar="H",
-                   help="the policy's hidden layers, tanh")
-    p.add_argument("--jobs", type=int, default=0, help="worker processes and torch threads (0: the CPUs)")
-    p.add_argument("--pid", metavar="PRESET", help="a PID already tuned for this airframe (a preset name or "
-                                                   "file): no tune (default: a shipped airframe's own, or "
-                                                   "the one `fcemu tune` wrote to OUT/pid.json for it)")
-    p.add_argument("--tune", action="store_true", help="tune a PID anew even where the airframe's ships")
-    p.add_argument("--no-mcu", action="store_true", help="skip the STM32F405 time (fcemu bench mcu)")
-    p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    add_arguments(p, FitOptions, FitCommand)
     p.set_defaults(handler="fcemu.training.fit:fit_command")

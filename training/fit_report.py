@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from fcemu.evaluation.bar import SMOOTHNESS_BAR
 from fcemu.evaluation.metrics import AXES, EvalMetrics
+from fcemu.training.fit_options import FitOptions, shipped_pid
+from fcemu.training.options import command_line as options_command_line
 
-if TYPE_CHECKING:
-    from fcemu.training.fit import FitOptions
+STEP_PLOT = "step_response.png"
 
 
 def metrics_json(m: EvalMetrics) -> dict[str, Any]:
@@ -121,33 +122,26 @@ def write_report(summary: dict[str, Any], path: Path) -> None:
         ""]
     for name, title in (("episodic", "From rest (episodic)"), ("inflight", "In flight, from hover")):
         lines += task_table(title, check["tasks"][name])
+    if check.get("step_plot"):
+        lines += ["### Step responses", "",
+                  "Per axis, the held-out command of median size on that axis, from rest and in flight: its "
+                  "setpoint, the ±10 % band Success judges from 0.5 s on, the PID's rate and the "
+                  "policy's.", "", f"![Step responses: the policy and the PID]({check['step_plot']})", ""]
     lines += ["## Time", "", "| tune (bound included) | teacher's speed | policy | check | total |",
               "|---:|---:|---:|---:|---:|",
               f"| {times['tune']:.0f} s | {times.get('teacher', 0.0):.0f} s | {times['policy']:.0f} s | "
               f"{times['check']:.0f} s | {times['total']:.0f} s |", "",
               "## Fly it", "", "```",
-              f"fcemu sitl --airframe {summary['airframe']} --controller {summary['policy']} "
-              f"--fallback pid:{summary['pid']}",
+              f"fcemu sitl --airframe {summary['airframe']} --controller {summary['policy']}"
+              "   # its PID, named in its metadata, is its fallback",
               f"fcemu eval --airframe {summary['airframe']} --controller {summary['policy']} "
-              f"--fallback pid:{summary['pid']} --controller pid:{summary['pid']}",
+              f"--controller pid:{summary['pid']}",
               "```", ""]
     path.write_text("\n".join(lines))
 
 
 def command_line(opts: FitOptions) -> str:
-    """The `fcemu fit` command that makes the same fit (in fit.json and the report)."""
-    from fcemu.training.fit import shipped_pid
-
-    teacher = "" if opts.lag_multiple is None else f" --lag-multiple {opts.lag_multiple:g}"
-    teacher += "" if opts.damping is None else f" --damping {opts.damping:g}"
-    teacher += "" if opts.yaw_first is None else f" --yaw-first {opts.yaw_first:g}"
-    teacher += "" if opts.braking is None else f" --braking {opts.braking:g}"
-    if opts.pid is not None:
-        teacher += f" --pid {opts.pid}"
-    elif shipped_pid(opts.airframe) is not None:
-        teacher += " --tune"
-    steps = "" if opts.steps is None else f"--steps {opts.steps} "
-    return (f"fcemu fit --airframe {opts.airframe} --out {opts.out} --seed {opts.seed} --episodes "
-            f"{opts.episodes} --tune-budget-s {opts.tune_budget_s:g} --rounds {opts.rounds} "
-            f"{steps}--envs {opts.envs} --fit-steps {opts.fit_steps} --net-arch "
-            f"{' '.join(map(str, opts.net_arch))}{teacher}")
+    """The `fcemu fit` command that makes the same fit (in fit.json and the report): its options, and
+    `--tune` where it tuned a PID although the airframe's ships."""
+    tuned_anew = opts.pid is None and shipped_pid(opts.airframe) is not None
+    return options_command_line("fcemu fit", opts) + (" --tune" if tuned_anew else "")

@@ -6,26 +6,22 @@ stages)."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from fcemu.training.fit_options import FitOptions
 from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING, YAW_FIRST
 
-if TYPE_CHECKING:
-    from fcemu.training.fit import FitOptions
-
 AXES = ("roll", "pitch", "yaw")
-# The teacher's speed is the airframe's: a slow-motored one (a Crazyflie's motors lag 72 ms) rises
-# late at the default, a quick one can go faster. Each is flown alone through the action mapping on
-# SPEED_COMMANDS of the tuning commands, on the nominal twin. A student is smoother than its teacher,
-# by how much differs per airframe, so the teachers whose motors are within SMOOTHNESS_BAR /
-# STUDENT_SMOOTHING × the PID's are admitted (`first_teacher` picks among them), and the first one's
-# student judged on the same commands: one rougher than the bar allows is taught again by the next
-# slower admitted teacher (docs/archive/training_notes.md, 2026-11-28, the exact label; a braking curve).
+# The teacher's speed is the airframe's: a slow-motored one rises late at the default, a quick one can
+# go faster. Each is flown alone through the action mapping on SPEED_COMMANDS of the tuning commands, on
+# the nominal twin. A student is smoother than its teacher, by how much differs per airframe, so the
+# teachers whose motors are within SMOOTHNESS_BAR / STUDENT_SMOOTHING × the PID's are admitted
+# (`first_teacher` picks among them), and the first one's student judged on the same commands: one
+# rougher than the bar allows is taught again by the next slower admitted teacher (docs/results/fit.md).
 TEACHER_SPEEDS = (0.5, 0.35, 0.25, 0.18, 0.13, 0.1)  # time constants in motor lags, the default first
 SPEED_COMMANDS = 20
-# The least a student's motor roughness was of its teacher's, rounded down: of the truth 0.64; of
-# SENSED_MEMORY ticks of noisy, delayed sensors 0.83-0.90, which averaging cannot smooth further
-# (docs/archive/training_notes.md, 2026-11-29, an admission per kind of student).
+# The least share of its teacher's motor roughness a student keeps, per kind of student: one of noisy,
+# delayed sensors is smoothed less, since averaging its history cannot remove the noise.
 STUDENT_SMOOTHING = {"exact": 0.6, "sensed": 0.8}
 # Students fly within a point of their teachers' Error ratio on other commands (docs/results/fit.md),
 # so teachers within ERROR_TIE of the least Error are alike to them; ERROR_ROOM under the bar's ratio
@@ -34,18 +30,13 @@ ERROR_TIE = 0.01
 ERROR_ROOM = 0.03
 # The teacher's shape, flown at its chosen speed: the share of yaw it serves first while roll and pitch
 # gather speed, and how early it brakes (its braking curve's jerk in shares of the axis's authority per
-# motor lag). Either costs some airframes nothing and gives others much: on 20 tuning commands the
-# Iris's teacher 556.9 → 529.5 with 0.3 of yaw first and braking at 0.2, its roll Peak 111.6 → 101.8 %,
-# the racer's, hummingbird's and X500's within 0.7 % for every pair, and the Crazyflie's braking early
-# rises late (docs/archive/training_notes.md, 2026-11-29, the teacher's shape).
+# motor lag). Either costs some airframes nothing and lowers others' Error and Peaks, so each pair is
+# flown and the least Error admitted taken (docs/results/fit.md, the teacher's shape).
 YAW_FIRST_CHOICES = (0.0, YAW_FIRST)
 BRAKING_CHOICES = (BRAKING_SHARE, 0.3, 0.2)
-# Then the chosen shape more damped. On every shipped airframe's teacher ζ 0.85 kept the Error or
-# lowered it (by up to 1.2 %) with smoother motors and lower Peaks, rising a few ms later, past the
-# PID on the racer's pitch and the Crazyflie's roll (refused by the shape's Rise admission); on an Iris
-# identified from Betaflight's blackbox it took yaw's Peak on the true twin from 105.6 to 102.4 %,
-# under the PID's 101.2 + 3, where the rotors' momentum damps the PID's overshoot and not the
-# teacher's (docs/archive/training_notes.md, 2026-11-29, the teacher's shape; the teacher's damping, chosen).
+# Then the chosen shape more damped: it keeps the Error with smoother motors and lower Peaks, rising a
+# little later, so it is taken only where the shape's admission (Rise included) allows it and its
+# highest Peak is lower (docs/results/fit.md, the teacher's damping).
 MORE_DAMPING = 0.85
 
 

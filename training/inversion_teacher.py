@@ -12,17 +12,15 @@ observes (rate error, rates, rotor speeds) it asks, per tick:
    α* = α_now + dt·(ω²·e − 2ζω·α_now), e predicted ahead over the loop's delay (the gyro's
    sample is a tick old, plus the airframe's gyro and ESC delays), less what the body adds by
    itself: the gyroscopic term −I⁻¹(Ω × IΩ) and, where the airframe has them, the rotors'
-   gyroscopic moment and the rate damping (without them an identified Iris with damping flew
-   863 against 716: the law held a steady error against the damping). Its α moves at most at
-   ω²·e per second, so the motors are no rougher than the tuned PID's, and it overshoots a few
-   percent where a first-order law (`damping` None: α* = (e − dt·α_now)/T_c) rises on an
-   exponential tail; on the racer the second-order law's student flies 0.995 × the PID against
-   the first-order's 1.128 × (docs/archive/training_notes.md, 2026-11-27, a teacher of second order).
+   gyroscopic moment and the rate damping (without them the law holds a steady error against the
+   damping). Its α moves at most at ω²·e per second, so the motors are no rougher than the tuned
+   PID's, and it overshoots a few percent where a first-order law (`damping` None:
+   α* = (e − dt·α_now)/T_c) rises later, on an exponential tail, and so does its student.
    The α the law steers toward, ω·e/2ζ, is held under the braking curve √(2·J·|e|): no more
    than the motors can take back by the time the error closes (`braking`, `BRAKING_SHARE`). Where the rotors
    carry momentum, the yaw their speeds lend the body is counted in the yaw error (`lent_yaw`): they
-   take it back as they return, and without it a drawn Iris's teacher rose in yaw 24 ms late with
-   2.3 % more Error (docs/archive/training_notes.md, 2026-11-29, the rotors' momentum);
+   take it back as they return, and a law blind to it closes on a yaw rate that does not remain and
+   rises late;
 2. the thrusts that give it, within what each rotor can reach by the next tick (its lag from
    its present speed). Two allocations are tried, and the one whose torque lands nearer α*
    (roll and pitch weighted 10 to yaw's 1) is taken: the change of torque with roll and pitch
@@ -33,9 +31,7 @@ observes (rate error, rates, rotor speeds) it asks, per tick:
    `throttle` action mapping does, so the teacher's outputs are ones a policy can give;
 3. each rotor's command that reaches its thrust in one tick through its lag (the lag's inverse).
 
-On the shipped airframes, flown by itself through the action mapping on 50 held-out commands,
-it has 0.77–0.99 × the tuned PID's Error (docs/results/fit.md); a student fitted to it by DAgger
-is the policy.
+A student fitted to it by DAgger is the policy (`fcemu fit`; its figures: docs/results/fit.md).
 """
 
 from __future__ import annotations
@@ -45,35 +41,28 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fcemu.firmware.action import action_to_pwm, pwm_to_action
-from fcemu.firmware.observation import FIELDS, RATE, ObservationSpec
+from fcemu.firmware.observation import FIELDS, RATE, RATE_ERROR, ROTOR_SPEED, ObservationSpec
 from fcemu.sim_bridge.airframe import Airframe, load_airframe
 from fcemu.sim_bridge.plant import body_torque
 from fcemu.sim_bridge.tasks import OMEGA_MAX
 
 ROLL_PITCH_WEIGHT = 10.0  # the torque error's weight on roll and pitch against yaw's 1
-# T_c = 1/ω in motor lags (docs/archive/training_notes.md, 2026-11-27, a teacher of second order)
+# T_c = 1/ω in motor lags: a slower law rises late, a faster one shakes the motors for little Error
 LAG_MULTIPLE = 0.5
 DAMPING = 0.7  # ζ: about 4 % of overshoot (0.5: 15 %, more Error for a faster Rise)
 # Yaw's speed where its authority cannot move its rate by a command's size within a motor lag: its
 # large steps then ride the motors' range at any speed of the law, and a fast law only shakes the
-# motors on its small ones. At half the speed the hummingbird's teacher flies 721.4 against 722.0
-# with its motors 1.35 µs/step against 1.68 (docs/archive/training_notes.md, 2026-11-28, each axis's speed
-# from its authority). A Crazyflie's yaw moves 25 rad/s in a lag, and slowed it rose 7 ms late.
+# motors on its small ones. A yaw that can move that much in a lag keeps full speed: slowed, it rises late.
 SATURATED_YAW_SPEED = 0.5
 # The braking curve's jerk J, per axis: this share of its authority per motor lag. A law much faster
-# than its motors (the Crazyflie's at 0.10 lags) asks for an α it cannot take back in time and
-# overshoots; under the curve, on 20 tuning commands, Error 554.2 → 535.8, Peak 118 → 113 %, motors
-# 3.29 → 2.86 µs/step, Rise the same (37.8 → 38.3 ms); a share of 0.25 brakes early (Peak 103 %, Rise
-# 41.7 ms). The default; `fcemu fit` brings it in where that pays: the Iris's teacher overshoots roll
-# by 12 % at 0.5 and 2 % at 0.2, with 3 % less Error (docs/archive/training_notes.md, 2026-11-28, a braking
-# curve for the teacher; 2026-11-29, the teacher's shape).
+# than its motors asks for an α it cannot take back in time and overshoots; under the curve it
+# overshoots less with smoother motors and the same Rise, while a much smaller share brakes early and
+# rises late. The default; `fcemu fit` brings it in per airframe where that pays (docs/results/fit.md).
 BRAKING_SHARE = 0.5
-# A share of yaw's need served before roll and pitch while they gather speed. Served after them, yaw
-# waits some 45 ms on large mixed steps, and the rotors' momentum it then meets lends it late; 0.3
-# took 2.1-2.3 % off three identified Irises' teachers, every effect on (0.5 no more). Not while roll
-# or pitch brake: there it only adds their overshoot (a drawn Iris's roll Peak 114.7 % against 112.7,
-# the Error the same). `fcemu fit` takes it where it pays on the tuning commands
-# (docs/archive/training_notes.md, 2026-11-29, yaw first while roll and pitch gather speed).
+# A share of yaw's need served before roll and pitch while they gather speed: served after them, yaw
+# waits on large mixed steps, and the rotors' momentum it then meets lends it late. Not while roll or
+# pitch brake: there it only adds their overshoot. `fcemu fit` takes it where it pays on the tuning
+# commands (docs/results/fit.md).
 YAW_FIRST = 0.3
 BISECTIONS = 30
 SPEC_FIELDS = (*FIELDS, RATE)
@@ -179,9 +168,10 @@ class InversionTeacher:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float64)
-        error = obs[:, 0:3] / self.spec.rate_scale
-        rotor = obs[:, 3:7] / self.spec.rotor_speed_scale
-        rates = obs[:, 7:10] / self.spec.rate_scale
+        spec, columns = self.spec, self.spec.columns
+        error = obs[:, columns[RATE_ERROR]] / spec.rate_scale
+        rotor = obs[:, columns[ROTOR_SPEED]] / spec.rotor_speed_scale
+        rates = obs[:, columns[RATE]] / spec.rate_scale
         return pwm_to_action(self.action_mapping, self.pwm(error, rates, rotor, self.throttle))
 
     def pwm(self, error: np.ndarray, rates: np.ndarray, rotor: np.ndarray, throttle: float) -> np.ndarray:
@@ -281,9 +271,8 @@ class InversionTeacher:
 
 
 class InversionController:
-    """The teacher flying one vehicle in the firmware's loop (`RateController`), as its own figures in
-    docs/results/fit.md were flown; `mapped`: its PWM through the action mapping and back, all a
-    policy can give."""
+    """The teacher flying one vehicle in the firmware's loop (`RateController`), as the fit's teacher
+    stages fly it; `mapped`: its PWM through the action mapping and back, all a policy can give."""
 
     name = "inversion"
 

@@ -32,7 +32,6 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -64,16 +63,14 @@ from fcemu.training.pid_search import (
     SearchState,
     pattern_search,
 )
+from fcemu.training.tune_options import TuneOptions
 
 COST_VERSION = "fcemu-pid-tune/3"
-GYRO_NOISE = 0.01  # rad/s white noise per sample, a MEMS gyro's order at 1 kHz
 SMOOTHNESS_CAP = 1.2  # motor |Δpwm| on the noisy gyro, at most this × the noise allowance
 # The allowance is the start's roughness on the noisy gyro, but never below the reference tune's on its
 # own airframe: a motor command is |Δpwm| in µs whatever the airframe, and the reference tune flies real
-# Betaflight at that level. Relative to the start alone, a start the physics made quiet (the
-# Crazyflie's, its filters carried down by τ_iris/τ: 1.05 µs against the Iris tune's 8.8) left a wall
-# at an eighth of what every other tune carries (docs/archive/training_notes.md, 2026-11-28, the noise
-# allowance).
+# Betaflight at that level, so a start the physics made quiet is not walled in far below every other
+# tune (docs/results/pid_tune.md).
 SETTLE_MARGIN_PCT = 6.0
 TIMES_BOUND_LINE = 1.3
 SUCCESS_LINE = 99.8
@@ -170,16 +167,23 @@ def reference_roughness(commands: np.ndarray, gyro_noise: float) -> float:
     return flights.evaluate(load_preset(REFERENCE[1]), True).smoothness
 
 
-@dataclass(frozen=True)
-class TuneOptions:
-    airframe: str
-    seed: int = 2018
-    episodes: int = 50
-    check_episodes: int = 50
-    budget_s: float = 540.0
-    jobs: int = 2
-    rounds: int = 12
-    gyro_noise: float = GYRO_NOISE
+def held_out_steps(opts: TuneOptions, preset: dict[str, Any]) -> Any:
+    """Traces of `preset` flown as the check flew it (noise-free gyro) on the held-out commands that
+    `evaluation.step_plots` draws, one per axis: the check's workers keep no traces, and three
+    flights cost a fraction of a second."""
+    from fcemu.evaluation.step_plots import representative_commands
+    from fcemu.firmware.pid_controller import PIDRateController
+    from fcemu.sim_bridge.twin import Twin
+    from fcemu.sitl.traces import Traces
+    from fcemu.training.pid_search import DT, fly
+
+    airframe = load_airframe(opts.airframe)
+    held_out = episodic_commands(opts.seed + 1, opts.check_episodes)
+    commands = held_out[representative_commands(held_out)]
+    rate, pwm = fly(PIDRateController.from_dict(preset), Twin(airframe, rig="rig"), commands,
+                    airframe.hover_throttle())
+    return Traces(np.arange(rate.shape[1]) * DT, np.broadcast_to(commands[:, None, :], rate.shape), rate, pwm,
+                  controller="tuned PID", seed=opts.seed + 1)
 
 
 def _finite(value: float) -> float | None:

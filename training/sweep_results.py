@@ -58,7 +58,8 @@ def write_tables(rows: list[dict[str, Any]], out: Path, perturbed: bool = False)
     head = ("trial", "seed", "settings", "status", "best Error ratio vs PID", "at step",
             "Success % r/p/y", "smoothness µs/step", "meets the deployable bar", "steps", "wall s")
     if perturbed:
-        head += ("perturbed Error ratio vs PID", "perturbed Success % r/p/y", "meets the perturbed lines")
+        head += ("perturbed Error ratio vs PID, worse task", "perturbed Success % r/p/y, lower task",
+                 "meets the perturbed lines, rest and in flight")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(_cell(k, row[k]) for k in columns) + " |" for row in rows]
     (out / "results.md").write_text("\n".join(lines) + "\n")

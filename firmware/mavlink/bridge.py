@@ -128,27 +128,32 @@ class LinkedVehicle:
             if not data:
                 self._closed = True
                 return
-            self._apply(ipc.decode(data))
+            try:
+                msg = ipc.decode(data)
+            except ipc.FrameError:
+                self.bad_ipc += 1
+                continue
+            self._apply(msg)
 
-    def _apply(self, msg: ipc.Message | None) -> None:
+    def _apply(self, msg: ipc.Message) -> None:
         v = self.vehicle
         try:
             kind = type(msg)
             if kind is ipc.Setpoint:
                 v.offboard_setpoint(msg.rates, msg.thrust)
             elif kind is ipc.Sticks:
-                v.sticks(*msg)
+                v.sticks(msg.roll, msg.pitch_up, msg.yaw, msg.throttle)
             elif kind is ipc.ArmRequest:
                 reply = v.request_arm(bool(msg.arm), bool(msg.force))
-                self._send(ipc.encode(ipc.Ack(msg.req, *reply)))
+                self._send(ipc.encode(ipc.Ack(msg.req, reply.result, reply.text)))
             elif kind is ipc.ModeRequest:
                 reply = v.request_mode(mode_from_parts(int(msg.main), int(msg.sub)))
-                self._send(ipc.encode(ipc.Ack(msg.req, *reply)))
+                self._send(ipc.encode(ipc.Ack(msg.req, reply.result, reply.text)))
             elif kind is ipc.ParamSet:
                 v.set_param(msg.name, msg.value)
             elif kind is ipc.FailureRequest:
                 reply = v.inject_failure(int(msg.unit), int(msg.failure_type), int(msg.instance))
-                self._send(ipc.encode(ipc.Ack(msg.req, *reply)))
+                self._send(ipc.encode(ipc.Ack(msg.req, reply.result, reply.text)))
             elif kind is ipc.LinkStats:
                 self.mavlink_stats = msg.counters
             else:
@@ -185,14 +190,16 @@ class LinkedVehicle:
         ticks = stats.ticks if stats is not None else self._n
         compute = int(stats.compute_us[(ticks - 1) % stats.capacity]) if stats is not None and ticks else 0
         faults = sum(loop.faults.values()) if loop is not None and loop.faults else 0
-        self.slot.write((
-            frame.t_us, modes.armed, custom_mode(modes.mode), v.landed_state, bool(modes.failsafe),
-            CONTROLLERS.index(sample.controller) if sample.controller in CONTROLLERS else 255,
-            self._armable and not modes.armed, *v.estimator.q, *frame.gyro.tolist(),
-            *frame.accel.tolist(), *sample.pwm.tolist(), *frame.rotor_speed.tolist(),
-            *sp.rates.tolist(), sp.throttle, *self._pos, *self._vel, self.truth is not None,
-            v.estimator.vz, faults, sum(v.events.counters.values()), stats.deadline_misses if stats else 0,
-            ticks, compute))
+        self.slot.write(ipc.Snapshot(
+            t_us=frame.t_us, armed=modes.armed, custom_mode=custom_mode(modes.mode),
+            landed_state=v.landed_state, failsafe=bool(modes.failsafe),
+            controller=CONTROLLERS.index(sample.controller) if sample.controller in CONTROLLERS else 255,
+            armable=self._armable and not modes.armed, q=v.estimator.q, gyro=tuple(frame.gyro.tolist()),
+            accel=tuple(frame.accel.tolist()), pwm=tuple(sample.pwm.tolist()),
+            rotor_speed=tuple(frame.rotor_speed.tolist()), setpoint=tuple(sp.rates.tolist()),
+            throttle=sp.throttle, position=self._pos, velocity=self._vel, has_position=self.truth is not None,
+            vz_estimate=v.estimator.vz, faults=faults, rejected=sum(v.events.counters.values()),
+            misses=stats.deadline_misses if stats else 0, ticks=ticks, compute_us_max=compute))
 
     def _send(self, data: bytes) -> None:
         try:
@@ -255,7 +262,7 @@ def start_mavlink(config: MavlinkConfig, params: dict[str, float]
     ours.settimeout(READY_TIMEOUT_S)
     try:
         ready = ipc.decode(ours.recv(65536))
-    except (TimeoutError, OSError):
+    except (TimeoutError, OSError, ipc.FrameError):
         ready = None
     if not isinstance(ready, ipc.Ready):
         proc.kill()

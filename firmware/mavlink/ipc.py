@@ -2,10 +2,13 @@
 
 Telemetry goes through a shared-memory latest-value slot (`SnapshotSlot`, a seqlock over a
 memfd): the loop writes a fixed struct without a system call, the MAVLink process reads the
-newest one when it gets round to it, and neither ever waits for the other. Events go over an
-AF_UNIX SOCK_SEQPACKET socket pair, non-blocking on the flight side (a stalled MAVLink
-process costs a dropped message, never a blocked tick), one typed message per datagram
-(`encode` / `decode`):
+newest one when it gets round to it, and neither ever waits for the other. The struct is
+`Snapshot`'s fields in order, each packed by the struct code declared beside it. Events go
+over an AF_UNIX SOCK_SEQPACKET socket pair, non-blocking on the flight side (a stalled
+MAVLink process costs a dropped message, never a blocked tick), one typed message per
+datagram (`encode` / `decode`): JSON `[name, {field: value}]`, each field checked against
+the message's declared type on both sides, so a frame that is not one of them is refused
+(`FrameError`), never acted on:
 
   MAVLink → flight: Setpoint, Sticks, ArmRequest, ModeRequest, ParamSet, LinkStats, Ready,
   FailureRequest.
@@ -14,13 +17,17 @@ process costs a dropped message, never a blocked tick), one typed message per da
 
 from __future__ import annotations
 
+import json
 import mmap
 import os
-import pickle
 import struct
-from typing import NamedTuple
+from collections.abc import Callable
+from itertools import accumulate
+from typing import Annotated, Any, NamedTuple, get_args, get_origin, get_type_hints
 
-_FMT = struct.Struct("<qBIBBBB4f3f3f4f4f3ff3f3fBf3IQQ")
+
+class FrameError(ValueError):
+    """A datagram that is not a valid message, or a message whose fields do not fit its declaration."""
 
 
 class Setpoint(NamedTuple):
@@ -84,57 +91,145 @@ Message = (Setpoint | Sticks | ArmRequest | ModeRequest | ParamSet | LinkStats |
            | FailureRequest)
 MESSAGES: tuple[type, ...] = (Setpoint, Sticks, ArmRequest, ModeRequest, ParamSet, LinkStats, Ready, Ack,
                               Text, FailureRequest)
-_TAGS = {cls: tag for tag, cls in enumerate(MESSAGES)}
-_ARITY = tuple(len(cls._fields) for cls in MESSAGES)
-_build = tuple.__new__  # NamedTuple construction from a tuple of fields, without re-checking
+Check = Callable[[Any], Any]
+_SCALARS: dict[Any, tuple[frozenset[type], str]] = {
+    float: (frozenset((float, int)), "a number"), int: (frozenset((int,)), "an int"),
+    bool: (frozenset((bool,)), "a bool"), str: (frozenset((str,)), "a string")}
+
+
+def _checker(hint: Any, where: str) -> Check:
+    """A function that returns a JSON value as the declared type `hint` holds it, or raises FrameError."""
+    origin, args = get_origin(hint), get_args(hint)
+    if hint in _SCALARS:
+        types, what = _SCALARS[hint]
+
+        def check(v: Any) -> Any:
+            if type(v) not in types:
+                raise FrameError(f"{where}: expected {what}, got {v!r:.80}")
+            return v
+        return check
+    if origin is tuple and len(set(args)) == 1 and args[0] in _SCALARS:
+        types, what = _SCALARS[args[0]]
+        size = len(args)
+
+        def check_tuple(v: Any) -> tuple:
+            if type(v) not in (list, tuple) or len(v) != size or not all(type(x) in types for x in v):
+                raise FrameError(f"{where}: expected {size} values, each {what}, got {v!r:.80}")
+            return tuple(v)
+        return check_tuple
+    if origin is dict and args[0] is str and args[1] in _SCALARS:
+        types, what = _SCALARS[args[1]]
+
+        def check_dict(v: Any) -> dict:
+            if type(v) is not dict or not all(type(k) is str and type(x) in types for k, x in v.items()):
+                raise FrameError(f"{where}: expected names each with {what}, got {v!r:.80}")
+            return v
+        return check_dict
+    raise TypeError(f"{where}: {hint} cannot cross the socket")
+
+
+# Each message's fields by name in order, each with the check its declared type makes.
+_FIELDS: dict[str, tuple[type, dict[str, Check]]] = {
+    cls.__name__: (cls, {name: _checker(hint, f"{cls.__name__}.{name}")
+                         for name, hint in get_type_hints(cls).items()})
+    for cls in MESSAGES}
+
+
+def _checked(name: str, values: dict[str, Any]) -> list[Any]:
+    """The named fields' values in declared order, each checked against its declared type."""
+    checks = _FIELDS[name][1]
+    if values.keys() != checks.keys():
+        missing, extra = sorted(checks.keys() - values.keys()), sorted(values.keys() - checks.keys())
+        raise FrameError(f"{name}: fields missing {missing}, unknown {extra}")
+    return [check(values[key]) for key, check in checks.items()]
 
 
 def encode(message: Message) -> bytes:
-    """(tag, fields), pickled: plain values only cross the socket, never a class reference."""
-    return pickle.dumps((_TAGS[type(message)], tuple(message)), protocol=pickle.HIGHEST_PROTOCOL)
+    """The message as JSON `[name, {field: value}]`; FrameError if a field is not of its declared type."""
+    name = type(message).__name__
+    if type(message) not in MESSAGES:
+        raise FrameError(f"{name} is not a message")
+    fields = message._asdict()
+    _checked(name, fields)
+    return json.dumps([name, fields], separators=(",", ":")).encode()
 
 
-def decode(data: bytes) -> Message | None:
-    """A received datagram as its message, or None if it is not one we understand."""
+def decode(data: bytes) -> Message:
+    """A received datagram as its message; FrameError, naming what is wrong, if it is not one."""
     try:
-        tag, fields = pickle.loads(data)
-    except Exception:
-        return None
-    if type(tag) is int and 0 <= tag < len(MESSAGES) and type(fields) is tuple and len(fields) == _ARITY[tag]:
-        return _build(MESSAGES[tag], fields)
-    return None
+        frame = json.loads(data)
+    except (ValueError, RecursionError) as exc:
+        raise FrameError(f"not a message frame ({len(data)} bytes): {exc}") from None
+    if type(frame) is not list or len(frame) != 2 or type(frame[1]) is not dict:
+        raise FrameError(f"not a message frame: {frame!r:.80}")
+    name, values = frame
+    if type(name) is not str or name not in _FIELDS:
+        raise FrameError(f"unknown message {name!r:.40}")
+    return tuple.__new__(_FIELDS[name][0], _checked(name, values))
+
+
+def _layout(cls: type) -> tuple[tuple[str, str, int], ...]:
+    """Per field of a packed record in order: its name, its struct code and how many values it holds."""
+    hints = get_type_hints(cls, include_extras=True)
+    out = []
+    for name in cls._fields:
+        code = hints[name].__metadata__[0]
+        count = int(code[:-1] or 1)
+        if (count > 1) != (get_origin(get_args(hints[name])[0]) is tuple):
+            raise TypeError(f"{cls.__name__}.{name}: {count} values must be declared as a tuple")
+        out.append((name, code, count))
+    return tuple(out)
 
 
 class Snapshot(NamedTuple):
-    t_us: int  # the sensor frame's time (the twin's clock: skipped ticks do not advance it)
-    armed: int
-    custom_mode: int  # PX4 encoding
-    landed_state: int  # MAV_LANDED_STATE
-    failsafe: int
-    controller: int  # index into params.CONTROLLERS
-    armable: int
-    q: tuple  # estimator attitude (w, x, y, z), FRD → NED
-    gyro: tuple  # FRD rad/s
-    accel: tuple  # FRD m/s²
-    pwm: tuple
-    rotor_speed: tuple
-    setpoint: tuple  # FRD rad/s
-    throttle: float
-    position: tuple  # NED m, ground truth (free rig); zeros when has_position is 0
-    velocity: tuple
-    has_position: int
-    vz_estimate: float
-    faults: int  # controller faults replaced by the fallback
-    rejected: int  # inputs the vehicle refused
-    misses: int  # loop deadline misses
-    ticks: int
-    compute_us_max: int  # worst tick compute since the previous snapshot
+    """The vehicle's state for telemetry; each field's struct code lays it out in `SnapshotSlot`."""
+
+    t_us: Annotated[int, "q"]  # the sensor frame's time (the twin's clock: skipped ticks do not advance it)
+    armed: Annotated[int, "B"]
+    custom_mode: Annotated[int, "I"]  # PX4 encoding
+    landed_state: Annotated[int, "B"]  # MAV_LANDED_STATE
+    failsafe: Annotated[int, "B"]
+    controller: Annotated[int, "B"]  # index into params.CONTROLLERS
+    armable: Annotated[int, "B"]
+    q: Annotated[tuple[float, ...], "4f"]  # estimator attitude (w, x, y, z), FRD → NED
+    gyro: Annotated[tuple[float, ...], "3f"]  # FRD rad/s
+    accel: Annotated[tuple[float, ...], "3f"]  # FRD m/s²
+    pwm: Annotated[tuple[float, ...], "4f"]
+    rotor_speed: Annotated[tuple[float, ...], "4f"]
+    setpoint: Annotated[tuple[float, ...], "3f"]  # FRD rad/s
+    throttle: Annotated[float, "f"]
+    position: Annotated[tuple[float, ...], "3f"]  # NED m, ground truth (free rig); zeros without it
+    velocity: Annotated[tuple[float, ...], "3f"]
+    has_position: Annotated[int, "B"]
+    vz_estimate: Annotated[float, "f"]
+    faults: Annotated[int, "I"]  # controller faults replaced by the fallback
+    rejected: Annotated[int, "I"]  # inputs the vehicle refused
+    misses: Annotated[int, "I"]  # loop deadline misses
+    ticks: Annotated[int, "Q"]
+    compute_us_max: Annotated[int, "Q"]  # worst tick compute since the previous snapshot
+
+    def pack(self) -> tuple:
+        """The fields' values flattened in the slot's order."""
+        flat: list = []
+        for (name, _, count), value in zip(SNAPSHOT_LAYOUT, self, strict=True):
+            if count == 1:
+                flat.append(value)
+            elif len(value) == count:
+                flat.extend(value)
+            else:
+                raise ValueError(f"Snapshot.{name}: {count} values, got {len(value)}")
+        return tuple(flat)
 
     @classmethod
     def unpack(cls, data: bytes) -> Snapshot:
-        v = _FMT.unpack(data)
-        return cls(*v[:7], v[7:11], v[11:14], v[14:17], v[17:21], v[21:25], v[25:28], v[28], v[29:32],
-                   v[32:35], *v[35:])
+        values = _FMT.unpack(data)
+        return tuple.__new__(cls, [values[i] if count == 1 else values[i:i + count] for i, count in _SPANS])
+
+
+SNAPSHOT_LAYOUT = _layout(Snapshot)
+_FMT = struct.Struct("<" + "".join(code for _, code, _ in SNAPSHOT_LAYOUT))
+_COUNTS = [count for *_, count in SNAPSHOT_LAYOUT]
+_SPANS = tuple(zip(accumulate(_COUNTS, initial=0), _COUNTS, strict=False))  # (first value, count) per field
 
 
 class SnapshotSlot:
@@ -151,9 +246,9 @@ class SnapshotSlot:
         self._seq = self._SEQ.unpack_from(self._mem, 0)[0]
         self._read_seq = -1
 
-    def write(self, values: tuple) -> None:
-        """`values`: the Snapshot's fields flattened in order (the tick's path builds no NamedTuple)."""
+    def write(self, snapshot: Snapshot) -> None:
         mem, seq = self._mem, self._seq
+        values = snapshot.pack()
         self._SEQ.pack_into(mem, 0, seq + 1)
         _FMT.pack_into(mem, 8, *values)
         self._seq = seq + 2

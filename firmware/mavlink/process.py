@@ -43,9 +43,11 @@ REPORTED = ("rx_frames", "rx_bad", "rx_rejected", "rx_foreign", "sig_rejected", 
 
 def idle_snapshot() -> ipc.Snapshot:
     zero3, zero4 = (0.0,) * 3, (0.0,) * 4
-    return ipc.Snapshot(0, 0, custom_mode(STABILIZED), 1, 0, 0, 0, (1.0, 0.0, 0.0, 0.0), zero3,
-                        (0.0, 0.0, -9.81), (1000.0,) * 4, zero4, zero3, 0.0, zero3, zero3, 0, 0.0,
-                        0, 0, 0, 0, 0)
+    return ipc.Snapshot(t_us=0, armed=0, custom_mode=custom_mode(STABILIZED), landed_state=1, failsafe=0,
+                        controller=0, armable=0, q=(1.0, 0.0, 0.0, 0.0), gyro=zero3, accel=(0.0, 0.0, -9.81),
+                        pwm=(1000.0,) * 4, rotor_speed=zero4, setpoint=zero3, throttle=0.0, position=zero3,
+                        velocity=zero3, has_position=0, vz_estimate=0.0, faults=0, rejected=0, misses=0,
+                        ticks=0, compute_us_max=0)
 
 
 def send_health(links: list[Endpoint], stats: dict[str, int], snap: ipc.Snapshot) -> None:
@@ -191,7 +193,11 @@ class Station:
                 return False
             if not data:
                 return False
-            msg = ipc.decode(data)
+            try:
+                msg = ipc.decode(data)
+            except ipc.FrameError:
+                self.counters["ipc_bad"] += 1
+                continue
             if isinstance(msg, ipc.Ack):
                 self.pending.answer(msg.req, msg.result)
             elif isinstance(msg, ipc.Text):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -188,11 +189,63 @@ def test_the_twin_can_fly_another_airframe_than_the_firmware_is_set_up_for(tmp_p
     assert f"airframe `iris` (the twin flies `{heavy}`)" in (tmp_path / "report" / "report.md").read_text()
 
 
-def test_a_policy_on_an_airframe_without_a_shipped_tune_falls_back_to_the_pid_flown_beside_it() -> None:
+def test_a_policy_on_an_airframe_without_a_shipped_tune_falls_back_to_the_pid_flown_beside_it(
+        untuned_airframe: Path) -> None:
     from fcemu.evaluation.evaluate import fallback_for
 
-    fitted = ["pid:runs/x500/pid.json", "runs/x500/policy.onnx"]
-    assert fallback_for("x500", "pid", fitted) == "pid:runs/x500/pid.json"  # x500 ships no tune
-    assert fallback_for("iris", "pid", fitted) == "pid"  # its own tune first
-    assert fallback_for("x500", "pid:other.json", fitted) == "pid:other.json"  # as asked
-    assert fallback_for("x500", "pid", [*fitted, "pid:b.json"]) == "pid"  # which one: not guessed
+    untuned = str(untuned_airframe)
+    fitted = ["pid:runs/my_quad/pid.json", "runs/my_quad/policy.onnx"]
+    for default in (None, "pid"):  # the policies name none (no such file): the airframe's own tune
+        assert fallback_for(untuned, default, fitted) == "pid:runs/my_quad/pid.json"  # it ships no tune
+        assert fallback_for("iris", default, fitted) == "pid"  # its own tune first
+        assert fallback_for(untuned, default, [*fitted, "pid:b.json"]) == "pid"  # which one: not guessed
+    assert fallback_for(untuned, "pid:other.json", fitted) == "pid:other.json"  # as asked
+
+
+def policy_naming_its_pid(folder: Path) -> Path:
+    """The shipped policy as `fcemu fit` leaves one: in `folder` beside the PID its metadata names
+    (pid.json, here the paper's gains: not the Iris tune `pid` flies)."""
+    from fcemu.export.onnx_export import record_metadata
+    from fcemu.firmware.contract import FALLBACK_META
+    from fcemu.firmware.controllers import DEFAULT_POLICY
+    from fcemu.firmware.pid_controller import PRESET_DIR
+
+    folder.mkdir(parents=True)
+    policy = folder / "policy.onnx"
+    shutil.copy(DEFAULT_POLICY, policy)
+    record_metadata(policy, {FALLBACK_META: "pid.json"})
+    shutil.copy(PRESET_DIR / "pid_paper.json", folder / "pid.json")
+    return policy
+
+
+def test_a_policy_that_names_its_pid_hands_over_to_it_unless_told_otherwise(tmp_path, monkeypatch,
+                                                                            capsys) -> None:
+    from fcemu.cli import main
+    from fcemu.evaluation import runner
+    from fcemu.evaluation.evaluate import fallback_for
+
+    policy = policy_naming_its_pid(tmp_path / "fit")
+    named = f"pid:{tmp_path / 'fit' / 'pid.json'}"
+    assert fallback_for("iris", None, [str(policy)]) == named
+    assert fallback_for("iris", None, ["pid:paper", str(policy)]) == named
+    assert fallback_for("iris", "pid", [str(policy)]) == "pid"  # as asked
+    assert fallback_for("iris", "pid:iris", [str(policy)]) == "pid:iris"
+    loaded: list[str] = []
+
+    def recorded(spec: str, *args, **kwargs):
+        loaded.append(spec)
+        return load_controller(spec, *args, **kwargs)
+
+    load_controller = runner.load_controller
+    monkeypatch.setattr(runner, "load_controller", recorded)
+    for given, fallback in (([], named), (["--fallback", "pid:iris"], "pid:iris")):
+        loaded.clear()
+        assert main(["eval", "--controller", str(policy), "--episodes", "1", "--episode-s", "0.1", "--json",
+                     *given]) == 0
+        assert loaded == [str(policy), fallback]
+        assert json.loads(capsys.readouterr().out)["controller"] == str(policy)
+    (tmp_path / "fit" / "pid.json").unlink()
+    assert main(["eval", "--controller", str(policy), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fcemu: error: ") and err.count("\n") == 1
+    assert f"names its fallback PID {tmp_path / 'fit' / 'pid.json'}, which is missing" in err

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from fcemu.cli import main
+from fcemu.evaluation.flight_logs import read_flight_log
 from fcemu.evaluation.identify_airframe import identified_document, identify
 from fcemu.evaluation.identify_flight import fly_identification
-from fcemu.evaluation.identify_log import read_flight_log
 from fcemu.firmware.controller import RateSetpoint
 from fcemu.firmware.loop import Command
 from fcemu.sim_bridge.airframe import load_airframe

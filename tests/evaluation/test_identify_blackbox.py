@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from fcemu.cli import main
+from fcemu.evaluation.flight_logs import read_flight_log
 from fcemu.evaluation.identify_blackbox import _rotor_speed
 from fcemu.evaluation.identify_flight import _Excitation
-from fcemu.evaluation.identify_log import read_flight_log
 from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.twin import Twin
 from fcemu.sitl.betaflight import BetaflightFlight

@@ -3,15 +3,21 @@ is where the sticks move, and an identified file that --airframe would refuse is
 
 from __future__ import annotations
 
+import io
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from fcemu.evaluation import identify_closed_loop
 from fcemu.evaluation.identify_airframe import airframe_document, is_rigid_body, write_airframe
-from fcemu.evaluation.identify_closed_loop import busiest_stretch, with_factors
-from fcemu.evaluation.identify_log import FlightLog, LogError
+from fcemu.evaluation.identify_cli import refined_with_progress
+from fcemu.evaluation.identify_closed_loop import busiest_stretch, planned_flights, with_factors
+from fcemu.evaluation.identify_flight import fly_identification
+from fcemu.evaluation.identify_log import FlightLog, LogError, read_ulog
+from fcemu.evaluation.replay import span_of
 from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.twin import Twin
 
@@ -57,3 +63,19 @@ def test_an_airframe_fcemu_would_refuse_is_never_written(tmp_path: Path) -> None
     assert list(tmp_path.iterdir()) == []
     write_airframe(airframe_document(IRIS, "test", {}), out)
     assert json.loads(out.read_text())["name"] == "iris"
+
+
+def test_the_refinement_counts_its_flights_and_says_the_time_left(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setattr(identify_closed_loop, "MAX_EVALUATIONS", 8)  # a tiny problem: a dozen short flights
+    log = span_of(read_ulog(fly_identification(IRIS, "pid", axis_s=0.6).write(tmp_path / "flight.ulg")),
+                  (2.0, 4.5))
+    stream = io.StringIO()  # not a terminal: lines, not a bar
+    refinement = refined_with_progress(log, IRIS, "pid", stream)
+    *progress, last = stream.getvalue().splitlines()
+    assert last.startswith(f"  closed-loop refinement: {refinement.flights} flights in ")
+    line = re.compile(r"  closed-loop refinement: \d+/\d+ flights, least mismatch [\d.]+; \d+ s so far; "
+                      r"(about \d+ s left, an estimate|less than a second left)")
+    assert progress and all(line.fullmatch(text) for text in progress)
+    done = [int(re.search(r"(\d+)/", text)[1]) for text in progress]
+    # the gyro delay fitted and up to three ticks shorter, an optimiser's flights each; the twin before, after
+    assert done == sorted(done) and planned_flights(IRIS) == (min(IRIS.gyro_delay_ticks, 3) + 1) * 8 + 2

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+from pathlib import Path
 
 import pytest
 
@@ -24,9 +26,10 @@ def _untuned(tmp_path):
     return path
 
 
-def test_a_shipped_tune_or_another_controller_flies_as_asked(tmp_path) -> None:
+def test_a_shipped_tune_or_another_controller_flies_as_asked(tmp_path: Path, untuned_airframe: Path) -> None:
     assert identification_controller(load_airframe("iris_realistic"), "pid", tmp_path) == ("pid", None)
-    assert identification_controller(load_airframe("x500"), "pid:iris", tmp_path) == ("pid:iris", None)
+    untuned = load_airframe(untuned_airframe)
+    assert identification_controller(untuned, "pid:iris", tmp_path) == ("pid:iris", None)
     assert not list(tmp_path.iterdir())
 
 
@@ -35,6 +38,11 @@ def test_fly_an_airframe_with_no_tune_flies_the_iris_tune_carried_over(tmp_path,
     with pytest.raises(ControllerSpecError, match="no PID tuned for my_quad"):
         load_controller("pid", 1000.0, airframe_spec(load_airframe(airframe_file)))
     assert main(["identify", "--fly", str(airframe_file), "--out", str(out)]) == 0
+    # each stage said on stderr as it starts, with the time so far and an estimate of the time left
+    stages = [line for line in capsys.readouterr().err.splitlines() if line.startswith("[")]
+    assert [line.split("] ")[1].split()[0] for line in stages] == ["flying", "identifying", "writing"]
+    said = re.compile(r"\[ +\d+ s\] .+; (about \d+ s left, an estimate|less than a second left)")
+    assert all(said.fullmatch(line) for line in stages), stages
     written = {p.name for p in out.iterdir()}
     assert {"flight.ulg", "airframe.json", "report.md", "pid_carried_over.json"} <= written
     carried = json.loads((out / "pid_carried_over.json").read_text())

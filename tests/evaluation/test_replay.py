@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from fcemu.cli import main
+from fcemu.evaluation.flight_logs import read_flight_log
 from fcemu.evaluation.identify_flight import fly_identification
-from fcemu.evaluation.identify_log import read_flight_log
 from fcemu.evaluation.replay import fly_log, span_of
 from fcemu.sim_bridge.airframe import load_airframe
 

@@ -149,19 +149,19 @@ def test_a_policy_without_an_envelope_flies_an_airframe_of_its_top_rotor_speed(t
         NeuralRateController(legacy, airframe=_airframe("x500"))
 
 
-def test_pid_is_the_airframe_s_own_tune() -> None:
+def test_pid_is_the_airframe_s_own_tune(untuned_airframe: Path) -> None:
     from fcemu.firmware.controllers import ControllerSpecError
 
     assert load_controller("pid", airframe=_airframe("iris")).name == "pid_iris"
     assert load_controller("pid", airframe=_airframe("iris_realistic")).name == "pid_iris"  # its base's
     assert load_controller("pid", airframe=_airframe("crazyflie")).name == "pid_crazyflie"
-    refusal = (r"^no PID tuned for x500: `fcemu tune --airframe x500 --out DIR` "
+    refusal = (r"^no PID tuned for my_quad: `fcemu tune --airframe my_quad --out DIR` "
                r"\(or `fcemu fit`\), then pid:DIR/pid\.json as --controller, or as --fallback under a "
                r"policy$")
     with pytest.raises(ControllerSpecError, match=refusal):
-        load_controller("pid", airframe=_airframe("x500"))
+        load_controller("pid", airframe=_airframe(str(untuned_airframe)))
     for named in ("pid:iris", "pid:paper"):
-        load_controller(named, airframe=_airframe("x500"))
+        load_controller(named, airframe=_airframe(str(untuned_airframe)))
 
 
 def test_a_variant_flies_its_bases_tune_only_when_it_changes_no_physics(tmp_path) -> None:

@@ -7,10 +7,15 @@ import pytest
 from fcemu.firmware.controllers import DEFAULT_POLICY
 from fcemu.firmware.neural import META_PREFIX
 from fcemu.firmware.observation import (
+    FIELD_DEFS,
     FIELDS,
     INTEGRAL,
     MOTOR_OUTPUT,
+    RATE,
+    RATE_ERROR,
     RMS,
+    ROTOR_SPEED,
+    SOURCE_COLUMNS,
     ObservationHistory,
     ObservationSpec,
     observe_step,
@@ -94,6 +99,20 @@ def test_the_field_table_flattens_to_one_source_column_and_scale_per_observation
     assert spec.column_sources == (3, 4, 5, 6, 0, 1, 2, 0, 1, 2)
     assert spec.column_scales == (spec.rotor_speed_scale,) * 4 + (spec.rate_scale,) * 6
     assert spec.step_size == 10 and spec.integrators[0][0] == slice(7, 10)
+
+
+def test_each_fields_columns_by_name_hold_its_source_scaled():
+    spec = Spec(memory=2, fields=(MOTOR_OUTPUT, RATE, ROTOR_SPEED, RATE_ERROR))
+    assert spec.columns == {MOTOR_OUTPUT: slice(0, 4), RATE: slice(4, 7), ROTOR_SPEED: slice(7, 11),
+                            RATE_ERROR: slice(11, 14)}
+    for name, cols in spec.columns.items():
+        assert spec.column_sources[cols] == SOURCE_COLUMNS[FIELD_DEFS[name].source], name
+    rng = np.random.default_rng(5)
+    setpoint, gyro, rotor = rng.normal(size=3), rng.normal(size=3), rng.uniform(0, TOP, 4)
+    step = observe_step(spec, setpoint, gyro, rotor)
+    np.testing.assert_allclose(step[spec.columns[RATE_ERROR]], (setpoint - gyro) * spec.rate_scale, rtol=1e-6)
+    np.testing.assert_allclose(step[spec.columns[RATE]], gyro * spec.rate_scale, rtol=1e-6)
+    np.testing.assert_allclose(step[spec.columns[ROTOR_SPEED]], rotor * spec.rotor_speed_scale, rtol=1e-6)
 
 
 def test_rms_spec_round_trips_and_refuses_a_leak_out_of_range():

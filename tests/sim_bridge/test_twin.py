@@ -189,3 +189,17 @@ def test_integer_pwm_is_pwm(rig: Twin) -> None:
     assert same([as_int], [rig.step(np.full(4, 1600.0))])
     rig.reset()
     assert same([rig.step([1600, 1600, 1600, 1600])], [as_int])
+
+
+@pytest.mark.slow
+def test_twin_demo_json_prints_its_figures_as_one_object(tmp_path, capsys) -> None:
+    import argparse
+    import json
+
+    from fcemu.sim_bridge import showcase
+
+    assert showcase.main(argparse.Namespace(out=str(tmp_path / "demo.png"), json=True)) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["airframe"] == "iris" and (tmp_path / "demo.png").stat().st_size > 0
+    assert set(figures["differentials"]) == {"roll", "pitch", "yaw"}
+    assert all(d["peak_rate_rad_s"] > 0 for d in figures["differentials"].values())

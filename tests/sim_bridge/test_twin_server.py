@@ -3,6 +3,7 @@ cannot hold it. Real `fcemu twin serve`, real stormer process, real client, all 
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
@@ -232,6 +233,30 @@ def test_fcemu_twin_serve_fault_reaches_the_health_monitor_across_the_link() -> 
         proc.wait(10)
     assert remote == verdicts(faulted_twin((late,), 3), pwms)
     assert remote[:2] == ({"handover": 22}, "rotor speed 2 too old")
+
+
+def test_fcemu_twin_serve_json_prints_its_summary_when_stopped() -> None:
+    """With --json the line saying where it listens goes to stderr, and stdout carries one JSON object."""
+    command = [sys.executable, "-m", "fcemu", "twin", "serve", "--port", "0", "--quiet", "--json"]
+    proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
+                            text=True)
+    try:
+        line = ""
+        while "udp://" not in line:
+            line = proc.stderr.readline()
+            assert line, "fcemu twin serve --json exited before it listened"
+        host, port = line.rsplit("udp://", 1)[1].strip().rsplit(":", 1)
+        with UdpTwinClient(host, int(port), timeout=0.5) as client:
+            client.reset(seed=1)
+            for _ in range(5):
+                client.pwm_write(np.full(4, 1500.0))
+    finally:
+        proc.terminate()
+        out, _ = proc.communicate(timeout=10)
+    assert proc.returncode == 0
+    summary = json.loads(out)
+    assert (summary["airframe"], summary["rig"], summary["steps"]) == ("iris", "rig", 5)
+    assert summary["address"] == f"udp://{host}:{port}" and summary["bad_packets"] == 0
 
 
 # --- peers of another protocol version: one clear line, at once ----------------------------------

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -69,11 +70,41 @@ def test_the_twin_health_rules_hover_and_controllers_are_the_airframe_s() -> Non
     assert built.loop.health.policy_trusted and not built.loop.faults
 
 
-def test_a_policy_or_pid_not_made_for_the_airframe_is_refused_in_one_line() -> None:
+def test_a_policy_or_pid_not_made_for_the_airframe_is_refused_in_one_line(untuned_airframe: Path) -> None:
     for controller in ([], ["--controller", "pid"]):
-        done = subprocess.run([sys.executable, "-m", "fcemu", "sitl", "--airframe", "x500",
+        done = subprocess.run([sys.executable, "-m", "fcemu", "sitl", "--airframe", str(untuned_airframe),
                                "--no-mavlink", "--speed", "max", "--duration", "1", *controller],
                               capture_output=True, text=True, timeout=60)
         assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
         assert done.stderr.startswith("fcemu: error: ")
-        assert "x500" in done.stderr
+        assert "my_quad" in done.stderr
+
+
+def test_json_prints_the_flight_s_summary_as_one_object() -> None:
+    done = subprocess.run([sys.executable, "-m", "fcemu", "sitl", "--no-mavlink", "--quiet", "--speed", "max",
+                           "--duration", "0.2", "--controller", "pid", "--json"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert (summary["controller"], summary["rig"], summary["airframe"]) == ("pid", "free", "iris")
+    assert summary["timing"]["ticks"] == 200 and summary["ulog"] is None and "vehicle" not in summary
+
+
+def test_a_policy_that_names_its_pid_flies_over_it_unless_told_otherwise(tmp_path, capsys) -> None:
+    from fcemu.cli import main
+    from fcemu.firmware.controllers import load_controller
+    from tests.evaluation.test_evaluate import policy_naming_its_pid
+
+    policy = str(policy_naming_its_pid(tmp_path / "fit"))
+    named = load_controller(f"pid:{tmp_path / 'fit' / 'pid.json'}").gains
+    assert named != load_controller("pid:iris").gains
+    for fallback, gains in ((None, named), ("pid", load_controller("pid:iris").gains),
+                            ("pid:betaflight", load_controller("pid:betaflight").gains)):
+        built = sitl.build_sitl(policy, rig="rig", realtime=False, fallback=fallback)
+        assert built.selected == "neural" and built.loop.controllers["pid"].gains == gains
+    (tmp_path / "fit" / "pid.json").unlink()
+    assert main(["sitl", "--controller", policy, "--rig", "rig", "--no-mavlink", "--speed", "max",
+                 "--duration", "0.1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fcemu: error: ") and err.count("\n") == 1
+    assert f"names its fallback PID {tmp_path / 'fit' / 'pid.json'}, which is missing" in err

@@ -7,7 +7,7 @@ from pyulog import ULog
 
 from fcemu.cli import main
 from fcemu.sitl.sitl import build_sitl
-from fcemu.sitl.ulog_writer import BOOT_US, RPM_PER_RAD_S, TOPICS, ULogRecorder
+from fcemu.sitl.ulog_writer import BOOT_US, ROW_DTYPE, RPM_PER_RAD_S, TOPICS, Row, ULogRecorder
 
 
 def _fly(seconds: float) -> tuple[ULogRecorder, object]:
@@ -63,3 +63,43 @@ def test_esc_status_is_the_rpm_the_escs_reported_not_the_firmwares_reading_ahead
     rpm = [esc[f"esc[{i}].esc_rpm"][-1] for i in range(4)]
     assert np.allclose(rpm, last.frame.rotor_speed * RPM_PER_RAD_S, atol=0.5)
     assert last.sensed is not None  # the loop keeps what the sensors said beside what the controller read
+
+
+def test_each_tick_is_kept_as_the_rows_declared_fields_by_name() -> None:
+    assert ROW_DTYPE.names == Row._fields
+    assert {name: ROW_DTYPE[name].shape for name in Row._fields} == {
+        "t_us": (), "gyro_t_us": (), "frame_t_us": (), "gyro": (3,), "rate_setpoint": (3,), "throttle": (),
+        "pwm": (4,), "rotor_speed": (4,), "armed": ()}
+    recorder, sitl = _fly(0.05)
+    rows, last = recorder.rows(), sitl.loop.last_sample
+    assert rows.dtype == ROW_DTYPE and len(rows) == len(recorder) == 50
+    row = rows[-1]
+    assert row["t_us"] == last.t_us and row["frame_t_us"] == last.frame.t_us
+    assert row["gyro_t_us"] == (last.frame.gyro_t_us if last.frame.gyro_t_us is not None else last.frame.t_us)
+    assert np.array_equal(row["gyro"], last.frame.gyro)
+    assert np.array_equal(row["rate_setpoint"], last.command.setpoint.rates)
+    assert row["throttle"] == last.command.setpoint.throttle and row["armed"] == 1.0
+    assert np.array_equal(row["pwm"], last.pwm)
+    assert np.array_equal(row["rotor_speed"], (last.sensed or last.frame).rotor_speed)
+
+
+def test_the_ulog_fields_are_the_rows_fields_by_name(tmp_path) -> None:
+    recorder, _ = _fly(0.3)
+    rows = recorder.rows()
+    log = ULog(str(recorder.write(tmp_path / "flight.ulg")))
+    data = {d.name: d.data for d in log.data_list}
+    t = (rows["t_us"] + BOOT_US).astype(np.uint64)
+    gyro = data["vehicle_angular_velocity"]
+    assert np.array_equal(gyro["timestamp"], t)
+    assert np.array_equal(gyro["timestamp_sample"], (rows["gyro_t_us"] + BOOT_US).astype(np.uint64))
+    assert np.array_equal(data["esc_status"]["timestamp"], (rows["frame_t_us"] + BOOT_US).astype(np.uint64))
+    setpoint = data["vehicle_rates_setpoint"]
+    for i, axis in enumerate(("roll", "pitch", "yaw")):
+        assert np.array_equal(gyro[f"xyz[{i}]"], rows["gyro"][:, i].astype(np.float32))
+        assert np.array_equal(setpoint[axis], rows["rate_setpoint"][:, i].astype(np.float32))
+    assert np.array_equal(setpoint["thrust_body[2]"], (-rows["throttle"]).astype(np.float32))
+    for i in range(4):
+        assert np.array_equal(data["actuator_outputs"][f"output[{i}]"], rows["pwm"][:, i].astype(np.float32))
+        rpm = np.rint(rows["rotor_speed"][:, i] * RPM_PER_RAD_S).astype(np.int32)
+        assert np.array_equal(data["esc_status"][f"esc[{i}].esc_rpm"], rpm)
+    assert np.array_equal(data["actuator_armed"]["armed"], rows["armed"].astype(np.uint8))

@@ -82,8 +82,8 @@ def test_the_command_line_builds_the_config():
     assert ppo.out == "runs/ppo" and not ppo.progress
     default = from_args(build_parser().parse_args(["train"]))
     assert dataclasses.asdict(default) == dataclasses.asdict(TrainConfig())
-    bench = build_parser().parse_args(["bench", "train", "--max-minutes", "1", "--hp", "n_epochs=1"])
-    assert bench.handler == "fcemu.benchmarks.train:bench_train" and bench.max_minutes == 1.0
+    bench = build_parser().parse_args(["bench", "train", "--budget-s", "60", "--hp", "n_epochs=1"])
+    assert bench.handler == "fcemu.benchmarks.train:bench_train" and bench.budget_s == 60.0
     cfg = from_args(bench)
     assert (cfg.steps, cfg.eval_every, cfg.eval_episodes, cfg.hyper["n_epochs"]) == (10**7, 250_000, 0, 1)
 
@@ -100,7 +100,7 @@ def test_validation():
     with pytest.raises(ValueError, match="key=value"):
         parse_hp(["gamma"])
     assert "squash_output" not in TrainConfig().hyper["policy_kwargs"]
-    with pytest.raises(ValueError, match="--threads"):
+    with pytest.raises(ValueError, match="--jobs"):
         TrainConfig(threads=-1)
 
 

@@ -1,13 +1,17 @@
+import argparse
 import json
+import re
+import shlex
 import subprocess
 import sys
 from dataclasses import replace
 from itertools import product
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from fcemu.cli import main
+from fcemu.cli import build_parser, main
 from fcemu.evaluation.bar import SMOOTHNESS_BAR, airframe_bar_verdict
 from fcemu.evaluation.metrics import compute_metrics
 from fcemu.evaluation.runner import EvalConfig, run_controller
@@ -18,7 +22,8 @@ from fcemu.sim_bridge.airframe import AIRFRAME_DIR
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sitl.sitl import build_sitl
 from fcemu.training.distill_teacher import DistillError, make_teacher
-from fcemu.training.fit import STUDENT_MOTOR_MARGIN, FitOptions, shipped_pid, taught_student
+from fcemu.training.fit import STUDENT_MOTOR_MARGIN, taught_student
+from fcemu.training.fit_options import FitOptions, shipped_pid
 from fcemu.training.fit_report import command_line
 from fcemu.training.fit_teacher import (
     BRAKING_CHOICES,
@@ -31,6 +36,9 @@ from fcemu.training.fit_teacher import (
     shape_admitted,
 )
 from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING
+from fcemu.training.options import command_line as options_command_line
+from fcemu.training.options import from_args
+from fcemu.training.tune_options import TuneOptions
 
 pytestmark = pytest.mark.no_wall_clock
 
@@ -45,6 +53,12 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     assert code == 0, captured.err
     summary = json.loads(captured.out)
     assert "fitting the policy to the model-based teacher" in captured.err
+    # each stage said as it starts, with the time so far and an estimate of the time left
+    stages = [line for line in captured.err.splitlines() if line.startswith("[")]
+    assert [line.split("] ")[1].split()[0] for line in stages] == ["tuning", "PID:", "choosing", "fitting",
+                                                                   "policy"]
+    assert all(re.search(r"; (about [\d a-z]+ left, an estimate|less than a second left)$", line)
+               for line in stages), stages
     for name in ("pid.json", "tune.json", "policy.onnx", "fit.json", "report.md"):
         assert (out / name).is_file(), name
     assert json.loads((out / "fit.json").read_text()) == summary
@@ -99,8 +113,12 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     assert summary["meets_bar"] == all(t["bar"]["meets_bar"] for t in check["tasks"].values())
     report = (out / "report.md").read_text()
     assert "fcemu fit --airframe racer5" in report and "Success %" in report
+    # the check's flights drawn: the policy's step responses beside the PID's, linked from the report
+    assert check["step_plot"] == "step_response.png"
+    assert "![Step responses: the policy and the PID](step_response.png)" in report
+    assert (out / "step_response.png").read_bytes().startswith(b"\x89PNG")
     assert "fcemu bench mcu" in report and "not measured" in report and "motor lags" in report
-    assert f"--controller {out / 'policy.onnx'} --fallback pid:{out / 'pid.json'}" in report
+    assert f"fcemu sitl --airframe racer5 --controller {out / 'policy.onnx'}   #" in report  # no --fallback
     # the policy carries its airframe: flown on it by the firmware, refused on another's envelope
     policy = NeuralRateController(out / "policy.onnx", airframe=airframe_spec("racer5"))
     assert policy.spec.fields == ("rate_error", "rotor_speed", "rate")
@@ -110,6 +128,10 @@ def test_a_small_fit_writes_the_pid_the_policy_and_the_report(tmp_path, capsys, 
     sitl = build_sitl(str(out / "policy.onnx"), rig="rig", realtime=False, airframe="racer5",
                       fallback=f"pid:{out / 'pid.json'}")
     assert sitl.selected == "neural" and sitl.loop.controllers["pid"].gains == fitted
+    # the policy names that PID, beside it, as its fallback: flown so without --fallback
+    assert policy.metadata["fallback"] == "pid.json"
+    named = build_sitl(str(out / "policy.onnx"), rig="rig", realtime=False, airframe="racer5")
+    assert named.loop.controllers["pid"].gains == fitted
     for fallback, code in ((f"pid:{out / 'pid.json'}", 0), (f"pid:{out / 'missing.json'}", 2)):
         done = subprocess.run([sys.executable, "-m", "fcemu", "sitl", "--airframe", "racer5", "--rig", "rig",
                                "--controller", str(out / "policy.onnx"), "--fallback", fallback,
@@ -132,11 +154,15 @@ def test_the_airframe_bar_takes_the_pids_own_success_and_the_bound():
     assert np.isclose(same["error_ratio"], 1.0)
 
 
-def test_a_shipped_airframe_is_fitted_against_its_shipped_pid_and_a_file_is_tuned():
+def test_a_shipped_airframe_is_fitted_against_its_shipped_pid_and_a_file_is_tuned(
+        monkeypatch: pytest.MonkeyPatch, untuned_airframe: Path) -> None:
+    from fcemu.sim_bridge import airframe
+
     assert shipped_pid("racer5") == str(PRESET_DIR / "pid_racer5.json")
     assert shipped_pid("iris_realistic") == str(PRESET_DIR / "pid_iris.json")  # a variant flies its base's
-    assert shipped_pid("x500") is None  # none ships: the fit tunes one
     assert shipped_pid(str(AIRFRAME_DIR / "racer5.json")) is None  # a file is tuned, whatever its name
+    monkeypatch.setattr(airframe, "AIRFRAME_DIR", untuned_airframe.parent)  # my_quad as if shipped
+    assert shipped_pid("my_quad") is None  # none ships: the fit tunes one
 
 
 def test_fit_refuses_a_bad_airframe_and_a_bad_budget_in_one_line(tmp_path, capsys):
@@ -151,13 +177,27 @@ def test_fit_refuses_a_bad_airframe_and_a_bad_budget_in_one_line(tmp_path, capsy
     assert not (tmp_path / "x").exists()
 
 
+def test_fit_refuses_an_airframe_whose_props_spin_out_before_any_work(tmp_path, capsys):
+    raw = json.loads((AIRFRAME_DIR / "racer5.json").read_text())
+    for motor in raw["motors"]:
+        motor["spin"] = {"cw": "ccw", "ccw": "cw"}[motor["spin"]]
+    out_quad = tmp_path / "out_quad.json"
+    out_quad.write_text(json.dumps(raw))
+    assert airframe_spec(str(out_quad)).props_out
+    assert main(["fit", "--airframe", str(out_quad), "--out", str(tmp_path / "x"), "--tune"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("fcemu: error: fit: ") and err.count("\n") == 1
+    assert "props spin out" in err and "a policy is made for props in" in err
+    assert not (tmp_path / "x").exists()
+
+
 def test_the_teacher_s_damping_reaches_the_teacher_and_the_command_line():
     teacher = make_teacher("inversion:0.2:0.4", "crazyflie")
     assert teacher.damping == 0.4 and teacher.time_constant[0] == pytest.approx(0.2 * teacher.model.lag_s)
     assert make_teacher("inversion:0.2", "crazyflie").damping == DAMPING
     with pytest.raises(DistillError, match="damping ratio must be > 0"):
         make_teacher("inversion:0.2:-1", "crazyflie")
-    opts = FitOptions("crazyflie", "runs/x", lag_multiple=0.2, damping=0.4)
+    opts = FitOptions(airframe="crazyflie", out="runs/x", lag_multiple=0.2, damping=0.4)
     assert command_line(opts).endswith("--lag-multiple 0.2 --damping 0.4 --tune")  # no --pid: it tuned
     # and the share of yaw served first, an empty field taking the default
     first = make_teacher("inversion:0.2::0.3", "crazyflie")
@@ -177,8 +217,8 @@ def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teach
     out = tmp_path / "fit"
     out.mkdir()
     (out / "pid.json").write_text(json.dumps(load_controller("pid:racer5").to_dict()))
-    opts = FitOptions("racer5", str(out), seed=5, episodes=2, rounds=1, steps=40, envs=4, fit_steps=20,
-                      net_arch=(8,), jobs=1, mcu=False, progress=False)
+    opts = FitOptions(airframe="racer5", out=str(out), seed=5, episodes=2, rounds=1, steps=40, envs=4,
+                      fit_steps=20, net_arch=(8,), jobs=1, mcu=False, progress=False)
     speed = {"lag_multiple": 0.35, "order": [0.35, 0.5], "pid_smoothness": 1e-6}  # every student too rough
     lines: list[str] = []
     student = taught_student(opts, speed, out, lines.append)
@@ -190,14 +230,45 @@ def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teach
     assert "the next slower teacher" in lines[0] and "next slower" not in lines[1]
 
 
-def test_fit_takes_the_pid_fcemu_tune_wrote_for_the_airframe_in_its_folder(tmp_path) -> None:
+def test_fit_takes_the_pid_fcemu_tune_wrote_for_the_airframe_in_its_folder(tmp_path: Path,
+                                                                           untuned_airframe: Path) -> None:
     import json
 
     from fcemu.training.fit import tuned_in
 
-    assert tuned_in(tmp_path, "x500") is None  # nothing there: it tunes
-    (tmp_path / "pid.json").write_text(json.dumps({"pid": {}, "tuning": {"airframe": "x500"}}))
-    assert tuned_in(tmp_path, "x500") == str(tmp_path / "pid.json")
+    untuned = str(untuned_airframe)
+    assert tuned_in(tmp_path, untuned) is None  # nothing there: it tunes
+    (tmp_path / "pid.json").write_text(json.dumps({"pid": {}, "tuning": {"airframe": "my_quad"}}))
+    assert tuned_in(tmp_path, untuned) == str(tmp_path / "pid.json")
     assert tuned_in(tmp_path, "racer5") is None  # tuned for another airframe
     (tmp_path / "pid.json").write_text("not json")
-    assert tuned_in(tmp_path, "x500") is None
+    assert tuned_in(tmp_path, untuned) is None
+
+
+def _command_parser(name: str) -> argparse.ArgumentParser:
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices[name]
+
+
+@pytest.mark.parametrize("name", ["fit", "tune"])
+def test_every_option_of_fit_and_tune_shows_its_default(name: str) -> None:
+    for action in _command_parser(name)._actions:
+        if not isinstance(action, argparse._HelpAction):
+            assert "(default" in action.help or "(required)" in action.help, action.option_strings
+
+
+def test_the_command_lines_repeat_the_options_and_parse_back_to_them() -> None:
+    opts = FitOptions(airframe="x500", out="runs/x", steps=1500, net_arch=(32, 16), braking=0.3, pid="p.json",
+                      jobs=3, mcu=False, progress=False)
+    line = command_line(opts)
+    assert line == ("fcemu fit --airframe x500 --out runs/x --seed 2018 --episodes 50 --tune-budget-s 540 "
+                    "--rounds 6 --steps 1500 --envs 64 --fit-steps 3000 --net-arch 32 16 --braking 0.3 "
+                    "--pid p.json")
+    args = build_parser().parse_args([*shlex.split(line)[1:], "--jobs", "3", "--no-mcu"])
+    assert from_args(FitOptions, args, progress=False) == opts
+    tune = TuneOptions(airframe="iris", jobs=2)
+    line = options_command_line("fcemu tune", tune)
+    assert line == ("fcemu tune --airframe iris --seed 2018 --episodes 50 --check-episodes 50 --rounds 12 "
+                    "--budget-s 540 --jobs 2")
+    args = build_parser().parse_args([*shlex.split(line)[1:], "--out", "o"])
+    assert from_args(TuneOptions, args) == tune

@@ -8,7 +8,7 @@ import pytest
 from fcemu.evaluation.bar import ERROR_RATIO_BAR, PEAK_MARGIN_PCT, SMOOTHNESS_BAR
 from fcemu.firmware.pid_controller import PRESET_DIR
 from fcemu.sim_bridge.airframe import load_airframe
-from fcemu.training.fit import STUDENT_STEPS, FitOptions
+from fcemu.training.fit_options import STUDENT_STEPS, FitOptions
 from fcemu.training.fit_teacher import (
     BRAKING_CHOICES,
     ERROR_ROOM,
@@ -55,7 +55,7 @@ def test_student_kind_follows_the_sensors() -> None:
 def test_speed_stage_admits_by_the_kind_of_student(tmp_path) -> None:
     """On a twin with noisy, delayed sensors the teachers admitted are those within the bar's motor
     line over a sensed student's smoothing, not an exact student's: the stage's order follows it."""
-    opts = FitOptions("iris_realistic", str(tmp_path), episodes=2, jobs=1, progress=False)
+    opts = FitOptions(airframe="iris_realistic", out=str(tmp_path), episodes=2, jobs=1, progress=False)
     lines: list[str] = []
     speed = teacher_stage(opts, Path(str(PRESET_DIR / "pid_iris.json")), log=lines.append)
     assert speed["student"] == "sensed"

@@ -7,7 +7,14 @@ import pytest
 import fcemu.evaluation.runner as runner
 from fcemu.evaluation.metrics import AXES, compute_metrics
 from fcemu.firmware.action import action_to_pwm
-from fcemu.firmware.observation import observe_step
+from fcemu.firmware.observation import (
+    MOTOR_OUTPUT,
+    RATE,
+    RATE_ERROR,
+    ROTOR_SPEED,
+    ObservationSpec,
+    observe_step,
+)
 from fcemu.sim_bridge.airframe import load_airframe
 from fcemu.sim_bridge.plant import body_torque
 from fcemu.sim_bridge.tasks import OMEGA_MAX
@@ -58,6 +65,19 @@ def test_the_teacher_acts_on_its_observation_as_on_the_signals_and_keeps_the_col
     np.testing.assert_allclose(given[fits], pwm[fits], atol=0.05)
     quiet = teacher.pwm(np.zeros((1, 3)), np.zeros((1, 3)), np.full((1, 4), hover), teacher.throttle)
     np.testing.assert_allclose(quiet, 1000.0 + 1000.0 * teacher.throttle, atol=1e-6)
+
+
+def test_the_teacher_reads_each_signal_from_the_columns_its_spec_declares_for_it():
+    teacher = InversionTeacher("iris")
+    assert teacher.spec.columns == {RATE_ERROR: slice(0, 3), ROTOR_SPEED: slice(3, 7), RATE: slice(7, 10)}
+    rng = np.random.default_rng(6)
+    hover = teacher.throttle * teacher.model.w_max
+    setpoint, gyro = rng.uniform(-3, 3, (16, 3)), rng.uniform(-3, 3, (16, 3))
+    rotor = hover + rng.uniform(-20, 20, (16, 4))
+    action = teacher.act(observe_step(teacher.spec, setpoint, gyro, rotor))
+    teacher.spec = ObservationSpec(memory=1, fields=(MOTOR_OUTPUT, RATE, ROTOR_SPEED, RATE_ERROR),
+                                   max_rotor_speed=teacher.model.w_max)
+    np.testing.assert_array_equal(teacher.act(observe_step(teacher.spec, setpoint, gyro, rotor)), action)
 
 
 @pytest.mark.parametrize("airframe", ["iris", "racer5"])

@@ -10,10 +10,18 @@ from fcemu.evaluation.pid_carry_over import carried_over, iris_tune_carried_over
 from fcemu.evaluation.runner import EvalConfig, run_controller
 from fcemu.firmware.mixer import QuadXMixer
 from fcemu.firmware.pid_controller import load_preset
-from fcemu.sim_bridge.airframe import load_airframe
+from fcemu.sim_bridge.airframe import AIRFRAME_DIR, load_airframe
 from fcemu.sim_bridge.tasks import episodic_commands
 from fcemu.training.pid_search import Score
-from fcemu.training.pid_tune import SMOOTHNESS_CAP, cost, knobs_for, loop_physics, settle_limits
+from fcemu.training.pid_tune import (
+    SMOOTHNESS_CAP,
+    cost,
+    held_out_steps,
+    knobs_for,
+    loop_physics,
+    settle_limits,
+)
+from fcemu.training.tune_options import TuneOptions
 
 
 def test_loop_physics_follows_inertia_thrust_and_motor_lag():
@@ -98,8 +106,9 @@ def test_cost_rewards_error_and_caps_motor_roughness_on_the_noisy_gyro():
 def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     out = tmp_path / "tune"
-    code = main(["tune", "--airframe", "iris", "--out", str(out), "--episodes", "3", "--check-episodes", "1",
-                 "--rounds", "1", "--budget-s", "300", "--jobs", "1", "--seed", "5", "--json"])
+    iris_file = str(AIRFRAME_DIR / "iris.json")  # a file, as a user's quad is
+    code = main(["tune", "--airframe", iris_file, "--out", str(out), "--episodes", "3", "--check-episodes",
+                 "1", "--rounds", "1", "--budget-s", "300", "--jobs", "1", "--seed", "5", "--json"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
     summary = json.loads(captured.out)
@@ -126,10 +135,52 @@ def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp
     preset = json.loads((out / "pid.json").read_text())
     assert preset["name"] == "pid_iris" and preset["tuning"]["cost_version"] == summary["cost_version"]
     assert json.loads((out / "tune.json").read_text())["held_out"] == held
+    # the report shows the tuned PID's step responses on the held-out commands, as the check flew them
+    assert summary["report"] == str(out / "report.md") and "/report.md in " in captured.err
+    report = (out / "report.md").read_text()
+    assert "![Step responses of the tuned PID](step_response.png)" in report
+    assert f"--controller pid:{out / 'pid.json'}" in report and "| Error sum | " in report
+    assert (out / "step_response.png").read_bytes().startswith(b"\x89PNG")
+    steps = held_out_steps(TuneOptions(airframe="iris", seed=5, check_episodes=1, jobs=1), preset)
+    assert steps.n_episodes == 3  # one command an axis: here the only one, three times
+    drawn = np.abs(steps.setpoint - steps.rate).sum(axis=1)[0]
+    assert drawn == pytest.approx([held["tuned"]["error"][a] for a in ("roll", "pitch", "yaw")], abs=0.006)
     assert len(list((tmp_path / "cache" / "fcemu" / "bound").glob("*.json"))) == 1
     traces = run_controller(f"pid:{out / 'pid.json'}", EvalConfig(episodes=1, seed=6), progress=False)
     flown = np.abs(traces.setpoint - traces.rate).sum(axis=1)[0]
     assert flown.sum() == pytest.approx(held["tuned"]["error_sum"], abs=0.006)  # the JSON rounds to 0.01
+    fit_takes_the_tune_for_its_airframe_alone(out, iris_file, tmp_path, monkeypatch, capsys)
+
+
+def fit_takes_the_tune_for_its_airframe_alone(out: Path, iris_file: str, tmp_path: Path, monkeypatch,
+                                              capsys) -> None:
+    """`fcemu fit --out` the tune's folder flies the tune's PID for the airframe it was tuned for,
+    named as the tune named it, by its shipped name or as a copy elsewhere, before the shipped tune;
+    for an edited airframe it tunes anew."""
+    from fcemu.firmware.errors import UserError
+    from fcemu.training import fit
+
+    raw = json.loads(Path(iris_file).read_text())
+    (tmp_path / "elsewhere").mkdir()
+    copy, heavier = tmp_path / "elsewhere" / "my_quad.json", tmp_path / "elsewhere" / "heavier.json"
+    copy.write_text(json.dumps(raw, indent=4))
+    heavier.write_text(json.dumps({**raw, "base_mass_kg": raw["base_mass_kg"] * 1.1}))
+    tuning = json.loads((out / "pid.json").read_text())["tuning"]
+    assert tuning["airframe"] == iris_file and len(tuning["airframe_sha256"]) == 64
+    for airframe in (iris_file, "iris", str(copy)):
+        assert fit.tuned_in(out, airframe) == str(out / "pid.json")
+    assert fit.tuned_in(out, str(heavier)) is None
+
+    def stop(opts, out, log):
+        raise UserError(f"stopped before the bound; --pid {opts.pid}")
+
+    monkeypatch.setattr(fit, "given_pid_stage", stop)
+    tuned = out / "pid.json"
+    before = tuned.read_bytes()
+    assert main(["fit", "--airframe", "iris", "--out", str(out), "--no-mcu"]) == 2
+    err = capsys.readouterr().err
+    assert f"the PID tuned in {tuned} by fcemu tune: not tuned again" in err  # not the shipped pid_iris
+    assert err.endswith(f"stopped before the bound; --pid {tuned}\n") and tuned.read_bytes() == before
 
 
 @pytest.mark.parametrize("args, message", [
