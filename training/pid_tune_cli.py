@@ -115,7 +115,7 @@ def tune(opts: TuneOptions, log: Any = None) -> tuple[dict[str, Any], dict[str, 
     return preset, summary
 
 
-STEP_PLOT = "step_response.png"
+STEP_PLOT = "tune_step_response.png"  # beside fit's step_response.png in a shared folder
 
 
 def _axes(values: dict[str, float | None], fmt: str = ".1f") -> str:
@@ -123,7 +123,7 @@ def _axes(values: dict[str, float | None], fmt: str = ".1f") -> str:
 
 
 def write_report(summary: dict[str, Any], out: Path, plot: Path | None) -> Path:
-    """DIR/report.md: the held-out lines, the tuned PID beside its start and the Iris tune, its step
+    """DIR/tune_report.md: the held-out lines, the tuned PID beside its start and the Iris tune, its step
     responses (`plot`, beside it), the times, and how to fly it."""
     check, times = summary["held_out"], summary["time_s"]
     flown = (("tuned", "tuned_noisy_gyro"), ("start", "start_noisy_gyro"), ("pid_iris", None))
@@ -161,13 +161,13 @@ def write_report(summary: dict[str, Any], out: Path, plot: Path | None) -> Path:
               f"| {stages} |", "", "## Fly it", "", "```",
               f"fcemu sitl --airframe {summary['airframe']} --controller pid:{summary['preset']}",
               f"fcemu eval --airframe {summary['airframe']} --controller pid:{summary['preset']}", "```", ""]
-    path = out / "report.md"
+    path = out / "tune_report.md"  # a fit into the same folder writes report.md
     path.write_text("\n".join(lines), encoding="utf-8")
     return path
 
 
 def step_plot(opts: TuneOptions, preset: dict[str, Any], out: Path) -> Path:
-    """DIR/step_response.png: the tuned PID's step responses on the held-out commands."""
+    """DIR/tune_step_response.png: the tuned PID's step responses on the held-out commands."""
     from fcemu.evaluation.step_plots import plot_steps
     from fcemu.training.pid_tune import held_out_steps
 

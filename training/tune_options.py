@@ -38,7 +38,7 @@ class TuneOptions:
 class TuneCommand:
     """What `fcemu tune` takes besides the tune's options."""
 
-    out: str = option(REQUIRED, "where pid.json, tune.json, report.md and step_response.png are "
+    out: str = option(REQUIRED, "where pid.json, tune.json, tune_report.md and tune_step_response.png are "
                                        "written", metavar="DIR")
     json: bool = option(False, JSON_HELP)
 

@@ -136,11 +136,11 @@ def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp
     assert preset["name"] == "pid_iris" and preset["tuning"]["cost_version"] == summary["cost_version"]
     assert json.loads((out / "tune.json").read_text())["held_out"] == held
     # the report shows the tuned PID's step responses on the held-out commands, as the check flew them
-    assert summary["report"] == str(out / "report.md") and "/report.md in " in captured.err
-    report = (out / "report.md").read_text()
-    assert "![Step responses of the tuned PID](step_response.png)" in report
+    assert summary["report"] == str(out / "tune_report.md") and "/tune_report.md in " in captured.err
+    report = (out / "tune_report.md").read_text()
+    assert "![Step responses of the tuned PID](tune_step_response.png)" in report
     assert f"--controller pid:{out / 'pid.json'}" in report and "| Error sum | " in report
-    assert (out / "step_response.png").read_bytes().startswith(b"\x89PNG")
+    assert (out / "tune_step_response.png").read_bytes().startswith(b"\x89PNG")
     steps = held_out_steps(TuneOptions(airframe="iris", seed=5, check_episodes=1, jobs=1), preset)
     assert steps.n_episodes == 3  # one command an axis: here the only one, three times
     drawn = np.abs(steps.setpoint - steps.rate).sum(axis=1)[0]
