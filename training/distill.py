@@ -283,7 +283,10 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
             raise DistillError(f"--{name.replace('_', '-')} must be finite and >= 0, got {value}")
     if cfg.gain_weight and not cfg.gain_step:
         raise DistillError("--gain-weight needs a --gain-step above 0")
-    teacher = make_teacher(cfg.teacher, cfg.airframe, cfg.privileged)
+    if cfg.per_twin and cfg.gain_weight:
+        raise DistillError("--per-twin teaches without the gain match (--gain-weight 0): its nudged samples "
+                           "are labelled after the rounds, when the twins' airframes are drawn anew")
+    teacher = make_teacher(cfg.teacher, cfg.airframe, cfg.privileged, per_twin=cfg.per_twin)
     train_cfg, spec = student_train_config(cfg, teacher)
     torch.set_num_threads(train_cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -303,6 +306,8 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
         model = make_model(train_cfg, venv, out / "tb")
     env = BatchedRateEnv(cfg.envs, on_time_view=cfg.privileged, truth_view=is_model_based(cfg.teacher),
                          **env_kwargs)
+    if cfg.per_twin:
+        teacher.follow(env)
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     data, student, history = Dataset(), None, []

@@ -71,6 +71,9 @@ class DistillConfig:
         False, "where the twins' gyro or ESC telemetry is late or lossy, the teacher reads the readings as "
                "sampled and the student its own (off: both read the firmware's); the model-based teacher "
                "`inversion` reads the true rates and rotor speeds, without noise or vibration either")
+    per_twin: bool = option(
+        False, "the model-based teacher (`inversion`) built for each twin's airframe as drawn this episode "
+               "(its motors, delays and damping), not once for --airframe; without the gain match")
     foreign_teacher: bool = option(False, "distil a teacher made for another airframe than --airframe "
                                           "(its fcemu.airframe); refused unless given")
     seed: int = option(0, "seed of the twins (their commands, drawn airframes and noise), of which "

@@ -49,13 +49,21 @@ def is_model_based(name: str) -> bool:
     return name == INVERSION or name.startswith(INVERSION + ":")
 
 
-def make_teacher(name: str, airframe: str, privileged: bool = False) -> Any:
+def make_teacher(name: str, airframe: str, privileged: bool = False, per_twin: bool = False) -> Any:
     """`inversion` (or `inversion:K`, its time constant in motor lags, `inversion:K:Z`, and its
     damping ratio, `inversion:K:Z:Y`, and the share of yaw it serves first, `inversion:K:Z:Y:J`, and
     its braking share; an empty field takes the default) for the model-based teacher of `airframe`
-    (`privileged`: reading the truth), else an exported policy's path."""
+    (`privileged`: reading the truth; `per_twin`: of each twin's drawn airframe, `DrawnInversionTeacher`),
+    else an exported policy's path."""
     if is_model_based(name):
-        from fcemu.training.inversion_teacher import BRAKING_SHARE, DAMPING, LAG_MULTIPLE, InversionTeacher
+        from fcemu.sim_bridge.airframe import load_airframe
+        from fcemu.training.inversion_teacher import (
+            BRAKING_SHARE,
+            DAMPING,
+            LAG_MULTIPLE,
+            DrawnInversionTeacher,
+            InversionTeacher,
+        )
 
         fields = name.split(":")[1:]
         multiple, damping, yaw_first, braking = (*fields, "", "", "", "")[:4]
@@ -64,12 +72,22 @@ def make_teacher(name: str, airframe: str, privileged: bool = False) -> Any:
                 raise ValueError("at most four fields follow `inversion`: K:Z:Y:J")
             if damping and not float(damping) > 0.0:
                 raise ValueError(f"the damping ratio must be > 0, got {damping}")
-            return InversionTeacher(airframe, float(multiple) if multiple else LAG_MULTIPLE,
-                                    damping=float(damping) if damping else DAMPING, reads_truth=privileged,
-                                    yaw_first=float(yaw_first) if yaw_first else 0.0,
-                                    braking=float(braking) if braking else BRAKING_SHARE)
+            options = {"damping": float(damping) if damping else DAMPING, "reads_truth": privileged,
+                       "yaw_first": float(yaw_first) if yaw_first else 0.0,
+                       "braking": float(braking) if braking else BRAKING_SHARE}
+            lag_multiple = float(multiple) if multiple else LAG_MULTIPLE
+
+            def teacher_of(airframe: Any) -> InversionTeacher:
+                return InversionTeacher(airframe, lag_multiple, **options)
+
+            if per_twin:
+                return DrawnInversionTeacher(teacher_of, load_airframe(airframe))
+            return teacher_of(airframe)
         except ValueError as exc:
             raise DistillError(f"teacher {name!r}: {exc}") from None
+    if per_twin:
+        raise DistillError("a teacher per twin is the model-based one's (`inversion`); "
+                           "a policy is one teacher")
     return Teacher(name)
 
 

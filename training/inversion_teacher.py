@@ -36,7 +36,9 @@ A student fitted to it by DAgger is the policy (`fcemu fit`; its figures: docs/r
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from typing import Any
 
 import numpy as np
 
@@ -102,10 +104,47 @@ class InversionModel:
                    int(airframe.esc_delay_ticks))
 
     def body_acceleration(self, rates: np.ndarray, rotor: np.ndarray) -> np.ndarray:
+        """The body's own angular acceleration (n, 3) beside the thrusts' (`LawRows.body_acceleration`)."""
+        return LawRows.of(self).body_acceleration(rates, rotor)
+
+
+@dataclass(frozen=True)
+class LawRows:
+    """A model (`InversionModel`) as k rows that broadcast against n rows of signals (k is 1 or n): the
+    teacher of one airframe is one row, the teacher of every twin's drawn airframe (`stack`) a row each."""
+
+    B: np.ndarray  # (k, 3, 4)
+    inertia: np.ndarray  # (k, 3)
+    kf: np.ndarray  # (k, 1), as w_max, a_up, a_down, pwm_min, pwm_max
+    w_max: np.ndarray
+    a_up: np.ndarray
+    a_down: np.ndarray
+    pwm_min: np.ndarray
+    pwm_max: np.ndarray
+    damping: np.ndarray  # (k, 3)
+    rotor_inertia: np.ndarray  # (k,)
+    spin: np.ndarray  # (k, 4)
+
+    @classmethod
+    def of(cls, m: InversionModel) -> LawRows:
+        column = [np.array([[float(getattr(m, name))]]) for name in ("kf", "w_max", "a_up", "a_down",
+                                                                       "pwm_min", "pwm_max")]
+        return cls(m.B[None], m.inertia[None], *column, np.asarray(m.damping, dtype=float)[None],
+                   np.array([m.rotor_inertia]), np.asarray(m.spin, dtype=float)[None])
+
+    @classmethod
+    def stack(cls, rows: list[LawRows]) -> LawRows:
+        return cls(*(np.concatenate([getattr(r, f.name) for r in rows]) for f in fields(cls)))
+
+    def torque(self, thrust: np.ndarray) -> np.ndarray:
+        """The angular acceleration (n, 3) the thrusts (n, 4) give: B·T per row."""
+        return (self.B @ thrust[..., None])[..., 0]
+
+    def body_acceleration(self, rates: np.ndarray, rotor: np.ndarray) -> np.ndarray:
         """The body's own angular acceleration (n, 3) beside the thrusts': gyroscopic −I⁻¹(Ω × IΩ)
         and the twin's other body torques (`plant.body_torque`: the rotors' gyroscopic moment and the
         rate damping; the rotors held, so no spin-up reaction)."""
-        torque = body_torque(rates, rotor, rotor, self.damping, self.rotor_inertia, self.spin, dt=1.0)
+        torque = body_torque(rates, rotor, rotor, self.damping, self.rotor_inertia, self.spin.T, dt=1.0)
         return (-np.cross(rates, self.inertia * rates) + torque) / self.inertia
 
 
@@ -166,55 +205,72 @@ class InversionTeacher:
         # [B; 1 1 1 1]⁻¹'s first three columns: a torque's thrusts with no change of the collective
         self._alloc = np.linalg.inv(np.vstack([m.B, np.ones(4)]))[:, :3]
 
+    def law(self) -> Law:
+        """The model and the law as rows (one: this airframe's), from the attributes as they are now."""
+        return Law(LawRows.of(self.model), np.reshape(self.time_constant, (1, 3)),
+                   np.reshape(self.braking_jerk, (1, 3)), np.full((1, 1), float(self.ahead_ticks)),
+                   self._alloc[None], np.full((1, 1), self.throttle))
+
     def act(self, obs: np.ndarray) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float64)
         spec, columns = self.spec, self.spec.columns
         error = obs[:, columns[RATE_ERROR]] / spec.rate_scale
         rotor = obs[:, columns[ROTOR_SPEED]] / spec.rotor_speed_scale
         rates = obs[:, columns[RATE]] / spec.rate_scale
-        return pwm_to_action(self.action_mapping, self.pwm(error, rates, rotor, self.throttle))
+        return pwm_to_action(self.action_mapping, self.pwm(error, rates, rotor))
 
-    def pwm(self, error: np.ndarray, rates: np.ndarray, rotor: np.ndarray, throttle: float) -> np.ndarray:
-        """PWM (n, 4) for rate errors and rates (n, 3, FRD rad/s) and rotor speeds (n, 4, rad/s)."""
-        m = self.model
+    def pwm(self, error: np.ndarray, rates: np.ndarray, rotor: np.ndarray,
+            throttle: float | np.ndarray | None = None) -> np.ndarray:
+        """PWM (n, 4) for rate errors and rates (n, 3, FRD rad/s) and rotor speeds (n, 4, rad/s), at the
+        outer loop's `throttle` (default: each airframe's hover throttle)."""
+        law = self.law()
+        m = law.rows
+        if throttle is None:
+            throttle = law.throttle
+        else:
+            throttle = np.reshape(np.asarray(throttle, dtype=float), (-1, 1))
         w = np.clip(rotor, 0.0, m.w_max)
         thrust = m.kf * w * w
         t_max = m.kf * m.w_max**2
         gyroscopic = m.body_acceleration(rates, w)
-        from_thrust = thrust @ m.B.T
+        from_thrust = m.torque(thrust)
         now = from_thrust + gyroscopic
-        if m.rotor_inertia > 0.0:
+        if np.any(m.rotor_inertia > 0.0):
             error = error + self.lent_yaw(error, rates, w, throttle)
-        ahead = error - self.ahead_ticks * self.dt * now
+        ahead = error - law.ahead_ticks * self.dt * now
         if self.damping is None:
-            wanted = ahead / self.time_constant - gyroscopic  # from the thrusts, rad/s²
+            wanted = ahead / law.time_constant - gyroscopic  # from the thrusts, rad/s²
         else:
-            omega = 1.0 / self.time_constant
+            omega = 1.0 / law.time_constant
             steer = np.minimum(omega * np.abs(ahead) / (2.0 * self.damping),
-                               np.sqrt(2.0 * self.braking_jerk * np.abs(ahead)))
+                               np.sqrt(2.0 * law.braking_jerk * np.abs(ahead)))
             wanted = now + self.dt * 2.0 * self.damping * omega * (np.sign(ahead) * steer - now) - gyroscopic
         lo = m.kf * (w * (1.0 - m.a_down)) ** 2 - thrust  # each rotor's reach by the next tick
         hi = m.kf * (w + m.a_up * (m.w_max - w)) ** 2 - thrust
-        hover = m.kf * (throttle * m.w_max) ** 2 / 4.0
-        candidates = [self._by_change(wanted - from_thrust, lo, hi, hover - thrust.mean(-1), from_thrust),
+        hover = m.kf * (throttle * m.w_max) ** 2 / 4.0  # (k, 1)
+        candidates = [self._by_change(wanted - from_thrust, lo, hi, hover - thrust.mean(-1, keepdims=True),
+                                      from_thrust),
                       self._toward_rest_target(wanted, thrust, lo, hi, hover, t_max)]
         weights = np.array([ROLL_PITCH_WEIGHT, ROLL_PITCH_WEIGHT, 1.0])
-        misses = [((thrust + c) @ m.B.T - wanted) ** 2 @ weights for c in candidates]
+        misses = [(m.torque(thrust + c) - wanted) ** 2 @ weights for c in candidates]
         change = np.where((misses[0] <= misses[1])[:, None], candidates[0], candidates[1])
         change -= change.mean(-1, keepdims=True)
         command = self._at_throttle(w, thrust, change, lo, hi, throttle * m.w_max, t_max)
         return m.pwm_min + command / m.w_max * (m.pwm_max - m.pwm_min)
 
-    def lent_yaw(self, error: np.ndarray, rates: np.ndarray, w: np.ndarray, throttle: float) -> np.ndarray:
+    def lent_yaw(self, error: np.ndarray, rates: np.ndarray, w: np.ndarray,
+                 throttle: float | np.ndarray) -> np.ndarray:
         """(n, 3), yaw only: the yaw rate the rotors' speeds lend the body beyond what they lend at the
         setpoint, J_r/I_zz·Σ s_i(ω_i − ω_i*), ω* the speeds whose thrusts hold the setpoint against the
         body's own torques. Rotors that spin up push the body round (`plant.body_torque`'s spin-up) and
         take it back as they return: counted in the error, the law closes on the rate that will remain."""
-        m = self.model
-        hold = -m.body_acceleration(rates + error, w) @ self._alloc.T
+        law = self.law()
+        m = law.rows
+        throttle = np.reshape(np.asarray(throttle, dtype=float), (-1, 1))
+        hold = -law.allocate(m.body_acceleration(rates + error, w))
         w_hold = np.sqrt(np.clip(m.kf * (throttle * m.w_max) ** 2 + hold, 0.0, None) / m.kf)
         lent = np.zeros_like(error)
-        lent[:, 2] = m.rotor_inertia / m.inertia[2] * ((w - w_hold) @ m.spin)
+        lent[:, 2] = m.rotor_inertia / m.inertia[:, 2] * ((w - w_hold) * m.spin).sum(-1)
         return lent
 
     def _by_change(self, needed: np.ndarray, lo: np.ndarray, hi: np.ndarray, collective: np.ndarray,
@@ -222,27 +278,29 @@ class InversionTeacher:
         """Thrust changes: `yaw_first` of yaw's share of `needed` (none where roll or pitch brakes,
         its need against the thrusts' present acceleration), then roll and pitch's, then the rest of
         yaw's, then the collective."""
-        yaw = needed[:, 2:3] * self._alloc[:, 2]
+        law = self.law()
+        yaw = needed[:, 2:3] * law.alloc[..., 2]
         braking = (needed[:, :2] * from_thrust[:, :2] < 0.0).any(-1)
         share = np.where(braking, 0.0, self.yaw_first)
         first = (share * max_scale(lo, hi, yaw))[:, None] * yaw
-        rp = needed[:, :2] @ self._alloc[:, :2].T
+        rp = law.allocate(needed, axes=2)
         change = first + max_scale(lo - first, hi - first, rp)[:, None] * rp
         rest = yaw - first
         change = change + max_scale(lo - change, hi - change, rest)[:, None] * rest
-        c = np.clip(collective, (lo - change).max(-1), (hi - change).min(-1))
+        c = np.clip(np.reshape(collective, -1), (lo - change).max(-1), (hi - change).min(-1))
         return change + c[:, None]
 
     def _toward_rest_target(self, wanted: np.ndarray, thrust: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                            hover: float, t_max: float) -> np.ndarray:
+                            hover: np.ndarray, t_max: np.ndarray) -> np.ndarray:
         """Thrust changes toward the thrusts that give `wanted` (roll and pitch first, yaw into what
         is left of the range), as far as the reach allows with the torque's direction kept."""
-        rp = wanted[:, :2] @ self._alloc[:, :2].T
+        law = self.law()
+        rp = law.allocate(wanted, axes=2)
         spread = np.ptp(rp, axis=-1)
-        rp = rp * np.minimum(1.0, t_max / np.maximum(spread, 1e-12))[:, None]
-        yaw = wanted[:, 2:3] * self._alloc[:, 2]
+        rp = rp * np.minimum(1.0, t_max[:, 0] / np.maximum(spread, 1e-12))[:, None]
+        yaw = wanted[:, 2:3] * law.alloc[..., 2]
         mix = rp + max_scale(-rp, t_max - rp, yaw)[:, None] * yaw
-        c = np.clip(hover, -mix.min(-1), t_max - mix.max(-1))
+        c = np.clip(hover[:, 0], -mix.min(-1), t_max[:, 0] - mix.max(-1))
         target = np.clip(c[:, None] + mix, 0.0, t_max)
         delta = target - thrust
         change = delta - delta.mean(-1, keepdims=True)
@@ -251,10 +309,11 @@ class InversionTeacher:
         return change + c[:, None]
 
     def _at_throttle(self, w: np.ndarray, thrust: np.ndarray, change: np.ndarray, lo: np.ndarray,
-                     hi: np.ndarray, goal: float, t_max: float) -> np.ndarray:
+                     hi: np.ndarray, goal: np.ndarray, t_max: np.ndarray) -> np.ndarray:
         """Rotor commands for the thrust change plus the collective (within reach) whose commands
-        average the throttle's speed: the outer loop's collective, as the action mapping keeps it."""
-        m = self.model
+        average the throttle's speed (`goal`, (k, 1)): the outer loop's collective, as the action
+        mapping keeps it."""
+        m = self.law().rows
 
         def commands(c: np.ndarray) -> np.ndarray:
             target = np.sqrt(np.clip(thrust + change + c[:, None], 0.0, t_max) / m.kf)
@@ -265,9 +324,66 @@ class InversionTeacher:
         high = np.maximum(high, low)
         for _ in range(BISECTIONS):  # the mean command rises with c
             mid = 0.5 * (low + high)
-            below = commands(mid).mean(-1) < goal
+            below = commands(mid).mean(-1) < goal[:, 0]
             low, high = np.where(below, mid, low), np.where(below, high, mid)
         return commands(0.5 * (low + high))
+
+
+class DrawnInversionTeacher(InversionTeacher):
+    """The teacher of each twin's airframe as drawn this episode, a row each (`follow`): on randomised
+    twins it knows the delays, damping and motors of the twin it labels, not only the nominal's."""
+
+    def __init__(self, make: Callable[[Airframe], InversionTeacher], base: Airframe) -> None:
+        self.__dict__.update(make(base).__dict__)  # the nominal teacher's spec, law and options
+        self._make, self._base = make, base
+        self._env: Any = None
+        self._laws: dict[tuple, Law] = {}
+        self._keys: list[tuple] = []
+        self._drawn: Law | None = None
+
+    def follow(self, env: Any) -> None:
+        """Label the rows of `env` (a `BatchedRateEnv`), each with its airframe as drawn from its base."""
+        self._env, self._base = env, env.config.base_airframe
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        if self._env is not None:
+            self._draw([tuple(sorted(f.items())) for f in self._env.episode_factors])
+        return super().act(obs)
+
+    def law(self) -> Law:
+        return super().law() if self._drawn is None else self._drawn
+
+    def _draw(self, keys: list[tuple]) -> None:
+        if keys == self._keys:
+            return
+        for key in set(keys) - set(self._laws):
+            self._laws[key] = self._make(self._base.scaled(**dict(key)) if key else self._base).law()
+        self._laws = {key: self._laws[key] for key in keys}  # only the twins' present airframes
+        self._keys, self._drawn = keys, Law.stack([self._laws[key] for key in keys])
+
+
+@dataclass(frozen=True)
+class Law:
+    """What `InversionTeacher.pwm` reads, as rows (`LawRows`): the model and, per row, the law's time
+    constants and braking jerks (k, 3), the ticks it predicts ahead (k, 1), the allocation (k, 4, 3)
+    (the first three columns of [B; 1 1 1 1]⁻¹: a torque's thrusts with no change of the collective)
+    and the hover throttle (k, 1)."""
+
+    rows: LawRows
+    time_constant: np.ndarray
+    braking_jerk: np.ndarray
+    ahead_ticks: np.ndarray
+    alloc: np.ndarray
+    throttle: np.ndarray
+
+    def allocate(self, accel: np.ndarray, axes: int = 3) -> np.ndarray:
+        """The thrust changes (n, 4) that give the first `axes` axes of `accel` (n, 3)."""
+        return (self.alloc[..., :axes] @ accel[:, :axes, None])[..., 0]
+
+    @classmethod
+    def stack(cls, laws: list[Law]) -> Law:
+        return cls(LawRows.stack([w.rows for w in laws]),
+                   *(np.concatenate([getattr(w, f.name) for w in laws]) for f in fields(cls)[1:]))
 
 
 class InversionController:

@@ -26,6 +26,7 @@ from fcemu.sim_bridge.airframe import AIRFRAME_DIR, DEFAULT_AIRFRAME, load_airfr
 from fcemu.sim_bridge.randomization import parse_randomization
 from fcemu.sim_bridge.vec_env import BatchedRateEnv
 from fcemu.training.distill import (
+    INVERSION,
     DistillConfig,
     DistillError,
     Teacher,
@@ -33,6 +34,7 @@ from fcemu.training.distill import (
     distill,
     fly,
     imitation_mse,
+    make_teacher,
     nudge,
     student_train_config,
     union_spec,
@@ -235,3 +237,37 @@ def test_past_a_saturated_label_the_mixer_clips_so_the_fit_sees_no_error():
     inside = torch.tensor([[1.0, -1.0, 0.9, -0.5]])  # and so is any miss of an unsaturated one
     beyond = torch.tensor([[1.0, -1.0, 0.5, -1.2]])
     assert all(float(imitation_mse(p, label)) > 0.0 for p in (short, inside, beyond))
+
+
+def test_a_teacher_per_twin_labels_each_twin_as_the_teacher_of_its_drawn_airframe_would():
+    """Each row is labelled by the inversion teacher built for that twin's airframe as drawn this episode
+    (its delays, motors, damping), and the rows follow the twins as their episodes end and draw anew."""
+    ranges = parse_randomization({"airframe": "iris", "parameters": {
+        "esc_delay_ticks": {"nominal": 0, "range": [0, 3], "unit": "ticks", "source": "test"},
+        "tau_up": {"nominal": 0.0125, "range": [0.008, 0.03], "unit": "s", "source": "test"}}})
+    teacher = make_teacher(INVERSION, "iris", privileged=True, per_twin=True)
+    env = BatchedRateEnv(4, on_time_view=True, truth_view=True, randomize=ranges, randomize_share=1.0,
+                         memory=1, obs_fields=teacher.spec.fields, action_mapping="throttle",
+                         episode_s=0.02, integral_leak=teacher.spec.integral_leak,
+                         rms_leak=teacher.spec.rms_leak)
+    teacher.follow(env)
+    obs, _ = env.reset(seed=5)
+    own = {}
+    for _ in range(3 * 20):  # three episodes of every twin
+        labels = teacher.act(obs)
+        for i, factors in enumerate(env.episode_factors):
+            key = tuple(sorted(factors.items()))
+            if key not in own:
+                own[key] = make_teacher(INVERSION, load_airframe("iris").scaled(**factors), privileged=True)
+            np.testing.assert_allclose(labels[i], own[key].act(obs[i:i + 1])[0], atol=1e-9)
+        obs, *_ = env.step(labels.astype(np.float32))
+    drawn = set(own)
+    assert len(drawn) == 12 and {dict(k)["esc_delay_ticks"] for k in drawn} > {0}
+
+
+def test_a_teacher_per_twin_is_the_model_based_ones_and_teaches_without_the_gain_match(tmp_path):
+    with pytest.raises(DistillError, match="model-based"):
+        make_teacher(str(TEACHER), "iris", per_twin=True)
+    with pytest.raises(DistillError, match="gain-weight 0"):
+        distill(DistillConfig(teacher=INVERSION, out=str(tmp_path / "o"), per_twin=True, gain_weight=0.1,
+                              threads=1, progress=False))
