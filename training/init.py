@@ -27,6 +27,16 @@ from fcemu.export.onnx_export import Checkpoint, ExportError, find_checkpoint
 from fcemu.firmware.observation import ObservationSpec
 
 MEASURE_STEPS = 500  # per twin: the flights an added field's statistics are measured on
+CRITIC_STEPS = 1500  # per twin: the flights a distilled student's critic is fitted on
+
+
+class FixedMeanStd(RunningMeanStd):
+    """Observation statistics that training does not update: a distilled student's weights were
+    fitted through these very statistics, so letting them drift to the fine-tune's flights would
+    change what the network computes before PPO has learnt anything."""
+
+    def update(self, arr: np.ndarray) -> None:
+        pass
 
 
 class InitError(ValueError):
@@ -40,6 +50,11 @@ class InitSource:
     checkpoint: Checkpoint
     theirs: ObservationSpec
     ours: ObservationSpec
+
+    @property
+    def distilled(self) -> bool:
+        """A student of `fcemu distill`: its actor fitted, its critic as drawn."""
+        return "distill" in self.checkpoint.config
 
     @property
     def added(self) -> tuple[str, ...]:
@@ -143,6 +158,10 @@ def start_from(model, venv: VecNormalize, source: InitSource, measure_steps: int
     venv.ret_rms = saved.ret_rms
     if not source.added:
         venv.obs_rms = saved.obs_rms
+        if source.distilled:
+            venv.obs_rms = FixedMeanStd(shape=saved.obs_rms.mean.shape)
+            venv.obs_rms.mean, venv.obs_rms.var = saved.obs_rms.mean, saved.obs_rms.var
+            venv.obs_rms.count = saved.obs_rms.count
         return
     rms = RunningMeanStd(shape=columns.shape)
     kept, added = np.flatnonzero(columns >= 0), np.flatnonzero(columns < 0)
@@ -151,3 +170,25 @@ def start_from(model, venv: VecNormalize, source: InitSource, measure_steps: int
     venv.obs_rms = rms
     if venv.norm_obs:
         rms.mean[added], rms.var[added] = _measure(model, venv, added, measure_steps)
+
+
+def fit_critic_on_own_flights(model, venv: VecNormalize, steps: int = CRITIC_STEPS) -> dict[str, Any]:
+    """The critic fitted to the discounted returns of the loaded policy's own flights: a distilled
+    student's critic is as it was drawn, and PPO's first advantages against it would be noise that
+    moves the actor away from what it was taught."""
+    from fcemu.training.quick_eval import sb3_actor
+    from fcemu.training.warm_start import WarmStart, fit_critic, returns_of
+
+    actor, obs = sb3_actor(model), venv.reset()
+    raw = np.empty((steps, venv.num_envs, obs.shape[-1]), dtype=np.float32)
+    rewards = np.empty((steps, venv.num_envs))
+    dones = np.empty((steps, venv.num_envs), dtype=bool)
+    for k in range(steps):
+        raw[k] = venv.get_original_obs()
+        obs, _, dones[k], _ = venv.step(np.clip(actor(obs), -1.0, 1.0).astype(np.float32))
+        rewards[k] = venv.get_original_reward()
+    returns, keep = returns_of(venv, rewards, dones, model.gamma)
+    fit = WarmStart()
+    before, after = fit_critic(model.policy, venv, raw[keep], returns[keep], fit.epochs, fit.batch_size,
+                               fit.learning_rate)
+    return {"env_steps": steps * venv.num_envs, "critic_mse_before": before, "critic_mse": after}

@@ -56,14 +56,15 @@ class WarmStart:
             obs_x.append(raw.reshape(-1, raw.shape[-1]))
             act_y.append(labels.reshape(-1, 4))
             delay_z.append(delays.reshape(-1))
-            ret, keep = _discounted(_normalised(venv, rewards), dones, model.gamma)
+            ret, keep = returns_of(venv, rewards, dones, model.gamma)
             ret_x.append(raw[keep].reshape(-1, raw.shape[-1]))
             rets.append(ret[keep].reshape(-1))
             x, y = np.concatenate(obs_x), np.concatenate(act_y)
             loss = self._fit_actor(policy, venv, x, y)
             history.append({"round": r, "flown_by": "network" if r else "pid", "samples": len(x),
                             "actor_mse": loss, "reward_mean": float(rewards.mean())})
-        vloss_before, vloss = self._fit_critic(policy, venv, np.concatenate(ret_x), np.concatenate(rets))
+        vloss_before, vloss = fit_critic(policy, venv, np.concatenate(ret_x), np.concatenate(rets),
+                                         self.epochs, self.batch_size, self.learning_rate)
         with torch.no_grad():
             policy.log_std.fill_(self.log_std)
         return {"rounds": self.rounds, "env_steps": self.rounds * self.steps_per_round * venv.num_envs,
@@ -109,13 +110,23 @@ class WarmStart:
             policy.extract_features(xb, policy.pi_features_extractor)))), params, x, y,
             self.epochs, self.batch_size, self.learning_rate)
 
-    def _fit_critic(self, policy, venv, raw: np.ndarray, returns: np.ndarray) -> tuple[float, float]:
-        x = torch.as_tensor(venv.normalize_obs(raw), dtype=torch.float32)
-        y = torch.as_tensor(returns, dtype=torch.float32)[:, None]
-        params = [*policy.mlp_extractor.value_net.parameters(), *policy.value_net.parameters()]
-        return _regress(lambda xb: policy.value_net(policy.mlp_extractor.forward_critic(
-            policy.extract_features(xb, policy.vf_features_extractor))), params, x, y,
-            self.epochs, self.batch_size, self.learning_rate, before=True)
+
+def fit_critic(policy, venv, raw: np.ndarray, returns: np.ndarray, epochs: int, batch: int, lr: float
+               ) -> tuple[float, float]:
+    """The critic's squared error against `returns` of the raw observations `raw`, before and after
+    Adam fits it to them."""
+    x = torch.as_tensor(venv.normalize_obs(raw), dtype=torch.float32)
+    y = torch.as_tensor(returns, dtype=torch.float32)[:, None]
+    params = [*policy.mlp_extractor.value_net.parameters(), *policy.value_net.parameters()]
+    return _regress(lambda xb: policy.value_net(policy.mlp_extractor.forward_critic(
+        policy.extract_features(xb, policy.vf_features_extractor))), params, x, y,
+        epochs, batch, lr, before=True)
+
+
+def returns_of(venv, rewards: np.ndarray, dones: np.ndarray, gamma: float) -> tuple[np.ndarray, np.ndarray]:
+    """The discounted returns of raw `rewards` (steps × copies) scaled as training scales them, and
+    which steps have enough future behind them to be a fair target."""
+    return _discounted(_normalised(venv, rewards), dones, gamma)
 
 
 def _normalised(venv, rewards: np.ndarray) -> np.ndarray:

@@ -234,6 +234,40 @@ def test_init_fine_tunes_the_trained_networks_and_statistics(run, tmp_path):
     assert now.count == pytest.approx(then.count + 1024 + 8)
 
 
+def test_init_from_a_distilled_student_fits_its_critic_and_keeps_its_statistics(run, tmp_path):
+    """A student of `fcemu distill` has an actor and the statistics it was fitted through, but a
+    critic as drawn: the fine-tune fits the critic on the student's flights and leaves the rest."""
+    import pickle
+
+    from stable_baselines3 import PPO
+
+    from fcemu.training.distill import DistillConfig, distill
+
+    src, _ = run
+    student = tmp_path / "student"
+    distill(DistillConfig(teacher=str(src / "policy.onnx"), out=str(student), net_arch=(16, 16), rounds=1,
+                          steps=60, envs=4, fit_steps=20, batch_size=256, threads=1, progress=False))
+    net = {"net_arch": {"pi": [16, 16], "vf": [64, 64]}, "log_std_init": -3.0}
+    summary = train(TrainConfig(algo="ppo", steps=1024, seed=5, out=str(tmp_path / "ft"), envs=8,
+                                checkpoint_every=10**9, eval_episodes=0, obs_clip=0.0, progress=False,
+                                init=str(student),
+                                hp={"n_steps": 128, "batch_size": 256, "learning_rate": 0.0,
+                                    "policy_kwargs": net}))
+    critic = summary["init_critic"]
+    assert critic["env_steps"] == 1500 * 8 and critic["critic_mse"] < 0.5 * critic["critic_mse_before"]
+    before = PPO.load(student / "model.zip", device="cpu").policy.state_dict()
+    after = PPO.load(tmp_path / "ft" / "model.zip", device="cpu").policy.state_dict()
+    value = [key for key in before if "value" in key]
+    assert value and any(not np.array_equal(before[k].numpy(), after[k].numpy()) for k in value)
+    for key in before.keys() - set(value):  # learning rate 0: the actor as distilled
+        assert np.array_equal(before[key].numpy(), after[key].numpy()), key
+    with open(student / "vecnormalize.pkl", "rb") as fh:
+        then = pickle.load(fh).obs_rms
+    with open(tmp_path / "ft" / "vecnormalize.pkl", "rb") as fh:
+        now = pickle.load(fh).obs_rms
+    assert np.array_equal(then.mean, now.mean) and np.array_equal(then.var, now.var)
+
+
 def test_init_adds_an_observation_field_at_zero_weight(run, tmp_path):
     """A fine-tune with --motor-output from a run without it: the loaded networks compute what
     they did (the new inputs' weights are zero), and the new inputs are normalised from flight."""
