@@ -16,7 +16,10 @@ A `Fault` names its target, its kind and the kind's parameter:
   rotor spins down and its telemetry says so) and `thrust` (the rotor makes `value` × its thrust,
   default 0.7: a damaged propeller, which the ESC telemetry cannot see);
 - battery: `wrong` (the pack gives `value` × its voltage, default 0.75: one cell of four lost;
-  the ESCs' speed command scales with it) and `off` (no voltage: every motor stops).
+  the ESCs' speed command scales with it) and `off` (no voltage: every motor stops);
+- payload: `mass` (a load of `value` × the airframe's mass, default 0.3, picked up at its centre and
+  spread as its own mass is, so every moment of inertia grows by the same share: what the rate loop
+  feels of a payload; the collective the outer loop asks for is unchanged).
 
 Every sample carries the time it was taken, as a real bus delivers it: a missing one
 (`intermittent`, `burst`, between `slow`'s samples) leaves the last sample with its old time, a
@@ -43,10 +46,13 @@ KINDS: dict[str, tuple[str, ...]] = {
     "esc-telemetry": SENSOR_KINDS,
     "motor": ("off", "thrust"),
     "battery": ("off", "wrong"),
+    "payload": ("mass",),
 }
 _DEFAULTS = {("gyro", "wrong"): 0.5, ("esc-telemetry", "wrong"): 0.8, "slow": 0.01, "delayed": 0.005,
-             "intermittent": 0.2, "burst": 0.01, "spikes": 0.01, "thrust": 0.7, ("battery", "wrong"): 0.75}
+             "intermittent": 0.2, "burst": 0.01, "spikes": 0.01, "thrust": 0.7, ("battery", "wrong"): 0.75,
+             "mass": 0.3}
 BURST_S = 0.02  # a burst's mean length when none is given
+MAX_PAYLOAD = 3.0  # × the airframe's mass: past this no quad lifts it
 _UNITS = {"slow": "s", "delayed": "s", ("gyro", "wrong"): "rad/s"}
 
 # MAVLink FAILURE_UNIT and FAILURE_TYPE values (common.xml).
@@ -90,6 +96,8 @@ class Fault:
             raise FaultSpecError(f"{self.describe()}: {v:g} s outside [0, 1] s")
         if v is not None and self.target == "battery" and not 0.0 <= v <= 1.0:
             raise FaultSpecError(f"{self.describe()}: {v:g} is not a fraction in [0, 1]")
+        if v is not None and self.target == "payload" and not 0.0 <= v <= MAX_PAYLOAD:
+            raise FaultSpecError(f"{self.describe()}: {v:g} × the mass is outside [0, {MAX_PAYLOAD:g}]")
 
     @property
     def parameter(self) -> float:
@@ -218,6 +226,7 @@ class FaultInjector:
         self._command_off = [False] * 4
         self.thrust_scale: list[float] | None = None
         self.speed_scale: float | None = None
+        self.payload: float | None = None  # the load carried, × the airframe's mass
 
     def __bool__(self) -> bool:
         return bool(self.faults)
@@ -238,7 +247,7 @@ class FaultInjector:
         kept = {id(s.fault): s for s in self._sensing}
         self._sensing = []
         self._command_off = [False] * 4
-        thrust, speed = [1.0] * 4, 1.0
+        thrust, speed, payload = [1.0] * 4, 1.0, 0.0
         for f in self.faults:
             motors = range(4) if f.instance == 0 else [f.instance - 1]
             if f.target == "gyro":
@@ -256,8 +265,11 @@ class FaultInjector:
                         thrust[m] *= f.parameter
             elif f.target == "battery":
                 speed *= 0.0 if f.kind == "off" else f.parameter
+            elif f.target == "payload":
+                payload += f.parameter
         self.thrust_scale = thrust if thrust != [1.0] * 4 else None
         self.speed_scale = speed if speed != 1.0 else None
+        self.payload = payload or None
 
     # ---- actuation: where PWM becomes a speed command, and speed becomes thrust ----
     def motor_command(self, pwm: list[float], pwm_min: float) -> list[float]:

@@ -98,6 +98,10 @@ class Twin:
         self._rng = np.random.default_rng()
         self._telemetry_rng = np.random.default_rng()  # which ESC frames the bus loses
         self.faults: FaultInjector | None = None  # injected faults (sim_bridge/faults.py); None: none
+        self._base = self.model.body("base").id
+        self._base_mass = float(self.model.body_mass[self._base])
+        self._base_inertia = self.model.body_inertia[self._base].copy()
+        self._payload: float | None = None  # the load the base carries now, × the airframe's mass
         self.reset()
 
     @property
@@ -121,6 +125,8 @@ class Twin:
         if telemetry_seed is not None:
             self._telemetry_rng = np.random.default_rng(telemetry_seed)
         state = state or TwinState()
+        if self._payload is not None:
+            self._carry(None)
         mujoco.mj_resetData(self.model, self.data)
         quat = np.asarray(state.attitude, dtype=float)
         norm = np.linalg.norm(quat)
@@ -156,6 +162,8 @@ class Twin:
         faults = self.faults
         if faults is not None:
             values = faults.motor_command(values, self.motors.pwm_min)
+        if (None if faults is None else faults.payload) != self._payload:
+            self._carry(None if faults is None else faults.payload)
         if self._plain:
             scale = None if faults is None else faults.speed_scale
             self._omega, thrust = self.motors.step_one(self._omega, values, scale)
@@ -167,6 +175,14 @@ class Twin:
             self.effects.advance_one(self._omega, self._ctrl.tolist())
         self._t_us += self.dt_us
         return self._frame()
+
+    def _carry(self, payload: float | None) -> None:
+        """Load the base with `payload` × the airframe's mass, spread as the airframe's own mass is
+        (every moment of inertia grows by that share), or unload it (None)."""
+        share = payload or 0.0
+        self.model.body_mass[self._base] = self._base_mass + share * self.airframe.mass
+        self.model.body_inertia[self._base] = self._base_inertia + share * self.airframe.inertia()
+        self._payload = payload
 
     def _step_effects(self, pwm: list[float]) -> None:
         fx = self.effects

@@ -134,6 +134,31 @@ def test_motor_faults_act_on_the_rotor(twin) -> None:
     assert np.all(weak[-1] < 0.8 * clean[-1] * 1.05)
 
 
+def test_a_payload_slows_every_axis_by_its_share_and_is_put_down_with_the_fault(twin) -> None:
+    """Half the mass again: each body rate's change under the same torques is two thirds of what
+    it was (inertia × 1.5), and the twin carries nothing once the fault is cleared or at reset."""
+    def rates(fault: Fault | None, ticks: int) -> np.ndarray:
+        return np.array([f.gyro for f in _fly(twin, fault, ticks=ticks, at=0)])
+
+    clean, loaded = rates(None, 40), rates(Fault("payload", "mass", value=0.5), 40)
+    change = lambda r: r[-1] - r[1]  # noqa: E731
+    moving = np.abs(change(clean)) > 1e-3
+    assert moving.any()
+    np.testing.assert_allclose(change(loaded)[moving] / change(clean)[moving], 1 / 1.5, rtol=0.05)
+    twin.step(PWM)  # the fault gone: the next step flies without it
+    assert twin.model.body_mass[twin.model.body("base").id] == pytest.approx(twin.airframe.base_mass)
+    twin.faults = FaultInjector(twin.dt, 1100.0)
+    twin.faults.inject(Fault("payload", "mass"))
+    twin.step(PWM)
+    assert twin.model.body_mass[twin.model.body("base").id] == pytest.approx(
+        twin.airframe.base_mass + 0.3 * twin.airframe.mass)
+    twin.reset(0, HOVER)
+    twin.faults = None
+    assert twin.model.body_mass[twin.model.body("base").id] == pytest.approx(twin.airframe.base_mass)
+    with pytest.raises(FaultSpecError, match="outside"):
+        Fault("payload", "mass", value=4.0)
+
+
 def test_mavlink_mapping() -> None:
     assert from_mavlink(0, 2, 0) == [Fault("gyro", "stuck")]
     assert from_mavlink(101, 1, 2) == [Fault("motor", "off", 2)]
