@@ -45,7 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fault", action="append", default=None, metavar="SPEC",
                    help="also fly the same commands with this fault injected at a seeded time of each "
                         "episode (repeatable): TARGET:KIND[:VALUE], e.g. gyro:stuck, gyro:spikes, "
-                        "esc-telemetry:delayed:5ms, motor:2:thrust=0.7, battery:wrong=0.75, payload:mass=30%%")
+                        "esc-telemetry:delayed:5ms, motor:2:thrust=0.7, battery:wrong=0.75, "
+                        "payload:mass=30%%")
     p.set_defaults(handler="fcemu.evaluation.evaluate:eval_command")
     register_bound(sub)
 
