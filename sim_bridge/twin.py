@@ -162,8 +162,9 @@ class Twin:
         faults = self.faults
         if faults is not None:
             values = faults.motor_command(values, self.motors.pwm_min)
-        if (None if faults is None else faults.payload) != self._payload:
-            self._carry(None if faults is None else faults.payload)
+        payload = None if faults is None else faults.payload
+        if payload != self._payload:
+            self._carry(payload)
         if self._plain:
             scale = None if faults is None else faults.speed_scale
             self._omega, thrust = self.motors.step_one(self._omega, values, scale)

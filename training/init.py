@@ -156,18 +156,14 @@ def start_from(model, venv: VecNormalize, source: InitSource, measure_steps: int
     with open(source.checkpoint.vecnormalize_path, "rb") as fh:
         saved = pickle.load(fh)
     venv.ret_rms = saved.ret_rms
+    rms = (FixedMeanStd if source.distilled else RunningMeanStd)(shape=columns.shape)
+    venv.obs_rms = rms
     if not source.added:
-        venv.obs_rms = saved.obs_rms
-        if source.distilled:
-            venv.obs_rms = FixedMeanStd(shape=saved.obs_rms.mean.shape)
-            venv.obs_rms.mean, venv.obs_rms.var = saved.obs_rms.mean, saved.obs_rms.var
-            venv.obs_rms.count = saved.obs_rms.count
+        rms.mean, rms.var, rms.count = saved.obs_rms.mean, saved.obs_rms.var, saved.obs_rms.count
         return
-    rms = RunningMeanStd(shape=columns.shape)
     kept, added = np.flatnonzero(columns >= 0), np.flatnonzero(columns < 0)
     rms.mean[kept], rms.var[kept] = saved.obs_rms.mean[columns[kept]], saved.obs_rms.var[columns[kept]]
     rms.count = saved.obs_rms.count
-    venv.obs_rms = rms
     if venv.norm_obs:
         rms.mean[added], rms.var[added] = _measure(model, venv, added, measure_steps)
 
