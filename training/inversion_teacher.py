@@ -236,7 +236,7 @@ class InversionTeacher:
         from_thrust = m.torque(thrust)
         now = from_thrust + gyroscopic
         if np.any(m.rotor_inertia > 0.0):
-            error = error + self.lent_yaw(error, rates, w, throttle)
+            error = error + self.lent_yaw(error, rates, w, throttle, law)
         ahead = error - law.ahead_ticks * self.dt * now
         if self.damping is None:
             wanted = ahead / law.time_constant - gyroscopic  # from the thrusts, rad/s²
@@ -249,22 +249,22 @@ class InversionTeacher:
         hi = m.kf * (w + m.a_up * (m.w_max - w)) ** 2 - thrust
         hover = m.kf * (throttle * m.w_max) ** 2 / 4.0  # (k, 1)
         candidates = [self._by_change(wanted - from_thrust, lo, hi, hover - thrust.mean(-1, keepdims=True),
-                                      from_thrust),
-                      self._toward_rest_target(wanted, thrust, lo, hi, hover, t_max)]
+                                      from_thrust, law),
+                      self._toward_rest_target(wanted, thrust, lo, hi, hover, t_max, law)]
         weights = np.array([ROLL_PITCH_WEIGHT, ROLL_PITCH_WEIGHT, 1.0])
         misses = [(m.torque(thrust + c) - wanted) ** 2 @ weights for c in candidates]
         change = np.where((misses[0] <= misses[1])[:, None], candidates[0], candidates[1])
         change -= change.mean(-1, keepdims=True)
-        command = self._at_throttle(w, thrust, change, lo, hi, throttle * m.w_max, t_max)
+        command = self._at_throttle(w, thrust, change, lo, hi, throttle * m.w_max, t_max, m)
         return m.pwm_min + command / m.w_max * (m.pwm_max - m.pwm_min)
 
     def lent_yaw(self, error: np.ndarray, rates: np.ndarray, w: np.ndarray,
-                 throttle: float | np.ndarray) -> np.ndarray:
+                 throttle: float | np.ndarray, law: Law | None = None) -> np.ndarray:
         """(n, 3), yaw only: the yaw rate the rotors' speeds lend the body beyond what they lend at the
         setpoint, J_r/I_zz·Σ s_i(ω_i − ω_i*), ω* the speeds whose thrusts hold the setpoint against the
         body's own torques. Rotors that spin up push the body round (`plant.body_torque`'s spin-up) and
         take it back as they return: counted in the error, the law closes on the rate that will remain."""
-        law = self.law()
+        law = law or self.law()
         m = law.rows
         throttle = np.reshape(np.asarray(throttle, dtype=float), (-1, 1))
         hold = -law.allocate(m.body_acceleration(rates + error, w))
@@ -274,11 +274,11 @@ class InversionTeacher:
         return lent
 
     def _by_change(self, needed: np.ndarray, lo: np.ndarray, hi: np.ndarray, collective: np.ndarray,
-                   from_thrust: np.ndarray) -> np.ndarray:
+                   from_thrust: np.ndarray, law: Law | None = None) -> np.ndarray:
         """Thrust changes: `yaw_first` of yaw's share of `needed` (none where roll or pitch brakes,
         its need against the thrusts' present acceleration), then roll and pitch's, then the rest of
         yaw's, then the collective."""
-        law = self.law()
+        law = law or self.law()
         yaw = needed[:, 2:3] * law.alloc[..., 2]
         braking = (needed[:, :2] * from_thrust[:, :2] < 0.0).any(-1)
         share = np.where(braking, 0.0, self.yaw_first)
@@ -291,10 +291,9 @@ class InversionTeacher:
         return change + c[:, None]
 
     def _toward_rest_target(self, wanted: np.ndarray, thrust: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                            hover: np.ndarray, t_max: np.ndarray) -> np.ndarray:
+                            hover: np.ndarray, t_max: np.ndarray, law: Law) -> np.ndarray:
         """Thrust changes toward the thrusts that give `wanted` (roll and pitch first, yaw into what
         is left of the range), as far as the reach allows with the torque's direction kept."""
-        law = self.law()
         rp = law.allocate(wanted, axes=2)
         spread = np.ptp(rp, axis=-1)
         rp = rp * np.minimum(1.0, t_max[:, 0] / np.maximum(spread, 1e-12))[:, None]
@@ -309,11 +308,10 @@ class InversionTeacher:
         return change + c[:, None]
 
     def _at_throttle(self, w: np.ndarray, thrust: np.ndarray, change: np.ndarray, lo: np.ndarray,
-                     hi: np.ndarray, goal: np.ndarray, t_max: np.ndarray) -> np.ndarray:
+                     hi: np.ndarray, goal: np.ndarray, t_max: np.ndarray, m: LawRows) -> np.ndarray:
         """Rotor commands for the thrust change plus the collective (within reach) whose commands
         average the throttle's speed (`goal`, (k, 1)): the outer loop's collective, as the action
         mapping keeps it."""
-        m = self.law().rows
 
         def commands(c: np.ndarray) -> np.ndarray:
             target = np.sqrt(np.clip(thrust + change + c[:, None], 0.0, t_max) / m.kf)

@@ -185,7 +185,7 @@ def test_the_yaw_the_rotors_lend_is_counted_and_yaw_rises_sooner() -> None:
     assert not InversionTeacher("iris").lent_yaw(error, rates, spun, teacher.throttle).any()  # no J_r
 
     class Unaware(InversionTeacher):
-        def lent_yaw(self, error, rates, w, throttle):
+        def lent_yaw(self, error, rates, w, throttle, law=None):
             return np.zeros_like(error)
 
     cfg = runner.EvalConfig(episodes=6, seed=2019, airframe="iris")
