@@ -184,9 +184,10 @@ class TrainConfig:
     caps_spatial: float = option(0.0, "PPO: CAPS spatial smoothness weight λ_S, ‖π(s) − π(s̃)‖, "
                                        "s̃ ~ N(s, caps_sigma²)")
     caps_sigma: float = option(0.05, "CAPS spatial noise, in normalised observation units")
-    anchor: float = option(0.0, "PPO after --warm-start: weight of the teacher anchor, the mean squared "
+    anchor: float = option(0.0, "PPO after --warm-start or --init: weight of the anchor, the mean squared "
                                 "difference of the policy's action from the teacher's on the warm start's "
-                                "data, in PPO's loss (training.regularised_ppo)")
+                                "data (after --init: from the loaded policy's own on its flights), in PPO's "
+                                "loss (training.regularised_ppo)")
     anchor_from_ticks: int = option(0, "--anchor only on the warm start's samples from airframes whose loop "
                                        "delay (ESC + gyro) is at least this many ticks: hold the policy to "
                                        "the teacher where delay makes it fragile, leave PPO free elsewhere")
@@ -230,9 +231,9 @@ class TrainConfig:
         if self.warm_start_rounds < 1 or self.warm_start_steps < 1:
             raise ValueError(f"--warm-start-rounds and --warm-start-steps must be >= 1, got "
                              f"{self.warm_start_rounds} and {self.warm_start_steps}")
-        if self.anchor and not (self.warm_start and self.algo == "ppo"):
-            raise ValueError("--anchor keeps PPO near the warm start's teacher: it needs --algo ppo and "
-                             "--warm-start")
+        if self.anchor and not ((self.warm_start or self.init) and self.algo == "ppo"):
+            raise ValueError("--anchor keeps PPO near the warm start's teacher or the --init policy: it "
+                             "needs --algo ppo and --warm-start or --init")
         if not (math.isfinite(self.anchor) and self.anchor >= 0.0):
             raise ValueError(f"--anchor must be finite and >= 0, got {self.anchor}")
         if not (math.isfinite(self.action_rate_after) and self.action_rate_after >= 0.0):
@@ -240,9 +241,9 @@ class TrainConfig:
                              f"got {self.action_rate_after}")
         if self.action_rate_after and not self.action_rate_penalty:
             raise ValueError("--action-rate-after gates --action-rate-penalty: give the penalty too")
-        if self.anchor_from_ticks < 0 or (self.anchor_from_ticks and not self.anchor):
-            raise ValueError(f"--anchor-from-ticks must be >= 0 and goes with --anchor, got "
-                             f"{self.anchor_from_ticks} with --anchor {self.anchor}")
+        if self.anchor_from_ticks < 0 or (self.anchor_from_ticks and not (self.anchor and self.warm_start)):
+            raise ValueError(f"--anchor-from-ticks must be >= 0 and goes with --anchor after --warm-start, "
+                             f"got {self.anchor_from_ticks} with --anchor {self.anchor}")
         if self.caps and self.algo != "ppo":
             raise ValueError(f"CAPS (caps_temporal, caps_spatial) is for PPO, not {self.algo.upper()}")
         if not 0.0 <= self.randomize_share <= 1.0 or (self.randomize_share != 1.0 and self.randomize is None):

@@ -168,23 +168,45 @@ def start_from(model, venv: VecNormalize, source: InitSource, measure_steps: int
         rms.mean[added], rms.var[added] = _measure(model, venv, added, measure_steps)
 
 
-def fit_critic_on_own_flights(model, venv: VecNormalize, steps: int = CRITIC_STEPS) -> dict[str, Any]:
-    """The critic fitted to the discounted returns of the loaded policy's own flights: a distilled
-    student's critic is as it was drawn, and PPO's first advantages against it would be noise that
-    moves the actor away from what it was taught."""
+@dataclass(frozen=True)
+class OwnFlights:
+    """The loaded policy's flights in this run's environment, (steps, n_envs, ...) each."""
+
+    raw_obs: np.ndarray
+    actions: np.ndarray  # the policy's mean actions, before the environment's clip
+    rewards: np.ndarray
+    dones: np.ndarray
+
+    def samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """(raw observations, actions) flattened: what `--anchor` holds the fine-tune to."""
+        width = self.raw_obs.shape[-1], self.actions.shape[-1]
+        return self.raw_obs.reshape(-1, width[0]), self.actions.reshape(-1, width[1])
+
+
+def fly_own_flights(model, venv: VecNormalize, steps: int = CRITIC_STEPS) -> OwnFlights:
+    """`steps` steps of every twin flown by the loaded policy, deterministically."""
     from fcemu.training.quick_eval import sb3_actor
-    from fcemu.training.warm_start import WarmStart, fit_critic, returns_of
 
     actor, obs = sb3_actor(model), venv.reset()
     raw = np.empty((steps, venv.num_envs, obs.shape[-1]), dtype=np.float32)
+    actions = np.empty((steps, venv.num_envs, model.action_space.shape[0]), dtype=np.float32)
     rewards = np.empty((steps, venv.num_envs))
     dones = np.empty((steps, venv.num_envs), dtype=bool)
     for k in range(steps):
-        raw[k] = venv.get_original_obs()
-        obs, _, dones[k], _ = venv.step(np.clip(actor(obs), -1.0, 1.0).astype(np.float32))
+        raw[k], actions[k] = venv.get_original_obs(), actor(obs)
+        obs, _, dones[k], _ = venv.step(np.clip(actions[k], -1.0, 1.0))
         rewards[k] = venv.get_original_reward()
-    returns, keep = returns_of(venv, rewards, dones, model.gamma)
+    return OwnFlights(raw, actions, rewards, dones)
+
+
+def fit_critic_on_own_flights(model, venv: VecNormalize, flights: OwnFlights) -> dict[str, Any]:
+    """The critic fitted to the discounted returns of the loaded policy's own flights: a distilled
+    student's critic is as it was drawn, and PPO's first advantages against it would be noise that
+    moves the actor away from what it was taught."""
+    from fcemu.training.warm_start import WarmStart, fit_critic, returns_of
+
+    returns, keep = returns_of(venv, flights.rewards, flights.dones, model.gamma)
     fit = WarmStart()
-    before, after = fit_critic(model.policy, venv, raw[keep], returns[keep], fit.epochs, fit.batch_size,
-                               fit.learning_rate)
-    return {"env_steps": steps * venv.num_envs, "critic_mse_before": before, "critic_mse": after}
+    before, after = fit_critic(model.policy, venv, flights.raw_obs[keep], returns[keep], fit.epochs,
+                               fit.batch_size, fit.learning_rate)
+    return {"env_steps": flights.rewards.size, "critic_mse_before": before, "critic_mse": after}

@@ -29,7 +29,13 @@ from fcemu.evaluation import bar
 from fcemu.evaluation.metrics import compute_metrics
 from fcemu.training import quick_eval
 from fcemu.training.config import ALGOS, TrainConfig, parse_hp
-from fcemu.training.init import InitError, fit_critic_on_own_flights, init_checkpoint, start_from
+from fcemu.training.init import (
+    InitError,
+    fit_critic_on_own_flights,
+    fly_own_flights,
+    init_checkpoint,
+    start_from,
+)
 
 # ── 1. Defaults per algorithm (ALGOS) and 2. the configuration (TrainConfig): training.config ──
 __all__ = ["ALGOS", "PID_PRESETS", "InitError", "TrainConfig", "parse_hp", "train"]
@@ -223,18 +229,23 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
     venv = VecNormalize(make_vec_env(cfg), norm_obs=cfg.norm_obs, norm_reward=cfg.normalise_reward,
                         clip_obs=cfg.obs_clip or np.inf, gamma=cfg.hyper.get("gamma", 0.99))
     model = make_model(cfg, venv, out / "tb")
-    critic = None
+    critic, anchored = None, 0
     if init is not None:
         try:
             start_from(model, venv, init)
         except InitError:
             venv.close()
             raise
+        flights = fly_own_flights(model, venv) if init.distilled or cfg.anchor else None
         if init.distilled:
-            critic = fit_critic_on_own_flights(model, venv)
+            critic = fit_critic_on_own_flights(model, venv, flights)
             print(f"[init] a distilled student: its critic fitted on {critic['env_steps']} steps of its own "
                   f"flights, mse {critic['critic_mse_before']:.4f} -> {critic['critic_mse']:.4f}",
                   file=sys.stderr)
+        if cfg.anchor:  # held to what the loaded policy did on its own flights
+            model.set_anchor_data(*flights.samples(), venv.normalize_obs)
+            anchored = flights.rewards.size
+        del flights
     callbacks: list[BaseCallback] = [
         RewardTermsCallback(),
         CheckpointCallback(max(1, cfg.checkpoint_every // cfg.n_envs), str(out / "checkpoints"),
@@ -286,6 +297,8 @@ def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, An
         summary["warm_start"] = warm
     if critic is not None:
         summary["init_critic"] = critic
+    if anchored:
+        summary["init_anchor_samples"] = anchored
     if race is not None:
         summary["in_training_evals"] = race.history
     if cfg.eval_episodes:

@@ -151,7 +151,7 @@ def test_anchor_data_must_match_the_action_space_and_the_option_needs_a_warm_sta
         model.set_anchor_data(np.zeros((4, 3)), np.zeros((4, 2)), lambda raw: raw)
     with pytest.raises(ValueError, match="anchor must be finite"):
         RegularisedPPO("MlpPolicy", "Pendulum-v1", anchor=-1.0)
-    with pytest.raises(ValueError, match="needs --algo ppo and --warm-start"):
+    with pytest.raises(ValueError, match="needs --algo ppo and --warm-start or --init"):
         TrainConfig(anchor=0.5)
     with pytest.raises(ValueError, match="finite and >= 0"):
         TrainConfig(anchor=-0.5, warm_start="pid")

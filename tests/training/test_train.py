@@ -236,7 +236,8 @@ def test_init_fine_tunes_the_trained_networks_and_statistics(run, tmp_path):
 
 def test_init_from_a_distilled_student_fits_its_critic_and_keeps_its_statistics(run, tmp_path):
     """A student of `fcemu distill` has an actor and the statistics it was fitted through, but a
-    critic as drawn: the fine-tune fits the critic on the student's flights and leaves the rest."""
+    critic as drawn: the fine-tune fits the critic on the student's flights and leaves the rest;
+    with --anchor those flights are what PPO is held to."""
     import pickle
 
     from stable_baselines3 import PPO
@@ -250,11 +251,12 @@ def test_init_from_a_distilled_student_fits_its_critic_and_keeps_its_statistics(
     net = {"net_arch": {"pi": [16, 16], "vf": [64, 64]}, "log_std_init": -3.0}
     summary = train(TrainConfig(algo="ppo", steps=1024, seed=5, out=str(tmp_path / "ft"), envs=8,
                                 checkpoint_every=10**9, eval_episodes=0, obs_clip=0.0, progress=False,
-                                init=str(student),
+                                init=str(student), anchor=1.0,
                                 hp={"n_steps": 128, "batch_size": 256, "learning_rate": 0.0,
                                     "policy_kwargs": net}))
     critic = summary["init_critic"]
     assert critic["env_steps"] == 1500 * 8 and critic["critic_mse"] < 0.5 * critic["critic_mse_before"]
+    assert summary["init_anchor_samples"] == 1500 * 8
     before = PPO.load(student / "model.zip", device="cpu").policy.state_dict()
     after = PPO.load(tmp_path / "ft" / "model.zip", device="cpu").policy.state_dict()
     value = [key for key in before if "value" in key]
