@@ -114,6 +114,10 @@ class RateTask:
         self._gate_ticks = round(cfg.action_rate_after_s / cfg.dt) if cfg.action_rate_after_s else 0
         self._held = np.zeros(batch_shape, dtype=np.int64)
         self._held_setpoint = np.zeros((*batch_shape, 3))
+        # the relative error's |e0|: each axis's error when its command began, and that command
+        self._relative = bool(cfg.relative_error)
+        self._step_size = np.zeros((*batch_shape, 3))
+        self._command = np.zeros((*batch_shape, 3))
 
     def pwm(self, action: np.ndarray, throttle: np.ndarray | float) -> np.ndarray:
         return action_to_pwm(self.config.action_mapping, np.asarray(action, dtype=np.float32), throttle)
@@ -127,6 +131,8 @@ class RateTask:
         self._first[at] = True
         self._held[at] = 0
         self._held_setpoint[at] = setpoint
+        if self._relative:
+            self._command[at], self._step_size[at] = setpoint, np.abs(setpoint - gyro)
         if self.on_time is not None:
             self._start(self.on_time, observe_step(self.spec, setpoint, *on_time), rows)
         return self._start(self.history, observe_step(self.spec, setpoint, gyro, rotor_speed), rows)
@@ -151,6 +157,16 @@ class RateTask:
         self._held_setpoint[...] = setpoint
         return self._held >= self._gate_ticks
 
+    def _command_step(self, setpoint: np.ndarray, rate: np.ndarray) -> np.ndarray | None:
+        """Each axis's |e0| for the relative error (None: no such term): the error on the step
+        its command changed, held until it changes again."""
+        if not self._relative:
+            return None
+        new = (setpoint != self._command).any(axis=-1, keepdims=True)
+        self._step_size = np.where(new, np.abs(setpoint - rate), self._step_size)
+        self._command = np.where(new, setpoint, self._command)
+        return self._step_size
+
     def step(self, setpoint: np.ndarray, rate: np.ndarray, gyro: np.ndarray, rotor_speed: np.ndarray,
              pwm: np.ndarray, on_time: tuple[np.ndarray, np.ndarray] | None = None
              ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
@@ -160,7 +176,8 @@ class RateTask:
         if self._any_first:  # a first step has no Δu: its previous output is its own
             np.copyto(self._previous_u, u, where=self._first[..., None])
             self._first[...], self._any_first = False, False
-        reward, terms = self.reward(setpoint, rate, u, self._previous_u, self._settled(setpoint))
+        reward, terms = self.reward(setpoint, rate, u, self._previous_u, self._settled(setpoint),
+                                    self._command_step(setpoint, rate))
         self._previous_u = u
         obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed, motor_output=u))
         if self.on_time is not None:

@@ -116,6 +116,10 @@ class EnvConfig:
     axis_weights: tuple[float, float, float] = env_option(
         UNWEIGHTED, "weights of the roll, pitch, yaw error in the unclipped reward",
         cli=tuple[float, float, float], metavar=("R", "P", "Y"))
+    relative_error: float = env_option(
+        0.0, "unclipped reward: weight K of the error relative to the command's step, "
+             "−K·Σ w·|e|/(|e0| + 0.1 rad/s)/3, e0 the error when the command began (the Success metric's "
+             "scale: a small step's steady residual counts as much as a large step's)", cli=float)
     integral_leak: float = env_option(DEFAULT_LEAK, "the integral's λ per step (time constant 1/(1 − λ) "
                                                     "steps); λ → 1 approaches a true integrator", cli=float)
     rms_leak: float = env_option(DEFAULT_RMS_LEAK, "the RMS's μ per step (time constant 1/(1 − μ) steps)",
@@ -226,7 +230,8 @@ class EnvConfig:
 
     @property
     def rate_reward(self) -> RateReward:
-        return RateReward(self.reward, self.axis_weights, self.action_rate_penalty, self.omega_max)
+        return RateReward(self.reward, self.axis_weights, self.action_rate_penalty, self.omega_max,
+                          self.relative_error)
 
 
 # ── The command line, from the fields ──────────────────────────────────────────────────

@@ -119,6 +119,8 @@ def test_gymnasium_checker_passes_with_non_default_weights():
     (dict(reward="unclipped", axis_weights=(1.0, -1.0, 1.0)), "3 finite weights"),
     (dict(action_rate_penalty=-0.1), "action_rate_penalty"),
     (dict(action_rate_penalty=float("nan")), "action_rate_penalty"),
+    (dict(relative_error=0.1), "unclipped reward"),
+    (dict(reward="unclipped", relative_error=-1.0), "relative_error"),
 ])
 def test_bad_weights_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -151,3 +153,22 @@ def test_a_gated_penalty_waits_for_the_setpoint_to_be_held(task):
 def test_the_gate_is_checked():
     with pytest.raises(ValueError, match="action_rate_after_s"):
         RateControlEnv(action_rate_after_s=-0.1)
+
+
+def test_the_relative_error_weighs_each_axis_error_by_its_commands_step():
+    """On the continuous task, with the command changing mid-episode: −K·Σ|e|/(|e0| + 0.1)/3 on top of
+    the unclipped term, |e0| each axis's error on the step its command began; the batch gives the same."""
+    kw = dict(task="continuous", reward="unclipped", relative_error=0.2, episode_s=2.0)
+    env, plain = RateControlEnv(**kw), RateControlEnv(**{**kw, "relative_error": 0.0})
+    batch = BatchedRateEnv(1, **kw)
+    env.reset(seed=6), plain.reset(seed=6), batch.reset(seed=6)
+    command, e0, changes = None, None, 0
+    for action in _actions(2000, 1):
+        _, reward, _, _, info = env.step(action[0])
+        base = plain.step(action[0])[1]
+        e = np.abs(info["setpoint"] - info["rate"])
+        if command is None or not np.array_equal(info["setpoint"], command):
+            command, e0, changes = info["setpoint"].copy(), e, changes + 1
+        assert reward == pytest.approx(base - 0.2 * (e / (e0 + 0.1)).sum() / 3, rel=1e-9, abs=1e-12)
+        assert batch.step(action)[1][0] == reward
+    assert changes >= 3
