@@ -38,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="also fly the same commands on N airframes drawn from the randomisation ranges")
     p.add_argument("--perturb-seed", type=int, default=0, metavar="S",
                    help="seed of the perturbed airframes (a stream training never draws from)")
+    p.add_argument("--perturb-only", type=int, nargs="+", default=None, metavar="I",
+                   help="fly only these of the --perturb N airframes, by index (as the report numbers them): "
+                        "a chosen few of a draw, e.g. the ones a controller found hardest")
     p.add_argument("--ranges", default=None, metavar="NAME|FILE",
                    help="randomisation ranges for --perturb: a shipped name or a file (default: the "
                         "airframe's own, iris for the Iris, else the ranges relative to any airframe, "

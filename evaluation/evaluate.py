@@ -60,7 +60,14 @@ def _airframes(args) -> tuple[list[PerturbedAirframe], str | None]:
     if not args.perturb:
         return [], None
     ranges = ranges_for(args.airframe, args.ranges)  # drawn around --airframe: its own, or relative ones
-    return perturbed_airframes(ranges, args.perturb, args.perturb_seed), str(ranges.path)
+    drawn = perturbed_airframes(ranges, args.perturb, args.perturb_seed)
+    only = getattr(args, "perturb_only", None)
+    if only is None:
+        return drawn, str(ranges.path)
+    if any(not 0 <= i < len(drawn) for i in only) or len(set(only)) != len(only):
+        raise ValueError(f"--perturb-only picks airframes of the --perturb {args.perturb} drawn, each once "
+                         f"by its index 0..{args.perturb - 1}; got {' '.join(map(str, only))}")
+    return [drawn[i] for i in only], str(ranges.path)
 
 
 def fallback_for(airframe: str, fallback: str | None, controllers: list[str]) -> str:
@@ -81,6 +88,8 @@ def eval_command(args) -> int:
                          fallback=fallback_for(args.airframe, args.fallback, specs), twin=args.twin)
         if args.perturb < 0:
             raise ValueError(f"--perturb must be >= 0, got {args.perturb}")
+        if getattr(args, "perturb_only", None) is not None and not args.perturb:
+            raise ValueError("--perturb-only picks among the airframes --perturb N draws: give --perturb")
         if args.twin is not None and args.perturb:
             raise ValueError("--twin flies one given airframe: it does not combine with --perturb")
         airframes, ranges = _airframes(args)

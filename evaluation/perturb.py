@@ -89,6 +89,7 @@ class PerturbedResult:
 
     def details_json(self) -> dict[str, Any]:
         return {"airframes": len(self.airframes), "perturb_seed": self.seed, "ranges": self.ranges,
+                "index_per_airframe": [a.index for a in self.airframes],
                 "error_sum_per_airframe": [float(v) for v in self.error_sum],
                 "success_min_pct_per_airframe": [float(v) for v in self.success_min],
                 "factors": [a.factors_json() for a in self.airframes],

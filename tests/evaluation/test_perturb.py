@@ -185,3 +185,18 @@ def test_the_teacher_policy_flies_a_long_delay_airframe_with_less_error_than_the
         error[spec] = sum(aggregate(ep, unit=unit).stat("error", a).mean for a in ("roll", "pitch", "yaw"))
     pid, policy = error.values()
     assert policy < 0.9 * pid, error  # 571 vs 1012 on these 12 commands
+
+
+def test_perturb_only_flies_the_picked_airframes_as_the_whole_draw_does(fcemu):
+    whole = json.loads(fcemu(*FAST, "--perturb-seed", "3").stdout)["perturbation"]
+    picked = fcemu(*FAST, "--perturb-seed", "3", "--perturb-only", "1")
+    assert picked.returncode == 0, picked.stderr
+    one = json.loads(picked.stdout)["perturbation"]
+    assert one["index_per_airframe"] == [1] and whole["index_per_airframe"] == [0, 1]
+    assert one["error_sum_per_airframe"] == whole["error_sum_per_airframe"][1:]
+    assert one["factors"] == whole["factors"][1:]
+    for bad, line in ((("--perturb-only", "2"), "index 0..1"), (("--perturb-only", "0", "0"), "each once")):
+        out = fcemu(*FAST, *bad)
+        assert out.returncode == 2 and line in out.stderr and len(out.stderr.strip().splitlines()) == 1
+    out = fcemu(*FAST[:-3], "--perturb-only", "0")
+    assert out.returncode == 2 and "give --perturb" in out.stderr
