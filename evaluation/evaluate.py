@@ -57,11 +57,13 @@ def _fmt(x: float | None) -> str:
 
 def _airframes(args) -> tuple[list[PerturbedAirframe], str | None]:
     """The perturbed airframes and the path of the ranges they were drawn from (none without --perturb)."""
+    only = getattr(args, "perturb_only", None)
     if not args.perturb:
+        if only is not None:
+            raise ValueError("--perturb-only picks among the airframes --perturb N draws: give --perturb")
         return [], None
     ranges = ranges_for(args.airframe, args.ranges)  # drawn around --airframe: its own, or relative ones
     drawn = perturbed_airframes(ranges, args.perturb, args.perturb_seed)
-    only = getattr(args, "perturb_only", None)
     if only is None:
         return drawn, str(ranges.path)
     if any(not 0 <= i < len(drawn) for i in only) or len(set(only)) != len(only):
@@ -88,8 +90,6 @@ def eval_command(args) -> int:
                          fallback=fallback_for(args.airframe, args.fallback, specs), twin=args.twin)
         if args.perturb < 0:
             raise ValueError(f"--perturb must be >= 0, got {args.perturb}")
-        if getattr(args, "perturb_only", None) is not None and not args.perturb:
-            raise ValueError("--perturb-only picks among the airframes --perturb N draws: give --perturb")
         if args.twin is not None and args.perturb:
             raise ValueError("--twin flies one given airframe: it does not combine with --perturb")
         airframes, ranges = _airframes(args)
