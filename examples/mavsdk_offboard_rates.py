@@ -65,6 +65,15 @@ async def wait_until(stream, predicate, timeout: float):
     return await asyncio.wait_for(first(), timeout)
 
 
+async def within(awaitable, what: str, timeout: float = 10.0):
+    """`awaitable`, or a RuntimeError naming `what` after `timeout` s: a call the vehicle never answers
+    ends the script with the step it hung on instead of hanging it."""
+    try:
+        return await asyncio.wait_for(awaitable, timeout)
+    except TimeoutError:
+        raise RuntimeError(f"no answer to {what} in {timeout:g} s") from None
+
+
 def clamp(value: float, limit: float) -> float:
     return max(-limit, min(limit, value))
 
@@ -141,13 +150,15 @@ class Pilot:
     async def fly(self, seconds: float, rates: tuple[float, float, float] | None = None) -> None:
         """`rates` (deg/s) for `seconds`; None: level (free rig) or zero rates (rig)."""
         if not self.airborne:
-            await self.offboard.set_attitude_rate(AttitudeRate(*(rates or (0.0, 0.0, 0.0)), self.hover))
+            setpoint = AttitudeRate(*(rates or (0.0, 0.0, 0.0)), self.hover)
+            await within(self.offboard.set_attitude_rate(setpoint), "a setpoint")
             await asyncio.sleep(seconds)
             return
         end = time.monotonic() + seconds
         while (now := time.monotonic()) < end:
             sp = rates if rates is not None else self.level_rates()
-            await self.offboard.set_attitude_rate(AttitudeRate(*sp, self.thrust(CONTROL_PERIOD_S)))
+            setpoint = AttitudeRate(*sp, self.thrust(CONTROL_PERIOD_S))
+            await within(self.offboard.set_attitude_rate(setpoint), "a setpoint")
             await asyncio.sleep(min(CONTROL_PERIOD_S, end - now))
 
     async def take_off(self, altitude: float) -> None:
@@ -165,7 +176,7 @@ class Pilot:
 async def fly(url: str, rate: float, hold: float, thrust: float) -> dict:
     config = Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER)
     async with Mavsdk(config) as mavsdk:
-        await mavsdk.add_any_connection(url)
+        await within(mavsdk.add_any_connection(url), f"the connection {url}")
         system = await mavsdk.first_autopilot(timeout_s=30.0)
         if system is None:
             raise RuntimeError(f"no autopilot on {url}")
@@ -187,11 +198,12 @@ async def fly(url: str, rate: float, hold: float, thrust: float) -> dict:
         recorder = asyncio.create_task(record())
         try:
             idle = 0.0 if airborne else thrust
-            await offboard.set_attitude_rate(AttitudeRate(0.0, 0.0, 0.0, idle))  # before arming and start
-            await action.arm()
+            # a setpoint streams before arming and before offboard starts
+            await within(offboard.set_attitude_rate(AttitudeRate(0.0, 0.0, 0.0, idle)), "a setpoint")
+            await within(action.arm(), "arm")
             await wait_until(telemetry.subscribe_armed(), bool, timeout=10.0)
-            await offboard.set_attitude_rate(AttitudeRate(0.0, 0.0, 0.0, idle))
-            await offboard.start()
+            await within(offboard.set_attitude_rate(AttitudeRate(0.0, 0.0, 0.0, idle)), "a setpoint")
+            await within(offboard.start(), "offboard start")
             if airborne:
                 await pilot.take_off(TAKEOFF_ALTITUDE_M)
             else:
@@ -211,13 +223,13 @@ async def fly(url: str, rate: float, hold: float, thrust: float) -> dict:
                 if airborne and i % 2:  # each axis out and back, then level before the next
                     await pilot.fly(LEVEL_S)
             await pilot.fly(0.1)
-            mode_in_offboard = (await telemetry.flight_mode()).name
+            mode_in_offboard = (await within(telemetry.flight_mode(), "the flight mode")).name
             altitude_before_stop = round(pilot.altitude(), 2)
-            await offboard.stop()  # HOLD
+            await within(offboard.stop(), "offboard stop")  # HOLD
             mode_after_stop = (await wait_until(telemetry.subscribe_flight_mode(),
                                                 lambda m: m.name == "HOLD", timeout=5.0)).name
             await asyncio.sleep(hold)
-            await action.land()
+            await within(action.land(), "land")
             await wait_until(telemetry.subscribe_armed(), lambda armed: not armed, timeout=40.0)
         finally:
             recorder.cancel()
