@@ -29,7 +29,7 @@ import numpy as np
 
 from fcemu.evaluation.bound import rig_constants
 from fcemu.training.pid_search import CandidatePool, Knob, Move, Score, SearchState, pattern_search
-from fcemu.training.pid_tune import SUCCESS_LINE, Tuner, cached_bounds
+from fcemu.training.pid_tune import SUCCESS_LINE, TIGHT_BOUND, Tuner, cached_bounds
 from fcemu.training.tune_options import TuneOptions
 
 
@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     rows: list[dict[str, Any]] = []
     with CandidatePool(tuner.airframe, tuner.opts.gyro_noise, args.jobs) as pool:
         bound = float(cached_bounds(rig_constants(tuner.airframe), tuner.held_out,
-                                    lambda: pool.bounds(tuner.held_out))[:, 0].mean())
+                                    lambda: pool.bounds(tuner.held_out, tight=TIGHT_BOUND))[0][:, 0].mean())
         noisy_ref = pool.scores([tuner.start], True, tuner.held_out)[0].smoothness
 
         def search(preset: dict[str, Any], cap: float | None, minutes: float) -> dict[str, Any]:

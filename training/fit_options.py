@@ -23,7 +23,9 @@ class FitOptions:
     seed: int = option(2018, "seed of the tuning commands, on which the PID is tuned and the teacher chosen, "
                              "and of the policy's fit; the held-out check flies seed + 1")
     episodes: int = option(50, "commands tuned on (seed), and held out (seed + 1)")
-    tune_budget_s: float = option(540.0, "seconds of the PID tune's search and check, the bound's aside")
+    # The fit's 15 minutes on two cores: a 7-inch quad's teacher and policy took 340 s of them.
+    tune_budget_s: float = option(480.0, "seconds of the PID tune: its bound, search and check (`fcemu tune "
+                                         "--budget-s`)")
     rounds: int = option(6, "DAgger rounds of the policy's fit")
     steps: int | None = option(None, f"steps per twin and DAgger round (default: {STUDENT_STEPS['exact']}, "
                                      f"{STUDENT_STEPS['sensed']} where the sensors are not the truth)")

@@ -1,9 +1,10 @@
 """How long `fcemu fit`'s stages are expected to take, for the estimate of the time left its log
 lines carry (`evaluation.progress.Stages`).
 
-The tune takes its budget, and an uncached bound its programmes; the other stages take what their
-work takes on this machine: their seconds at the defaults on 2 cores (docs/results/fit.md), scaled
-by the work asked for, then by the pace the finished stages showed. An estimate, said to be one.
+The tune takes its budget, its bound included; given a PID, an uncached bound takes its programmes.
+The other stages take what their work takes on this machine: their seconds at the defaults on 2 cores
+(docs/results/fit.md), scaled by the work asked for, then by the pace the finished stages showed. An
+estimate, said to be one.
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ def expected_s(opts: FitOptions) -> dict[str, float]:
     steps = opts.steps or STUDENT_STEPS[student_kind(load_airframe(opts.airframe))]
     student = opts.rounds / 6 * (0.5 * steps * opts.envs / (STUDENT_STEPS["exact"] * 64)
                                  + 0.5 * opts.fit_steps / 3000)
-    out = {"tune": (opts.tune_budget_s if opts.pid is None else 0.0) + _bound_s(opts),
+    out = {"tune": opts.tune_budget_s if opts.pid is None else _bound_s(opts),
            "teacher": TYPICAL_S["teacher"] * min(SPEED_COMMANDS, opts.episodes) / SPEED_COMMANDS,
            "policy": TYPICAL_S["policy"] * student,
            "check": TYPICAL_S["check"] * opts.episodes / 50 + (MCU_S if opts.mcu else 0.0)}

@@ -120,12 +120,12 @@ class _Worker:
             self.flights = {key: Flights(self.airframe, setpoints, self.gyro_noise)}
         return self.flights[key].evaluate(preset, noisy)
 
-    def bound(self, command: np.ndarray) -> Any:
+    def bound(self, command: np.ndarray, tight: bool) -> Any:
         from fcemu.evaluation.bound import Floor, rig_constants
 
         if self.floor is None:
             self.floor = Floor(rig_constants(self.airframe))
-        return self.floor.solve(command)
+        return self.floor.solve(command, tight=tight)
 
 
 _WORKER: _Worker | None = None
@@ -141,9 +141,9 @@ def _fly(job: tuple[dict[str, Any], bool, np.ndarray]) -> Score:
     return _WORKER.fly(*job)
 
 
-def _bound(command: np.ndarray) -> Any:
+def _bound(job: tuple[np.ndarray, bool]) -> Any:
     assert _WORKER is not None
-    return _WORKER.bound(command)
+    return _WORKER.bound(*job)
 
 
 class CandidatePool:
@@ -164,9 +164,10 @@ class CandidatePool:
             return [_fly(j) for j in jobs]
         return self._pool.map(_fly, jobs, chunksize=1)
 
-    def bounds(self, commands: np.ndarray, progress: Callable[[int], None] | None = None) -> list[Any]:
-        """`evaluation.bound.CommandBound` per command; `progress(done)` after each."""
-        work = [np.asarray(c, dtype=float) for c in commands]
+    def bounds(self, commands: np.ndarray, progress: Callable[[int], None] | None = None,
+               tight: bool = True) -> list[Any]:
+        """`evaluation.bound.CommandBound` per command (`Floor.solve`); `progress(done)` after each."""
+        work = [(np.asarray(c, dtype=float), tight) for c in commands]
         found = []
         for b in map(_bound, work) if self._pool is None else self._pool.imap(_bound, work):
             found.append(b)

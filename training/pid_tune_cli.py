@@ -101,6 +101,7 @@ def tune(opts: TuneOptions, log: Any = None) -> tuple[dict[str, Any], dict[str, 
                "gyro_noise": opts.gyro_noise, "smoothness_cap": SMOOTHNESS_CAP, **record,
                "held_out": check, "meets_lines": check["meets_lines"], "fails": failure_reasons(check),
                "time_s": {"bound": check["wall_s"]["bound"],
+                          "bound_charged": check["wall_s"]["bound_charged"],
                           **{s["stage"]: s["wall_s"] for s in record["stages"]},
                           "check": check["wall_s"]["flights"], "total": wall},
                "budget_s": opts.budget_s}

@@ -23,8 +23,9 @@ class TuneOptions:
     episodes: int = option(50, "tuning commands")
     check_episodes: int = option(50, "held-out commands")
     rounds: int = option(12, "most rounds of the search per stage, if the budget lasts")
-    budget_s: float = option(540.0, "seconds for the search and the held-out check, the bound's (solved once "
-                                    "per airframe and cached) aside", metavar="S")
+    budget_s: float = option(570.0, "seconds of the whole tune: the bound on the held-out commands (its "
+                                    "solve time counted even where it is cached), the search and the "
+                                    "held-out check", metavar="S")
     jobs: int = option(0, "worker processes flying candidates (0: one per CPU this process may use)",
                        metavar="J")
     gyro_noise: float = option(GYRO_NOISE, "the noisy gyro stage's white noise, rad/s per sample", cli=False)

@@ -261,7 +261,7 @@ def test_the_command_lines_repeat_the_options_and_parse_back_to_them() -> None:
     opts = FitOptions(airframe="x500", out="runs/x", steps=1500, net_arch=(32, 16), braking=0.3, pid="p.json",
                       jobs=3, mcu=False, progress=False)
     line = command_line(opts)
-    assert line == ("fcemu fit --airframe x500 --out runs/x --seed 2018 --episodes 50 --tune-budget-s 540 "
+    assert line == ("fcemu fit --airframe x500 --out runs/x --seed 2018 --episodes 50 --tune-budget-s 480 "
                     "--rounds 6 --steps 1500 --envs 64 --fit-steps 3000 --net-arch 32 16 --braking 0.3 "
                     "--pid p.json")
     args = build_parser().parse_args([*shlex.split(line)[1:], "--jobs", "3", "--no-mcu"])
@@ -269,6 +269,6 @@ def test_the_command_lines_repeat_the_options_and_parse_back_to_them() -> None:
     tune = TuneOptions(airframe="iris", jobs=2)
     line = options_command_line("fcemu tune", tune)
     assert line == ("fcemu tune --airframe iris --seed 2018 --episodes 50 --check-episodes 50 --rounds 12 "
-                    "--budget-s 540 --jobs 2")
+                    "--budget-s 570 --jobs 2")
     args = build_parser().parse_args([*shlex.split(line)[1:], "--out", "o"])
     assert from_args(TuneOptions, args) == tune
