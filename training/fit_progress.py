@@ -18,7 +18,7 @@ from fcemu.training.fit_options import STUDENT_STEPS, FitOptions
 # of 1000 steps on 64 twins, 3000 Adam steps a round) and its motors' flight, the check's four flights
 # of 50 held-out commands.
 TYPICAL_S = {"teacher": 110.0, "policy": 90.0, "check": 20.0}
-BOUND_S_PER_COMMAND = 7.0  # an uncached bound's programmes, per held-out command
+BOUND_S_PER_COMMAND = 2.0  # an uncached bound's programmes (crude boxes), per held-out command, 2 cores
 MCU_S = 10.0  # `fcemu bench mcu`: build and run
 
 

@@ -5,6 +5,10 @@ stages)."""
 
 from __future__ import annotations
 
+import multiprocessing as mp
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -71,27 +75,56 @@ def flown_figures(m: Any) -> dict[str, Any]:
             "peak_pct": [round(m.stat("peak_pct", a).mean, 1) for a in AXES]}
 
 
+def _flight_figures(job: tuple[FitOptions, str, Any]) -> dict[str, Any]:
+    """One flight of the stage: a PID preset's (`pid:FILE`) or, given the airframe, a teacher's, its
+    keyword arguments the spec (a worker process's job)."""
+    from fcemu.training.inversion_teacher import InversionController, InversionTeacher
+
+    opts, spec, airframe = job
+    if airframe is None:
+        return flown_figures(tuning_flight(opts, spec))
+    teacher = InversionTeacher(airframe, **spec)
+    return flown_figures(tuning_flight(opts, "inversion", InversionController(teacher, mapped=True)))
+
+
+Flights = Callable[[list[tuple[FitOptions, Any, Any]]], list[dict[str, Any]]]
+
+
+@contextmanager
+def stage_flights(jobs: int):
+    """`fly(jobs)`: the figures of independent flights, `jobs` worker processes at a time (in this one
+    where 1): a stage's speeds and shapes are a dozen flights of 20 commands, each on one core."""
+    if jobs <= 1:
+        yield lambda work: [_flight_figures(job) for job in work]
+        return
+    with ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as pool:
+        yield lambda work: list(pool.map(_flight_figures, work))
+
+
 def teacher_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]:
     """The teacher's time constant in motor lags (`TEACHER_SPEEDS`), then its shape (`shape_choice`:
     the share of yaw it serves first and its braking share; `damping_choice`: its damping ratio; each
-    unless given), on the tuning commands."""
+    unless given), on the tuning commands; the flights of each step `opts.jobs` at a time."""
+    with stage_flights(opts.jobs) as fly:
+        return _teacher_stage(opts, pid, log, fly)
+
+
+def _teacher_stage(opts: FitOptions, pid: Path, log: Any, fly: Flights) -> dict[str, Any]:
     from fcemu.evaluation.bar import SMOOTHNESS_BAR
     from fcemu.sim_bridge.airframe import load_airframe
-    from fcemu.training.inversion_teacher import InversionController, InversionTeacher
     from fcemu.training.pid_tune import nominal
 
     loaded = load_airframe(opts.airframe)
     student, airframe = student_kind(loaded), nominal(loaded)
-    ref = flown_figures(tuning_flight(opts, f"pid:{pid}"))
-    limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING[student] * ref["smoothness"]
-    flown = []
     given = {"yaw_first": opts.yaw_first or 0.0, "braking": opts.braking or BRAKING_SHARE}
     given |= {} if opts.damping is None else {"damping": opts.damping}
-    for multiple in TEACHER_SPEEDS:
-        teacher = InversionController(InversionTeacher(airframe, multiple, **given), mapped=True)
-        flown.append({"lag_multiple": multiple, **flown_figures(tuning_flight(opts, "inversion", teacher))})
-        log(f"  teacher at {multiple:g} motor lags: Error {flown[-1]['error_sum']:.1f}, motors "
-            f"{flown[-1]['smoothness']:.2f}, Rise {'/'.join(map(str, flown[-1]['rise_ms']))} ms (the PID "
+    ref, *speeds = fly([(opts, f"pid:{pid}", None)]
+                       + [(opts, {"lag_multiple": m, **given}, airframe) for m in TEACHER_SPEEDS])
+    limit = SMOOTHNESS_BAR / STUDENT_SMOOTHING[student] * ref["smoothness"]
+    flown = [{"lag_multiple": m, **f} for m, f in zip(TEACHER_SPEEDS, speeds, strict=True)]
+    for f in flown:
+        log(f"  teacher at {f['lag_multiple']:g} motor lags: Error {f['error_sum']:.1f}, motors "
+            f"{f['smoothness']:.2f}, Rise {'/'.join(map(str, f['rise_ms']))} ms (the PID "
             f"{ref['error_sum']:.1f}, {ref['smoothness']:.2f}, {'/'.join(map(str, ref['rise_ms']))})")
     admitted = [f for f in flown if f["smoothness"] <= limit] or flown[:1]
     first = first_teacher(admitted, ref)
@@ -104,11 +137,11 @@ def teacher_stage(opts: FitOptions, pid: Path, log: Any) -> dict[str, Any]:
               "dampings": []}
     chosen = first
     if opts.yaw_first is None or opts.braking is None:
-        record |= shape_choice(opts, airframe, first, ref, limit, log)
+        record |= shape_choice(opts, airframe, first, ref, limit, log, fly)
         chosen = next((f for f in record["shapes"] if (f["yaw_first"], f["braking"])
                        == (record["yaw_first"], record["braking"])), first)
     if opts.damping is None:
-        record |= damping_choice(opts, airframe, record, chosen, first, ref, limit, log)
+        record |= damping_choice(opts, airframe, record, chosen, first, ref, limit, log, fly)
     return record
 
 
@@ -129,25 +162,22 @@ def first_teacher(admitted: list[dict[str, Any]], pid: dict[str, Any]) -> dict[s
 
 
 def shape_choice(opts: FitOptions, airframe: Any, without: dict[str, Any], pid: dict[str, Any],
-                 limit: float, log: Any) -> dict[str, Any]:
+                 limit: float, log: Any, fly: Flights) -> dict[str, Any]:
     """The chosen teacher flown again with each pair of `YAW_FIRST_CHOICES` and `BRAKING_CHOICES` (a
     given one held); the least Error of those `shape_admitted` is taken where it is lower than the
     teacher's as the speed stage flew it by more than `ERROR_TIE`."""
     from itertools import product
 
-    from fcemu.training.inversion_teacher import InversionController, InversionTeacher
-
     damping = {} if opts.damping is None else {"damping": opts.damping}
     base = (opts.yaw_first or 0.0, opts.braking or BRAKING_SHARE)
     yaws = YAW_FIRST_CHOICES if opts.yaw_first is None else (opts.yaw_first,)
     brakes = BRAKING_CHOICES if opts.braking is None else (opts.braking,)
+    shapes = [pair for pair in product(yaws, brakes) if pair != base]
+    speed = {"lag_multiple": without["lag_multiple"], **damping}
+    flights = fly([(opts, {**speed, "yaw_first": yaw_first, "braking": braking}, airframe)
+                   for yaw_first, braking in shapes])
     flown = []
-    for yaw_first, braking in product(yaws, brakes):
-        if (yaw_first, braking) == base:
-            continue
-        teacher = InversionTeacher(airframe, without["lag_multiple"], yaw_first=yaw_first, braking=braking,
-                                   **damping)
-        figures = flown_figures(tuning_flight(opts, "inversion", InversionController(teacher, mapped=True)))
+    for (yaw_first, braking), figures in zip(shapes, flights, strict=True):
         flown.append({"yaw_first": yaw_first, "braking": braking, **figures,
                       "admitted": shape_admitted(figures, without, pid, limit)})
         log(f"  {yaw_first:g} of yaw first, braking {braking:g}: Error {figures['error_sum']:.1f} against "
@@ -161,15 +191,13 @@ def shape_choice(opts: FitOptions, airframe: Any, without: dict[str, Any], pid: 
 
 
 def damping_choice(opts: FitOptions, airframe: Any, shape: dict[str, Any], chosen: dict[str, Any],
-                   without: dict[str, Any], pid: dict[str, Any], limit: float, log: Any) -> dict[str, Any]:
+                   without: dict[str, Any], pid: dict[str, Any], limit: float, log: Any,
+                   fly: Flights) -> dict[str, Any]:
     """The chosen shape (`chosen`, its figures as flown) flown again at `MORE_DAMPING`: taken where it
     is `shape_admitted`, its Error within `ERROR_TIE` of the chosen shape's, and its highest Peak lower.
     A tie on Error is no reason to overshoot more: the Peaks are what the twin's effects move."""
-    from fcemu.training.inversion_teacher import InversionController, InversionTeacher
-
-    teacher = InversionTeacher(airframe, without["lag_multiple"], damping=MORE_DAMPING,
-                               yaw_first=shape["yaw_first"], braking=shape["braking"])
-    figures = flown_figures(tuning_flight(opts, "inversion", InversionController(teacher, mapped=True)))
+    figures, = fly([(opts, {"lag_multiple": without["lag_multiple"], "damping": MORE_DAMPING,
+                            "yaw_first": shape["yaw_first"], "braking": shape["braking"]}, airframe)])
     admitted = shape_admitted(figures, without, pid, limit)
     taken = admitted and more_damped_taken(figures, chosen)
     log(f"  damping {MORE_DAMPING:g}: Error {figures['error_sum']:.1f} against {chosen['error_sum']:.1f}, "

@@ -111,3 +111,17 @@ def test_a_more_damped_teacher_is_taken_within_a_tie_on_error_where_its_highest_
     assert more_damped_taken(damped(100.0 + 100.0 * ERROR_TIE, (103.0, 103.5, 101.0)), chosen)
     assert not more_damped_taken(damped(101.5, (100.0, 100.0, 100.0)), chosen)  # past the tie
     assert not more_damped_taken(damped(95.0, (104.0, 100.0, 100.0)), chosen)  # the highest Peak as high
+
+
+def test_the_stages_flights_in_worker_processes_are_those_flown_in_one() -> None:
+    from fcemu.training.fit_teacher import stage_flights
+    from fcemu.training.pid_tune import nominal
+
+    opts = FitOptions(airframe="iris", out="o", episodes=2, jobs=2, progress=False)
+    work = [(opts, f"pid:{PRESET_DIR / 'pid_iris.json'}", None),
+            (opts, {"lag_multiple": 0.35, "braking": 0.3}, nominal(load_airframe("iris")))]
+    with stage_flights(2) as fly:
+        parallel = fly(work)
+    with stage_flights(1) as fly:
+        alone = fly(work)
+    assert parallel == alone and parallel[0] != parallel[1]
