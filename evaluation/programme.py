@@ -7,7 +7,7 @@ vertex instead of from scratch, as `scipy.optimize.linprog` does.
 
 Rows marked lazy (the tangent cuts under k_F·ω², most of the programme's rows and few of them
 binding) enter the model only once a solution violates them, and leave it once an optimum does not
-need them (kept, one command's box rows made the model ten times larger for every later solve). The
+need them (kept, the box programme of one 7-inch command took on ten times the rows it ends with). The
 optimum is then the whole programme's: a solution that violates no lazy row is feasible for the
 whole programme and optimal for a relaxation of it. A solve stopped short of that would still
 be a relaxation's optimum, so a lower bound, never above the whole programme's.
@@ -75,13 +75,11 @@ class Programme:
         self.row_of_ub = np.full(A_ub.shape[0], -1)
         self.row_of_ub[self.eager] = A_eq.shape[0] + np.arange(len(self.eager))
 
-    def _add_rows(self, A: sparse.csr_matrix, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-        first = self.highs.getNumRow()
+    def _add_rows(self, A: sparse.csr_matrix, lower: np.ndarray, upper: np.ndarray) -> None:
         A = sparse.csr_matrix(A)
         if A.shape[0]:
             self.highs.addRows(A.shape[0], _finite(lower), _finite(upper), A.nnz,
                                A.indptr[:-1].astype(np.int32), A.indices.astype(np.int32), A.data)
-        return np.arange(first, first + A.shape[0], dtype=np.int32)
 
     def solve(self, cost: np.ndarray, ub_rows: np.ndarray, ub_rhs: np.ndarray, bounds: np.ndarray,
               extra: tuple[sparse.csr_matrix, np.ndarray] | None = None) -> np.ndarray | None:
