@@ -75,9 +75,12 @@ def flown_figures(m: Any) -> dict[str, Any]:
             "peak_pct": [round(m.stat("peak_pct", a).mean, 1) for a in AXES]}
 
 
-def _flight_figures(job: tuple[FitOptions, str, Any]) -> dict[str, Any]:
-    """One flight of the stage: a PID preset's (`pid:FILE`) or, given the airframe, a teacher's, its
-    keyword arguments the spec (a worker process's job)."""
+Flight = tuple[FitOptions, str | dict[str, Any], Any]  # (opts, `pid:FILE` or a teacher's kwargs, airframe)
+
+
+def _flight_figures(job: Flight) -> dict[str, Any]:
+    """One flight of the stage (a worker process's job): a PID preset's, `pid:FILE`, where the airframe
+    is None; else a teacher's on that airframe, the spec its `InversionTeacher` keyword arguments."""
     from fcemu.training.inversion_teacher import InversionController, InversionTeacher
 
     opts, spec, airframe = job
@@ -87,7 +90,7 @@ def _flight_figures(job: tuple[FitOptions, str, Any]) -> dict[str, Any]:
     return flown_figures(tuning_flight(opts, "inversion", InversionController(teacher, mapped=True)))
 
 
-Flights = Callable[[list[tuple[FitOptions, Any, Any]]], list[dict[str, Any]]]
+Flights = Callable[[list[Flight]], list[dict[str, Any]]]
 
 
 @contextmanager
