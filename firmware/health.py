@@ -5,11 +5,12 @@ few µs), and returns the frame the controller should read: the same object whil
 wrong. The rules, with `HealthRules`' defaults at 1 kHz (docs/DESIGN.md, "Faults and the
 firmware's answers"):
 
-- Gyro sample implausible: not finite, beyond the gyro's full scale (±2000 deg/s), or a jump of
-  more than `gyro_jump` rad/s from the last good sample in one tick (no airframe accelerates that
-  fast). The sample is replaced by the last good one (a dropped or spiked sample costs one tick
-  of old data). Each implausible sample adds 1 to a score, each good one takes `recovery` off;
-  at `gyro_fail_score` the gyro has FAILED.
+- Gyro sample implausible: not finite, beyond the gyro's full scale (±2000 deg/s), or farther
+  from the last good sample than `gyro_accel_max` (5000 rad/s², no airframe accelerates that
+  fast) allows over the time between the two samples: after a late tick the vehicle has had
+  longer to turn, and judging by one tick would fail a good gyro. The sample is replaced by the
+  last good one (a dropped or spiked sample costs one tick of old data). Each implausible sample
+  adds 1 to a score, each good one takes `recovery` off; at `gyro_fail_score` the gyro has FAILED.
 - Gyro stuck: all three axes bit-identical for `gyro_stuck_ticks` ticks in which the motor
   outputs were asking for a torque (their spread above `torque_spread_us`): FAILED.
 - Gyro stale: the sample older than `gyro_max_age_s` (NN_GYRO_MAX_AGE, 10 ms: PX4's
@@ -115,6 +116,7 @@ class HealthMonitor:
         self.glitches = 0
         self._gyro_score = 0.0
         self._last_good: list[float] | None = None
+        self._last_good_t = 0  # µs, the sample time of `_last_good`
         self._held: np.ndarray | None = None
         self._stuck = 0
         self._expected: list[float] | None = None
@@ -168,6 +170,7 @@ class HealthMonitor:
         if self.gyro_failed:
             return _ZERO3
         fresh = True  # a sample with a new time (a frame without times: every sample is)
+        taken = t_us if sampled is None else sampled
         if sampled is not None:
             fault = gyro_stale(t_us, sampled, r)
             if fault is not None:
@@ -176,7 +179,8 @@ class HealthMonitor:
             fresh = self._gyro_t is None or sampled > self._gyro_t
             self._gyro_t = sampled
         last = self._last_good
-        if not gyro_plausible(g, last, r):
+        elapsed_s = max(taken - self._last_good_t, self._dt_us) * 1e-6
+        if not gyro_plausible(g, last, elapsed_s, r):
             self.glitches += 1
             self._gyro_score += 1.0
             fault = gyro_implausible(self._gyro_score, r)
@@ -197,6 +201,7 @@ class HealthMonitor:
         else:
             self._stuck = 0
         self._last_good = g
+        self._last_good_t = taken
         self._held = None
         return None
 

@@ -31,7 +31,9 @@ class HealthRules:
     pwm_min: float = field(kw_only=True)
     pwm_max: float = field(kw_only=True)
     gyro_range: float = math.radians(2000.0)  # rad/s
-    gyro_jump: float = 5.0  # rad/s in one tick (5000 rad/s² at 1 kHz)
+    # No airframe turns its rate faster (5 rad/s in a 1 kHz tick); a sample farther from the last
+    # good one than this over the time between them is implausible.
+    gyro_accel_max: float = 5000.0  # rad/s²
     gyro_fail_score: float = 20.0
     gyro_stuck_ticks: int = 50
     torque_spread_us: float = 20.0  # max − min PWM of the four motors
@@ -123,14 +125,17 @@ def gyro_stale(t_us: int, sampled_us: int, rules: HealthRules) -> Fault | None:
     return GYRO_STALE if t_us - sampled_us > rules.gyro_max_age_s * 1e6 else None
 
 
-def gyro_plausible(g: list[float], last: list[float] | None, rules: HealthRules) -> bool:
-    """Whether the sample `g` is within the gyro's full scale and within `gyro_jump` of `last`, the
-    last good sample (None: no jump to judge). NaN fails every comparison, so it is implausible."""
+def gyro_plausible(g: list[float], last: list[float] | None, elapsed_s: float, rules: HealthRules) -> bool:
+    """Whether the sample `g` is within the gyro's full scale and within `gyro_accel_max` ×
+    `elapsed_s` of `last`, the last good sample, taken `elapsed_s` earlier (None: no jump to judge).
+    The time matters: after a late tick, or samples held over, the vehicle has had longer to turn.
+    NaN fails every comparison, so it is implausible."""
     g0, g1, g2 = g
     top = rules.gyro_range
     return (abs(g0) <= top and abs(g1) <= top and abs(g2) <= top
             and (last is None
-                 or max(abs(g0 - last[0]), abs(g1 - last[1]), abs(g2 - last[2])) <= rules.gyro_jump))
+                 or max(abs(g0 - last[0]), abs(g1 - last[1]), abs(g2 - last[2]))
+                 <= rules.gyro_accel_max * elapsed_s))
 
 
 def gyro_implausible(score: float, rules: HealthRules) -> Fault | None:

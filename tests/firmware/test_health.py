@@ -252,3 +252,23 @@ def test_a_vehicle_armed_at_steady_hover_is_not_stale() -> None:
     for k in range(200, 221):
         m.check(_frame(k, [0, 0, 0], speed), moved)
     assert m.handover == "rotor speed 4 stale" and m.detected["handover"] == 220
+
+
+def test_a_late_tick_does_not_fail_a_good_gyro() -> None:
+    """A tick 80 ms late at a pitch step's onset (a loaded host): the vehicle turned further than one
+    tick allows, and the gyro is judged over the time the twin stepped through, not one tick."""
+    twin = Twin(rig="rig")
+    first = twin.reset(0, TwinState(rotor_speed=(780.0,) * 4))
+    schedule = [(0.0, (0.0, 0.0, 0.0), 0.5), (0.1, (0.0, math.radians(60.0), 0.0), 0.5)]
+    loop = FlightLoop(InProcessLink(twin), first, {"pid": load_controller("pid", airframe=IRIS)},
+                      ScriptedCommander(schedule, controller="pid"), LockstepClock(),
+                      health=HealthMonitor(IRIS_RULES))
+    t_us = 0
+    while t_us < 400_000:
+        loop.tick(t_us)
+        t_us += 1000
+        if t_us == 101_000:
+            loop._hold_outputs(80)
+            t_us += 80_000
+    assert not loop.health.detected and loop.health.glitches == 0
+    assert abs(loop.frame.gyro[1] - math.radians(60.0)) < 0.1

@@ -70,16 +70,20 @@ def test_gyro_stale_past_its_max_age() -> None:
 
 def test_gyro_plausible_within_its_range_and_jump() -> None:
     last = [0.5, -0.25, 0.25]
-    assert gyro_plausible([0.25, -0.5, 0.0], last, RULES)
-    assert gyro_plausible([30.0, 0.0, 0.0], None, RULES)  # nothing to jump from
-    assert gyro_plausible([0.5, -5.25, 0.25], last, RULES)  # a jump of exactly `gyro_jump`
-    assert not gyro_plausible([0.5, -0.25, 5.5], last, RULES)
+    tick = 0.001
+    assert gyro_plausible([0.25, -0.5, 0.0], last, tick, RULES)
+    assert gyro_plausible([30.0, 0.0, 0.0], None, tick, RULES)  # nothing to jump from
+    assert gyro_plausible([0.5, -5.25, 0.25], last, tick, RULES)  # 5000 rad/s² for one tick exactly
+    assert not gyro_plausible([0.5, -0.25, 5.5], last, tick, RULES)
+    assert gyro_plausible([0.5, -0.25, 5.5], last, 2 * tick, RULES)  # the same turn over two ticks
+    assert not gyro_plausible([40.5, -0.25, 0.25], last, 4 * tick, RULES)
     for axis in range(3):  # past full scale
-        assert not gyro_plausible([math.radians(2001.0) if a == axis else 0.0 for a in range(3)], None, RULES)
-    assert gyro_plausible([math.radians(-2000.0)] * 3, None, RULES)
+        past = [math.radians(2001.0) if a == axis else 0.0 for a in range(3)]
+        assert not gyro_plausible(past, None, tick, RULES)
+    assert gyro_plausible([math.radians(-2000.0)] * 3, None, tick, RULES)
     for bad in (math.nan, math.inf, -math.inf):
-        assert not gyro_plausible([0.1, bad, 0.3], last, RULES)
-        assert not gyro_plausible([0.1, bad, 0.3], None, RULES)
+        assert not gyro_plausible([0.1, bad, 0.3], last, tick, RULES)
+        assert not gyro_plausible([0.1, bad, 0.3], None, tick, RULES)
 
 
 def test_gyro_implausible_at_its_fail_score() -> None:
