@@ -151,16 +151,24 @@ def _teacher_stage(opts: FitOptions, pid: Path, log: Any, fly: Flights) -> dict[
 def first_teacher(admitted: list[dict[str, Any]], pid: dict[str, Any]) -> dict[str, Any]:
     """Error and Rise are lines of the bar, not scores. The slowest (smoothest) teacher within
     `ERROR_TIE` of the least Error, unless it rises later than the PID on roll or pitch (`rise_ms`,
-    means); then the fastest whose Error leaves `ERROR_ROOM` under the bar's ratio, if one does."""
+    means); then, of the faster ones whose Error leaves `ERROR_ROOM` under the bar's ratio, the
+    slowest that rises in time (the smoothest meeting both lines: its student is the likeliest to
+    keep the motor line), or the fastest where none does."""
     from fcemu.evaluation.bar import ERROR_RATIO_BAR
+
+    def in_time(f: dict[str, Any]) -> bool:
+        return all(t <= p for t, p in zip(f["rise_ms"], pid["rise_ms"], strict=True))
 
     least = min(f["error_sum"] for f in admitted)
     best = max((f for f in admitted if f["error_sum"] <= (1.0 + ERROR_TIE) * least),
                key=lambda f: f["lag_multiple"])
-    if all(t <= p for t, p in zip(best["rise_ms"], pid["rise_ms"], strict=True)):
+    if in_time(best):
         return best
     roomy = [f for f in admitted if f["lag_multiple"] < best["lag_multiple"]
              and f["error_sum"] <= (ERROR_RATIO_BAR - ERROR_ROOM) * pid["error_sum"]]
+    rising = [f for f in roomy if in_time(f)]
+    if rising:
+        return max(rising, key=lambda f: f["lag_multiple"])
     return min(roomy, key=lambda f: f["lag_multiple"]) if roomy else best
 
 

@@ -39,7 +39,11 @@ def test_the_first_teacher_is_the_smoothest_of_least_error_unless_it_rises_later
     rises = {"error_sum": 100.0, "rise_ms": [41.0, 41.0]}
     assert first_teacher(flown, rises)["lag_multiple"] == 0.35  # 0.18 ties it on Error; 0.35 rises in time
     late = {"error_sum": 100.0, "rise_ms": [40.0, 41.0]}
-    assert first_teacher(flown, late)["lag_multiple"] == 0.13  # the fastest with room under the line
+    assert first_teacher(flown, late)["lag_multiple"] == 0.18  # the slowest with room that rises in time
+    later = {"error_sum": 100.0, "rise_ms": [38.5, 41.0]}
+    assert first_teacher(flown, later)["lag_multiple"] == 0.13
+    none_in_time = {"error_sum": 100.0, "rise_ms": [37.5, 41.0]}
+    assert first_teacher(flown, none_in_time)["lag_multiple"] == 0.13  # the fastest with room under the line
     assert first_teacher(flown, {"error_sum": 90.0, "rise_ms": [40.0, 41.0]})["lag_multiple"] == 0.35
 
 
