@@ -40,6 +40,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                             "on stdout; the line saying where it listens goes to stderr")
     serve.set_defaults(handler="fcemu.sim_bridge.twin_server:serve_command")
 
+    draw = twin_sub.add_parser("draw", help="airframe files drawn from the distribution of quads one policy "
+                                             "is trained and judged across (20 g to 3 kg)")
+    draw.add_argument("--seed", type=int, default=0, help="the draw: the same seed writes the same airframes")
+    draw.add_argument("--count", type=int, default=20, help="how many airframes")
+    draw.add_argument("--out", required=True, help="the folder the airframe files are written to")
+    draw.add_argument("--json", action="store_true",
+                      help="print each airframe's drawn figures (mass, thrust-to-weight, arm, motor lag, "
+                           "delays) and its file as one JSON object on stdout")
+    draw.set_defaults(handler="fcemu.sim_bridge.airframe_draw:draw_command")
+
     demo = twin_sub.add_parser("demo", help="open-loop showcase: hover, then roll/pitch/yaw")
     demo.add_argument("--out", default="out/twin_demo.png", help="where to write the plot")
     demo.add_argument("--json", action="store_true",
