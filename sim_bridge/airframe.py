@@ -261,6 +261,12 @@ def effect_fields() -> tuple[str, ...]:
 def load_airframe(name_or_path: str | Path = DEFAULT_AIRFRAME) -> Airframe:
     """The airframe of a shipped name or a file; an `AirframeError` names the field of any problem."""
     path, raw = _read(name_or_path)
+    return airframe_of(path, raw)
+
+
+def airframe_of(path: Path, raw: dict) -> Airframe:
+    """The airframe an airframe file's JSON `raw` describes (`path` names it in an error)."""
+    raw = dict(raw)
     tune_of = raw.pop("_tune_of", None)
     check_airframe_file(path, raw)
     motors = raw["motors"]

@@ -29,9 +29,10 @@ from typing import Any
 import numpy as np
 
 from fcemu.firmware.errors import UserError
+from fcemu.sim_bridge.airframe import airframe_of
 from fcemu.sim_bridge.airframe_file import GRAVITY, QUAD_X_SIGNS
+from fcemu.sim_bridge.relative_ranges import inflow_damping, motor_torque_bound, rotor_drag_damping_yaw
 
-AIR_DENSITY = 1.225  # kg/m³, ISA sea level
 # The propeller's pitch circle stays clear of its neighbour's: adjacent rotors are √2 arms apart.
 PROP_SHARE_OF_ARM = (0.4, 0.62)
 
@@ -88,27 +89,9 @@ def draw_airframe(rng: np.random.Generator, name: str,
     ixx = mass * arm**2 * rng.uniform(*ranges.inertia_share)
     iyy = ixx * rng.uniform(0.9, 1.2)
     izz = (ixx + iyy) * rng.uniform(0.8, 1.0)
-    # Momentum theory at hover (as the Iris's file): each rotor's thrust falls by T/(2·v_h) per m/s
-    # of climb through it; rolling at Ω moves a rotor L/√2 off the axis at Ω·L/√2.
-    hover_thrust = mass * GRAVITY / 4.0
-    induced = math.sqrt(hover_thrust / (2.0 * AIR_DENSITY * math.pi * radius**2))
-    roll_damping = 4.0 * hover_thrust / (2.0 * induced) * arm**2 / 2.0
-    # The effective rotor inertia the motor's torque allows: the drag torque at full speed over the
-    # fastest spin-up the lag asks (the Iris's rotor_inertia source).
-    rotor_inertia = km * thrust_to_weight * hover_thrust / (omega_max / tau_up)
     half = arm / math.sqrt(2.0)
     spins = ("cw", "ccw", "ccw", "cw")
-    effects = {
-        "rate_damping_N_m_s_rad": [roll_damping, roll_damping, 0.25 * roll_damping],
-        "rotor_inertia_kg_m2": rotor_inertia,
-        "esc_delay_ticks": int(rng.integers(ranges.esc_delay_ticks[0], ranges.esc_delay_ticks[1] + 1)),
-        "gyro_delay_ticks": int(rng.integers(ranges.gyro_delay_ticks[0], ranges.gyro_delay_ticks[1] + 1)),
-        "gyro_noise_std_rad_s": float(rng.uniform(*ranges.gyro_noise_std_rad_s)),
-        "esc_telemetry_delay_ticks": int(rng.integers(ranges.esc_telemetry_delay_ticks[0],
-                                                      ranges.esc_telemetry_delay_ticks[1] + 1)),
-        "esc_telemetry_loss_fraction": float(rng.uniform(*ranges.esc_telemetry_loss)),
-    }
-    return {
+    raw = {
         "name": name,
         "source": (f"Drawn by `sim_bridge.airframe_draw` (mass {mass:.3g} kg, thrust-to-weight "
                    f"{thrust_to_weight:.3g}, arm {arm * 1000:.0f} mm, motor lag {tau_up * 1000:.0f} ms): "
@@ -127,9 +110,23 @@ def draw_airframe(rng: np.random.Generator, name: str,
                   "pwm_min_us": 1000, "pwm_max_us": 2000, "poles": 14},
         "landing_gear_half_height_m": 0.125 * arm,
         "sources": _SOURCES,
-        "effects": {key: {"value": value, "source": "drawn (sim_bridge.airframe_draw)"}
-                    for key, value in effects.items()},
     }
+    # The airframe's own effects by the estimates the relative ranges scale to any airframe (the
+    # Iris's file's sources), then the flight controller's, drawn.
+    airframe = airframe_of(Path(f"{name}.json"), raw)
+    effects = {
+        "rate_damping_N_m_s_rad": [inflow_damping(airframe, 0), inflow_damping(airframe, 1),
+                                   rotor_drag_damping_yaw(airframe)],
+        "rotor_inertia_kg_m2": motor_torque_bound(airframe),
+        "esc_delay_ticks": int(rng.integers(ranges.esc_delay_ticks[0], ranges.esc_delay_ticks[1] + 1)),
+        "gyro_delay_ticks": int(rng.integers(ranges.gyro_delay_ticks[0], ranges.gyro_delay_ticks[1] + 1)),
+        "gyro_noise_std_rad_s": float(rng.uniform(*ranges.gyro_noise_std_rad_s)),
+        "esc_telemetry_delay_ticks": int(rng.integers(ranges.esc_telemetry_delay_ticks[0],
+                                                      ranges.esc_telemetry_delay_ticks[1] + 1)),
+        "esc_telemetry_loss_fraction": float(rng.uniform(*ranges.esc_telemetry_loss)),
+    }
+    source = {key: _EFFECT_SOURCES.get(key, "Drawn over the range.") for key in effects}
+    return {**raw, "effects": {key: {"value": v, "source": source[key]} for key, v in effects.items()}}
 
 
 def draw_airframes(seed: int, count: int, ranges: AirframeRanges = AirframeRanges()) -> list[dict[str, Any]]:
@@ -184,4 +181,9 @@ _SOURCES = {
     "motor.moment_constant_m": "The radius × a drawn drag-to-thrust share.",
     "motor.time_constant_up_s": "Drawn log-uniform over the range.",
     "motor.time_constant_down_s": "1-1.6 × the spin-up lag.",
+}
+_EFFECT_SOURCES = {
+    "rate_damping_N_m_s_rad": "Roll and pitch: rotor inflow by momentum theory; yaw: PX4's Iris rotor drag "
+                              "scaled by the radius cubed (sim_bridge.relative_ranges).",
+    "rotor_inertia_kg_m2": "What the motor's torque lets its lag spin up (sim_bridge.relative_ranges).",
 }
