@@ -50,7 +50,8 @@ class AirframeRanges:
     tip_speed_m_s: tuple[float, float] = (50.0, 215.0)  # the propeller's tip at full speed
     drag_to_thrust_per_radius: tuple[float, float] = (0.04, 1.1)  # k_M / r, log-uniform
     inertia_share: tuple[float, float] = (0.08, 0.4)  # I_xx / (m · arm²)
-    # The sensor effects, as iris_sensors.randomization.json draws them.
+    # The sensor effects, as iris_sensors.randomization.json draws them; the ESC delay also at
+    # Betaflight's 1 tick (iris_realistic.json) where that file holds it at 2.
     esc_delay_ticks: tuple[int, int] = (1, 2)
     gyro_delay_ticks: tuple[int, int] = (0, 3)
     gyro_noise_std_rad_s: tuple[float, float] = (0.0, 0.0214)
