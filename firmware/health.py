@@ -7,7 +7,7 @@ firmware's answers"):
 
 - Gyro sample implausible: not finite, beyond the gyro's full scale (±2000 deg/s), or farther
   from the last good sample than `gyro_accel_max` (5000 rad/s², no airframe accelerates that
-  fast) allows over the time between the two samples: after a late tick the vehicle has had
+  fast) allows over the time since the last frame's sample: after a late tick the vehicle has had
   longer to turn, and judging by one tick would fail a good gyro. The sample is replaced by the
   last good one (a dropped or spiked sample costs one tick of old data). Each implausible sample
   adds 1 to a score, each good one takes `recovery` off; at `gyro_fail_score` the gyro has FAILED.
@@ -116,7 +116,7 @@ class HealthMonitor:
         self.glitches = 0
         self._gyro_score = 0.0
         self._last_good: list[float] | None = None
-        self._last_good_t = 0  # µs, the sample time of `_last_good`
+        self._taken_us: int | None = None  # the last frame's gyro sample time
         self._held: np.ndarray | None = None
         self._stuck = 0
         self._expected: list[float] | None = None
@@ -179,7 +179,10 @@ class HealthMonitor:
             fresh = self._gyro_t is None or sampled > self._gyro_t
             self._gyro_t = sampled
         last = self._last_good
-        elapsed_s = max(taken - self._last_good_t, self._dt_us) * 1e-6
+        # The time since the last frame's sample, not since the last good one: a held run of bad
+        # samples earns no room, or garbage would in time be taken for a turn.
+        elapsed_s = max(taken - (taken if self._taken_us is None else self._taken_us), self._dt_us) * 1e-6
+        self._taken_us = taken
         if not gyro_plausible(g, last, elapsed_s, r):
             self.glitches += 1
             self._gyro_score += 1.0
@@ -201,7 +204,6 @@ class HealthMonitor:
         else:
             self._stuck = 0
         self._last_good = g
-        self._last_good_t = taken
         self._held = None
         return None
 

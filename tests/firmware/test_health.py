@@ -272,3 +272,14 @@ def test_a_late_tick_does_not_fail_a_good_gyro() -> None:
             t_us += 80_000
     assert not loop.health.detected and loop.health.glitches == 0
     assert abs(loop.frame.gyro[1] - math.radians(60.0)) < 0.1
+
+
+def test_a_garbage_gyro_earns_no_room_while_its_samples_are_held() -> None:
+    """Uniform garbage over the full scale: each sample judged over one tick from the last good one,
+    so it fails in about 20 ticks; room grown over the held run would take garbage for a turn."""
+    top = math.radians(2000.0)
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        m = HealthMonitor(IRIS_RULES)
+        _run(m, 200, lambda k, g, s, p, rng=rng: (list(rng.uniform(-top, top, 3)) if k >= 100 else g, s, p))
+        assert m.failsafe == "gyro implausible" and m.detected["gyro_failed"] - 1 - 100 <= 22
