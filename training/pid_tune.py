@@ -65,7 +65,7 @@ from fcemu.training.pid_search import (
 )
 from fcemu.training.tune_options import TuneOptions
 
-COST_VERSION = "fcemu-pid-tune/3"
+COST_VERSION = "fcemu-pid-tune/4"
 SMOOTHNESS_CAP = 1.2  # motor |Δpwm| on the noisy gyro, at most this × the noise allowance
 # The allowance is the start's roughness on the noisy gyro, but never below the reference tune's on its
 # own airframe: a motor command is |Δpwm| in µs whatever the airframe, and the reference tune flies real
@@ -148,12 +148,16 @@ def cost(s: Score, ref: Score, noisy: bool, floor_us: float = 0.0) -> float:
     SETTLE_MARGIN_PCT of |e0| (Success's line is 10 %: a margin for commands not tuned on)
     + 0.25·smoothness/allowance; on the noisy gyro + 100 per unit of that ratio above
     SMOOTHNESS_CAP (a wall: no step response is bought with motor noise). The allowance is the
-    start's smoothness, on the noisy gyro at least `floor_us` (the reference tune's). Infinite if
-    an axis never rises."""
-    if not np.all(np.isfinite(s.error)) or np.any(s.not_risen > 0) or not math.isfinite(s.smoothness):
+    start's smoothness, on the noisy gyro at least `floor_us` (the reference tune's). Infinite where
+    an axis leaves more commands never risen than the start did: the start's own are commands
+    physics may forbid (`settle_limits`: a yaw whose motors cannot turn it that fast), and were
+    they a wall, every candidate would hit it and the search could not move."""
+    if (not np.all(np.isfinite(s.error)) or np.any(s.not_risen > ref.not_risen)
+            or not math.isfinite(s.smoothness)):
         return float("inf")
     error = 3.0 * s.error.sum() / ref.error.sum()
-    rise = 0.5 * float(np.sum(s.rise_ms / ref.rise_ms))
+    both_rose = np.isfinite(s.rise_ms) & np.isfinite(ref.rise_ms)  # an axis on which no command rose: 1
+    rise = 0.5 * float(np.sum(np.where(both_rose, s.rise_ms / np.where(both_rose, ref.rise_ms, 1.0), 1.0)))
     overshoot = 0.05 * float(np.sum(np.maximum(s.peak_pct - np.maximum(ref.peak_pct, 110.0), 0.0)))
     failed = float(np.sum(100.0 - s.success_pct)) / 5.0
     failed += 0.1 * float(np.sum(np.maximum(s.worst_settle_pct - SETTLE_MARGIN_PCT, 0.0)))

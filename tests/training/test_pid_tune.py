@@ -1,4 +1,5 @@
 import json
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -102,6 +103,15 @@ def test_cost_rewards_error_and_caps_motor_roughness_on_the_noisy_gyro():
     never = Score(ref.error, ref.rise_ms, ref.peak_pct, ref.success_pct, np.array([0, 1, 0]), 2.0,
                   ref.worst_settle_pct)
     assert cost(never, ref, False) == float("inf")
+    # A start that never rises on some commands (physics may forbid them) is no wall: a candidate that
+    # leaves no more of them is scored, one that leaves more is not.
+    assert math.isfinite(cost(never, never, False)) and cost(ref, never, False) <= cost(never, never, False)
+    worse = Score(ref.error, ref.rise_ms, ref.peak_pct, ref.success_pct, np.array([0, 2, 0]), 2.0,
+                  ref.worst_settle_pct)
+    assert cost(worse, never, False) == float("inf")
+    nothing = Score(ref.error, np.array([40.0, np.nan, 40.0]), ref.peak_pct, ref.success_pct,
+                    np.array([0, 50, 0]), 2.0, ref.worst_settle_pct)
+    assert math.isfinite(cost(nothing, nothing, False))  # an axis on which no command rose
 
 
 def test_a_small_tune_writes_a_preset_the_firmware_flies_and_beats_its_start(tmp_path, capsys, monkeypatch):
