@@ -50,9 +50,10 @@ def student_kind(airframe: Any) -> str:
     return "sensed" if airframe.gyro_effects or airframe.telemetry_effects else "exact"
 
 
-def tuning_flight(opts: FitOptions, spec: str, controller: Any = None, fallback: str | None = None) -> Any:
+def tuning_flight(opts: FitOptions, spec: str, controller: Any = None, fallback: str | None = None,
+                  as_given: bool = False) -> Any:
     """`spec` (or the `controller` object) flown on the teacher stage's tuning commands (seed S) on
-    the nominal twin: its `EvalMetrics`."""
+    the nominal twin (`as_given`: on the airframe with its effects on): its `EvalMetrics`."""
     from dataclasses import replace
 
     from fcemu.evaluation.metrics import compute_metrics
@@ -62,8 +63,9 @@ def tuning_flight(opts: FitOptions, spec: str, controller: Any = None, fallback:
 
     cfg = EvalConfig(episodes=min(SPEED_COMMANDS, opts.episodes), seed=opts.seed, airframe=opts.airframe)
     cfg = replace(cfg, fallback=fallback) if fallback else cfg
+    airframe = load_airframe(opts.airframe)
     return compute_metrics(run_controller(spec, cfg, progress=False, controller=controller,
-                                          airframe=nominal(load_airframe(opts.airframe))))
+                                          airframe=airframe if as_given else nominal(airframe)))
 
 
 def flown_figures(m: Any) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from fcemu.sim_bridge.airframe import AIRFRAME_DIR
 from fcemu.sim_bridge.airframe_spec import airframe_spec
 from fcemu.sitl.sitl import build_sitl
 from fcemu.training.distill_teacher import DistillError, make_teacher
-from fcemu.training.fit import STUDENT_MOTOR_MARGIN, taught_student
+from fcemu.training.fit import STUDENT_MOTOR_MARGIN, student_smoothness, taught_student
 from fcemu.training.fit_options import FitOptions, shipped_pid
 from fcemu.training.fit_report import command_line
 from fcemu.training.fit_teacher import (
@@ -228,6 +228,20 @@ def test_a_student_rougher_than_the_bar_is_taught_again_by_the_next_slower_teach
     assert student["teacher"] == "inversion:0.5" and taught["order"] == [0.35, 0.5]
     assert speed == {"lag_multiple": 0.35, "order": [0.35, 0.5], "pid_smoothness": 1e-6}  # as given
     assert "the next slower teacher" in lines[0] and "next slower" not in lines[1]
+
+
+def test_a_student_of_sensors_is_judged_against_the_pid_on_its_own_twin(tmp_path):
+    """Where the sensors are not the truth, the PID's roughness the student is held to is the PID's on
+    the airframe as the check flies it (noise on), not the nominal twin's the speed stage measured."""
+    out = tmp_path / "fit"
+    out.mkdir()
+    (out / "pid.json").write_text(json.dumps(load_controller("pid:iris").to_dict()))
+    opts = FitOptions(airframe="iris_realistic", out=str(out), seed=5, episodes=2, rounds=1, steps=40, envs=4,
+                      fit_steps=20, net_arch=(8,), jobs=1, mcu=False, progress=False)
+    speed = {"lag_multiple": 0.5, "order": [0.5], "pid_smoothness": 1e-6}  # as if nothing could pass
+    taught = taught_student(opts, speed, out, lambda _line: None)["speed"]["tried"]
+    on_its_twin = student_smoothness(opts, f"pid:{out / 'pid.json'}", out / "pid.json", True)
+    assert taught[0]["pid_smoothness"] == on_its_twin > 1.0
 
 
 def test_fit_takes_the_pid_fcemu_tune_wrote_for_the_airframe_in_its_folder(tmp_path: Path,
