@@ -32,7 +32,7 @@ class HealthRules:
     pwm_max: float = field(kw_only=True)
     gyro_range: float = math.radians(2000.0)  # rad/s
     # No airframe turns its rate faster (5 rad/s in a 1 kHz tick); a sample farther from the last
-    # good one than this over the time between them is implausible.
+    # good one than this allows over the time since the previous frame's sample is implausible.
     gyro_accel_max: float = 5000.0  # rad/s²
     gyro_fail_score: float = 20.0
     gyro_stuck_ticks: int = 50
@@ -127,9 +127,9 @@ def gyro_stale(t_us: int, sampled_us: int, rules: HealthRules) -> Fault | None:
 
 def gyro_plausible(g: list[float], last: list[float] | None, elapsed_s: float, rules: HealthRules) -> bool:
     """Whether the sample `g` is within the gyro's full scale and within `gyro_accel_max` ×
-    `elapsed_s` of `last`, the last good sample, taken `elapsed_s` earlier (None: no jump to judge).
-    The time matters: after a late tick, or samples held over, the vehicle has had longer to turn.
-    NaN fails every comparison, so it is implausible."""
+    `elapsed_s` of `last`, the last good sample (None: no jump to judge); `elapsed_s` is the time
+    since the previous frame's sample: after a late tick the vehicle has had longer to turn, while a
+    held run of bad samples earns no room. NaN fails every comparison, so it is implausible."""
     g0, g1, g2 = g
     top = rules.gyro_range
     return (abs(g0) <= top and abs(g1) <= top and abs(g2) <= top
