@@ -138,16 +138,11 @@ def draw_airframes(seed: int, count: int, ranges: AirframeRanges = AirframeRange
 
 def figures(raw: dict[str, Any]) -> dict[str, Any]:
     """What a drawn file is, in the ranges' terms: mass, thrust-to-weight, arm, motor lags, delays."""
-    motor, effects = raw["motor"], raw["effects"]
-    mass = raw["base_mass_kg"] + 4 * raw["rotor_mass_kg"]
-    x, y, _ = raw["motors"][0]["position_m"]
-    return {"name": raw["name"], "mass_kg": round(mass, 4),
-            "thrust_to_weight": round(4 * motor["thrust_coefficient_N_per_rad_s2"]
-                                      * motor["max_rotor_speed_rad_s"] ** 2 / (mass * GRAVITY), 3),
-            "arm_m": round(math.hypot(x, y), 4), "motor_tau_up_s": round(motor["time_constant_up_s"], 4),
-            "motor_tau_down_s": round(motor["time_constant_down_s"], 4),
-            "esc_delay_ticks": effects["esc_delay_ticks"]["value"],
-            "gyro_delay_ticks": effects["gyro_delay_ticks"]["value"]}
+    a = airframe_of(Path(f"{raw['name']}.json"), raw)
+    return {"name": a.name, "mass_kg": round(a.mass, 4), "thrust_to_weight": round(a.thrust_to_weight(), 3),
+            "arm_m": round(float(np.hypot(*a.rotor_positions[0, :2])), 4),
+            "motor_tau_up_s": round(a.motor.tau_up, 4), "motor_tau_down_s": round(a.motor.tau_down, 4),
+            "esc_delay_ticks": a.esc_delay_ticks, "gyro_delay_ticks": a.gyro_delay_ticks}
 
 
 def draw_command(args: Any) -> int:

@@ -157,7 +157,7 @@ def cost(s: Score, ref: Score, noisy: bool, floor_us: float = 0.0) -> float:
         return float("inf")
     error = 3.0 * s.error.sum() / ref.error.sum()
     both_rose = np.isfinite(s.rise_ms) & np.isfinite(ref.rise_ms)  # an axis on which no command rose: 1
-    rise = 0.5 * float(np.sum(np.where(both_rose, s.rise_ms / np.where(both_rose, ref.rise_ms, 1.0), 1.0)))
+    rise = 0.5 * float(np.sum(np.where(both_rose, s.rise_ms / ref.rise_ms, 1.0)))
     overshoot = 0.05 * float(np.sum(np.maximum(s.peak_pct - np.maximum(ref.peak_pct, 110.0), 0.0)))
     failed = float(np.sum(100.0 - s.success_pct)) / 5.0
     failed += 0.1 * float(np.sum(np.maximum(s.worst_settle_pct - SETTLE_MARGIN_PCT, 0.0)))
