@@ -43,6 +43,7 @@ class AirframeSpec:
     motor_tau_down: float  # s
     tune_of: str | None = None  # whose PID tune it flies (a variant of the same physics: its base's)
     props_out: bool = False  # motor 1 spins counter-clockwise: the mixer's yaw reversed (Betaflight's)
+    loop_delay_ticks: int = 0  # ticks of the ESC protocol's and gyro filters' delays (Airframe's)
 
     def scale(self, key: str) -> float | tuple[float, ...]:
         return getattr(self, key)

@@ -37,7 +37,8 @@ LEGACY_SCALE_TOLERANCE = 0.01
 # Actions are in [-1, 1] and clipped there; a model answering ordinary observations with
 # outputs beyond this bound was not trained for this action space.
 OUTPUT_LIMIT = 100.0
-_SPEC_KEYS = {"memory", "rate_scale", "rotor_speed_scale", "fields", "version", *LEAKS}
+MAX_LOOP_DELAY_TICKS = 5  # the longest loop the randomisation ranges draw (ESC 2 + gyro 3): the probes' span
+_SPEC_KEYS = {"memory", "rate_scale", "rotor_speed_scale", "fields", "version", "loop_delay_scale", *LEAKS}
 # The PID a policy was fitted against (`fcemu fit`: pid.json), a path relative to the policy file, so
 # that the folder can be moved: what it hands over to unless --fallback names another.
 FALLBACK_META = "fallback"
@@ -129,7 +130,8 @@ class PolicyContract:
         error = rng.uniform(-RATE_BOUND, RATE_BOUND, (n, 3))
         error[0] = 0.0
         rotor = rng.uniform(0.0, 1.0 / self.observation.rotor_speed_scale, (n, 4))
-        step = observe_step(self.observation, error, np.zeros((n, 3)), rotor)
+        delay = rng.integers(0, MAX_LOOP_DELAY_TICKS + 1, n).astype(float)
+        step = observe_step(self.observation, error, np.zeros((n, 3)), rotor, loop_delay=delay)
         return np.tile(step, (1, self.observation.memory)).astype(np.float32)
 
     def check_outputs(self, actions: np.ndarray, where: str = "policy") -> None:
@@ -225,9 +227,13 @@ def _observation(text: str, where: str, top_rotor_speed: float | None) -> Observ
         if not _finite(leak) or not 0.0 <= leak < 1.0:
             raise PolicyContractError(f"{where}: observation {key} {_short(leak)} is not in [0, 1)")
         leaks[key] = float(leak)
+    delay_scale = raw.get("loop_delay_scale", _DEFAULTS["loop_delay_scale"])
+    if not _finite(delay_scale) or not 0.0 < delay_scale <= 1.0:
+        raise PolicyContractError(f"{where}: observation loop_delay_scale {_short(delay_scale)} "
+                                  "is not in (0, 1]")
     return ObservationSpec(memory=memory, rate_scale=float(raw.get("rate_scale", _DEFAULTS["rate_scale"])),
-                           rotor_speed_scale=float(raw["rotor_speed_scale"]),
-                           fields=tuple(fields), version=version, **leaks)
+                           rotor_speed_scale=float(raw["rotor_speed_scale"]), fields=tuple(fields),
+                           version=version, loop_delay_scale=float(delay_scale), **leaks)
 
 
 def _loop_rate(text: str, where: str) -> float:

@@ -76,6 +76,8 @@ class NeuralRateController:
         if airframe is not None:
             self.contract.check_airframe(airframe, str(self.path))
         self.spec, self.action_mapping = self.contract.observation, self.contract.action_mapping
+        # a `loop_delay` field's ticks: the airframe's configured delays (none given: 0, a nominal twin's)
+        self.loop_delay = float(airframe.loop_delay_ticks) if airframe is not None else 0.0
         self.trained_rate_hz = self.contract.loop_rate_hz
         self._input_name = self._session.get_inputs()[0].name
         self._output_name = self._session.get_outputs()[0].name
@@ -123,7 +125,7 @@ class NeuralRateController:
 
     def update(self, setpoint: RateSetpoint, frame: SensorFrame, dt: float) -> np.ndarray:
         observe_step(self.spec, setpoint.rates, frame.gyro, frame.rotor_speed, out=self._step_values,
-                     motor_output=self._motor_output)
+                     motor_output=self._motor_output, loop_delay=self.loop_delay)
         if not all(map(math.isfinite, self._step_values.tolist())):  # the step holds every input read
             raise PolicyOutputError("non-finite sensor frame or setpoint; the policy was not run")
         if self._fresh:

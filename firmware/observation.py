@@ -12,6 +12,10 @@ sees less than a period, and the integral averages an oscillation to zero; a pol
 with it softens its steps instead of oscillating. Optional field `rate` (3): the gyro's body
 rates Ω themselves, scaled as the error; the error alone hides where the rates are, and so
 the body's gyroscopic torque Ω × IΩ.
+Optional field `loop_delay` (1): the loop's delay in ticks beyond the sample's own (the ESC
+protocol's and the gyro filters' delays a flight controller is configured with; `AirframeSpec.
+loop_delay_ticks`), times `loop_delay_scale`: the same in every step of a flight, it is what lets one
+network lower its gain where the loop is long, which a 16-step history does not show.
 Optional field `motor_output` (4): the motor outputs u = (PWM − 1000) / 1000 the
 controller commanded on the previous tick. A penalty on |Δu| in the reward depends on them,
 and the rotor speeds show them only through the motors' lag; at a start there is no previous tick, and u is
@@ -40,6 +44,7 @@ import numpy as np
 OBS_VERSION = 1
 DEFAULT_LEAK = 0.995  # λ per step: τ = 200 steps (0.2 s at 1 kHz)
 DEFAULT_RMS_LEAK = 0.98  # μ per step: τ = 50 steps, one period at 20 Hz
+DEFAULT_LOOP_DELAY_SCALE = 0.2  # ticks -> 0..1 over the 0-5 ticks of the randomisation ranges
 RATE_ERROR = "rate_error"
 ROTOR_SPEED = "rotor_speed"
 FIELDS = (RATE_ERROR, ROTOR_SPEED)  # the default; the shipped policy's spec
@@ -47,11 +52,12 @@ INTEGRAL = "rate_error_integral"
 RMS = "rate_error_rms"
 MOTOR_OUTPUT = "motor_output"
 RATE = "rate"
+LOOP_DELAY = "loop_delay"
 # The signals a field can read, as columns of one source vector: the rate error
 # setpoint − gyro (rad/s, FRD), the rotor speeds (rad/s, motor order), the gyro (rad/s,
-# FRD), the previous tick's motor outputs (0..1, motor order).
+# FRD), the previous tick's motor outputs (0..1, motor order), the loop's configured delay (ticks).
 SOURCE_COLUMNS = {"rate_error": (0, 1, 2), "rotor_speed": (3, 4, 5, 6), "gyro": (7, 8, 9),
-                  "motor_output": (10, 11, 12, 13)}
+                  "motor_output": (10, 11, 12, 13), "loop_delay": (14,)}
 
 _FLOAT64 = np.dtype(np.float64)
 
@@ -85,8 +91,11 @@ FIELD_DEFS: dict[str, FieldDef] = {
     RMS: FieldDef("rate_error", "rate_scale", leak="rms_leak", rms=True),
     MOTOR_OUTPUT: FieldDef("motor_output", None),
     RATE: FieldDef("gyro", "rate_scale"),
+    LOOP_DELAY: FieldDef("loop_delay", "loop_delay_scale"),
 }
 LEAKS = frozenset(d.leak for d in FIELD_DEFS.values() if d.leak)  # the spec's λ attributes
+# Spec attributes only some fields use: a spec serialises them only with their fields (older readers).
+OPTIONAL_ATTRIBUTES = LEAKS | {"loop_delay_scale"}
 
 
 @dataclass(frozen=True)
@@ -100,6 +109,7 @@ class ObservationSpec:
     version: int = OBS_VERSION
     integral_leak: float = DEFAULT_LEAK  # only with INTEGRAL
     rms_leak: float = DEFAULT_RMS_LEAK  # only with RMS
+    loop_delay_scale: float = DEFAULT_LOOP_DELAY_SCALE  # only with LOOP_DELAY
     max_rotor_speed: InitVar[float | None] = None  # rad/s: sets rotor_speed_scale = 1 / it
 
     def __post_init__(self, max_rotor_speed: float | None) -> None:
@@ -166,15 +176,19 @@ class ObservationSpec:
         return any(d.source == "motor_output" for _, d, _ in self.layout)
 
     @cached_property
+    def reads_loop_delay(self) -> bool:
+        return LOOP_DELAY in self.fields
+
+    @cached_property
     def integrators(self) -> tuple[tuple[slice, float, bool], ...]:
         """Per integrated field in order: its columns within one step, its λ, whether RMS."""
         return tuple((cols, float(getattr(self, d.leak)), d.rms) for cols, d, _ in self.layout if d.leak)
 
     def to_json(self) -> str:
         raw = asdict(self)
-        used = {FIELD_DEFS[f].leak for f in self.fields}
-        for leak in LEAKS - used:  # a spec serialises only the leaks of its fields (older readers)
-            del raw[leak]
+        used = {a for f in self.fields for a in (FIELD_DEFS[f].leak, FIELD_DEFS[f].scale)}
+        for attribute in OPTIONAL_ATTRIBUTES - used:
+            del raw[attribute]
         return json.dumps(raw, sort_keys=True)
 
     @classmethod
@@ -191,12 +205,15 @@ def start_motor_output(spec: ObservationSpec, rotor_speed: np.ndarray) -> np.nda
 
 def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
                  rotor_speed: np.ndarray, out: np.ndarray | None = None,
-                 motor_output: np.ndarray | None = None) -> np.ndarray:
+                 motor_output: np.ndarray | None = None,
+                 loop_delay: float | np.ndarray | None = None) -> np.ndarray:
     """One step's features, (..., step_size) float32, into `out` if given (any shape that
     holds them, e.g. a batch of one): each field's source times its scale, in the inputs'
     precision. An integrated field holds the integrator's input, the scaled error;
     `ObservationHistory` integrates it. `motor_output` is the previous tick's u (0..1),
-    read only by a spec with that field; None at a start (`start_motor_output`).
+    read only by a spec with that field; None at a start (`start_motor_output`). `loop_delay`:
+    the loop's configured delay in ticks (a float, or one per batch row), which a spec with that
+    field needs.
 
     One float64 vehicle runs on plain floats, column by column from the flattened table
     (numpy's per-call overhead on 3-vectors would cost more than the model each tick);
@@ -204,12 +221,16 @@ def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
     """
     if spec.reads_motor_output and motor_output is None:
         motor_output = start_motor_output(spec, rotor_speed)
+    if spec.reads_loop_delay and loop_delay is None:
+        raise ValueError("this observation reads the loop's delay: give loop_delay (ticks)")
     # `is`: numpy's float64 descriptor is one object; an equal one that is not takes the array path.
     if setpoint.dtype is gyro.dtype is rotor_speed.dtype is _FLOAT64 and setpoint.ndim == gyro.ndim == 1:
         s, g = setpoint.tolist(), gyro.tolist()
         sources = [s[0] - g[0], s[1] - g[1], s[2] - g[2], *rotor_speed.tolist(), *g]
         if motor_output is not None:
             sources += np.asarray(motor_output, dtype=np.float64).tolist()
+        if spec.reads_loop_delay:
+            sources += [0.0] * (SOURCE_COLUMNS["loop_delay"][0] - len(sources)) + [float(loop_delay)]
         values = list(map(mul, spec._pick_sources(sources), spec.column_scales))  # loops in C
         if out is None:
             return np.array(values, dtype=np.float32)
@@ -217,6 +238,9 @@ def observe_step(spec: ObservationSpec, setpoint: np.ndarray, gyro: np.ndarray,
         return out
     sources = {"rate_error": np.subtract(setpoint, gyro), "rotor_speed": rotor_speed, "gyro": gyro,
                "motor_output": motor_output}
+    if spec.reads_loop_delay:
+        delay = np.asarray(loop_delay, dtype=np.float64)[..., None]
+        sources["loop_delay"] = np.broadcast_to(delay, (*np.shape(setpoint)[:-1], 1))
     values = np.concatenate([sources[d.source] * scale for _, d, scale in spec.layout], axis=-1)
     if out is None:
         return values.astype(np.float32)

@@ -103,6 +103,12 @@ class Airframe:
         return bool(self.gyro_noise_std or any(self.gyro_vibration) or self.gyro_delay_ticks)
 
     @property
+    def loop_delay_ticks(self) -> int:
+        """Ticks from a motor command to the gyro reading that shows it, beyond the sample's own:
+        the ESC protocol's and the gyro filters' delays, which a flight controller is configured with."""
+        return self.esc_delay_ticks + self.gyro_delay_ticks
+
+    @property
     def telemetry_effects(self) -> bool:
         return bool(self.esc_telemetry_delay_ticks or self.esc_telemetry_loss)
 

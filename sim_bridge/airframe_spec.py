@@ -23,7 +23,7 @@ def airframe_spec(airframe: Airframe | str) -> AirframeSpec:
                         thrust_to_weight=af.thrust_to_weight(GRAVITY),
                         max_angular_acceleration=tuple(map(float, af.max_angular_acceleration(GRAVITY))),
                         motor_tau_up=m.tau_up, motor_tau_down=m.tau_down, tune_of=af.tune_of or af.name,
-                        props_out=bool(af.spin[0] > 0))
+                        props_out=bool(af.spin[0] > 0), loop_delay_ticks=af.loop_delay_ticks)
 
 
 def randomization_corners(ranges: Randomization, base: Airframe) -> list[Airframe]:

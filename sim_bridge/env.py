@@ -118,6 +118,8 @@ class RateTask:
         self._relative = bool(cfg.relative_error)
         self._step_size = np.zeros((*batch_shape, 3))
         self._command = np.zeros((*batch_shape, 3))
+        # each copy's loop delay as its firmware is configured with it (ticks): the `loop_delay` field
+        self.loop_delay = np.full(batch_shape, float(cfg.base_airframe.loop_delay_ticks))
 
     def pwm(self, action: np.ndarray, throttle: np.ndarray | float) -> np.ndarray:
         return action_to_pwm(self.config.action_mapping, np.asarray(action, dtype=np.float32), throttle)
@@ -133,9 +135,11 @@ class RateTask:
         self._held_setpoint[at] = setpoint
         if self._relative:
             self._command[at], self._step_size[at] = setpoint, np.abs(setpoint - gyro)
+        delay = self.loop_delay if rows is None else self.loop_delay[rows]
         if self.on_time is not None:
-            self._start(self.on_time, observe_step(self.spec, setpoint, *on_time), rows)
-        return self._start(self.history, observe_step(self.spec, setpoint, gyro, rotor_speed), rows)
+            self._start(self.on_time, observe_step(self.spec, setpoint, *on_time, loop_delay=delay), rows)
+        step = observe_step(self.spec, setpoint, gyro, rotor_speed, loop_delay=delay)
+        return self._start(self.history, step, rows)
 
     def _start(self, history: ObservationHistory, step: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
         if rows is None:
@@ -179,9 +183,11 @@ class RateTask:
         reward, terms = self.reward(setpoint, rate, u, self._previous_u, self._settled(setpoint),
                                     self._command_step(setpoint, rate))
         self._previous_u = u
-        obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed, motor_output=u))
+        obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed, motor_output=u,
+                                             loop_delay=self.loop_delay))
         if self.on_time is not None:
-            self.on_time.push(observe_step(self.spec, setpoint, *on_time, motor_output=u))
+            self.on_time.push(observe_step(self.spec, setpoint, *on_time, motor_output=u,
+                                           loop_delay=self.loop_delay))
         return obs, reward, {"setpoint": setpoint, "rate": rate, "gyro": gyro, "pwm": pwm, **terms}
 
 
@@ -257,6 +263,7 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _set_twin(self, airframe: Airframe) -> None:
         self._twin = Twin(airframe, "rig", self.config.episode_noise(airframe), self.config.dt)
+        self._task.loop_delay[...] = airframe.loop_delay_ticks
 
     def _rate(self, gyro: np.ndarray) -> np.ndarray:
         """The rate the reward judges: the gyro's reading without vibration, noise or delay."""

@@ -110,7 +110,7 @@ class EnvConfig:
     obs_fields: tuple[str, ...] = env_option(
         FIELDS, "firmware.observation fields, e.g. + rate_error_integral",
         excluded="each command builds it from its own flags: train's --integral, --error-rms, "
-                 "--motor-output; distill's --fields")
+                 "--motor-output, --loop-delay; distill's --fields")
     reward: str = env_option("paper", "paper: −clip(Σ|e|/(3·Ω_max), 0, 1); unclipped: the same without "
                                       "the clip", cli=str, choices=REWARDS)
     axis_weights: tuple[float, float, float] = env_option(

@@ -207,6 +207,7 @@ class BatchedRateEnv(VectorEnv):
         if self.config.draws_gyro_noise:
             self._gyro_std[i] = airframe.gyro_noise_std
         self._fx.set_row(i, airframe)
+        self._task.loop_delay[i] = airframe.loop_delay_ticks
         if not self._per_model:
             return
         model = mujoco.MjModel.from_xml_string(build_mjcf(airframe, "rig", self.config.dt))

@@ -141,6 +141,9 @@ class TrainConfig:
                                        "(motor_output): what --action-rate-penalty's |Δu| depends on")
     rate: bool = option(False, "add the gyro's body rates to the observation (rate): what the body's "
                                "gyroscopic torque depends on")
+    loop_delay: bool = option(False, "add the loop's configured delay to the observation (loop_delay: "
+                                     "the ESC's and the gyro filters' ticks): what lets the gain fall "
+                                     "where the loop is long")
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")
     envs: int | None = option(None, "parallel twins (default: per algorithm)")
@@ -260,10 +263,11 @@ class TrainConfig:
 
     @property
     def obs_fields(self) -> tuple[str, ...]:
-        from fcemu.firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, RATE, RMS
+        from fcemu.firmware.observation import FIELDS, INTEGRAL, LOOP_DELAY, MOTOR_OUTPUT, RATE, RMS
 
         return (*FIELDS, *((INTEGRAL,) if self.integral else ()), *((RMS,) if self.error_rms else ()),
-                *((MOTOR_OUTPUT,) if self.motor_output else ()), *((RATE,) if self.rate else ()))
+                *((MOTOR_OUTPUT,) if self.motor_output else ()), *((RATE,) if self.rate else ()),
+                *((LOOP_DELAY,) if self.loop_delay else ()))
 
     @property
     def obs_leaks(self) -> dict[str, float]:

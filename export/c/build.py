@@ -44,11 +44,12 @@ class CExportError(ValueError):
 
 def sample_observations(spec, n: int, seed: int = 0) -> np.ndarray:
     """Observations over and beyond the flown range: scaled rate errors in ±3, rotor speeds
-    0..1.2 of the maximum, motor outputs over their whole range 0..1 (the policy's input
-    clip sits inside these)."""
+    0..1.2 of the maximum, motor outputs over their whole range 0..1, loop delays 0..6 ticks (the
+    policy's input clip sits inside these)."""
     rng = np.random.default_rng(seed)
     ranges = {"rate_error": (-3.0, 3.0), "rotor_speed": (0.0, 1.2), "rate_error_integral": (-3.0, 3.0),
-              "rate_error_rms": (0.0, 3.0), "motor_output": (0.0, 1.0), "rate": (-3.0, 3.0)}
+              "rate_error_rms": (0.0, 3.0), "motor_output": (0.0, 1.0), "rate": (-3.0, 3.0),
+              "loop_delay": (0.0, 1.2)}
     cols = [rng.uniform(*ranges[f], size=(n, spec.memory, FIELD_DEFS[f].size)) for f in spec.fields]
     return np.concatenate(cols, axis=-1).reshape(n, spec.size).astype(np.float32)
 

@@ -39,8 +39,10 @@ def c_float(x: float) -> str:
 # table is the one definition; a new field there needs only these two maps to cover it.
 _SOURCE_C = {"rate_error": "(setpoint[i] - gyro[i])", "rotor_speed": "rotor_speed[i]", "gyro": "gyro[i]",
              "motor_output": "(s->fresh ? clampf(rotor_speed[i] * FCEMU_ROTOR_SPEED_SCALE, 0.0f, 1.0f)"
-                             " : s->motor_output[i])"}
-_SCALE_C = {"rate_scale": "FCEMU_RATE_SCALE", "rotor_speed_scale": "FCEMU_ROTOR_SPEED_SCALE"}
+                             " : s->motor_output[i])",
+             "loop_delay": "s->loop_delay_ticks"}
+_SCALE_C = {"rate_scale": "FCEMU_RATE_SCALE", "rotor_speed_scale": "FCEMU_ROTOR_SPEED_SCALE",
+            "loop_delay_scale": "FCEMU_LOOP_DELAY_SCALE"}
 # Per integrated field: its state member in `fcemu_policy_state` and its λ's constant.
 _STATE_C = {"integral_leak": ("integral", "FCEMU_INTEGRAL_LEAK"),
             "rms_leak": ("mean_square", "FCEMU_RMS_LEAK")}
@@ -108,6 +110,7 @@ def contract_sources(contract: Contract) -> dict[str, str]:
         "FCEMU_ROTOR_SPEED_SCALE": c_float(spec.rotor_speed_scale),
         "FCEMU_INTEGRAL_LEAK": c_float(spec.integral_leak),
         "FCEMU_RMS_LEAK": c_float(spec.rms_leak),
+        "FCEMU_LOOP_DELAY_SCALE": c_float(spec.loop_delay_scale),
         "FCEMU_DIFFERENTIAL_GAIN": c_float(DIFFERENTIAL_GAIN),
         "FCEMU_PWM_MIN": c_float(PWM_MIN),
         "FCEMU_PWM_SPAN": c_float(PWM_SPAN),
@@ -134,9 +137,13 @@ typedef struct {{
     float integral[3];
     float mean_square[3];
     float motor_output[4];  /* the last tick's PWM as 0..1, for a motor_output field */
+    float loop_delay_ticks;  /* the configured ESC + gyro filter delay, for a loop_delay field */
     int fresh;
 }} fcemu_policy_state;
 
+/* At boot, from the configuration: the ESC protocol's and the gyro filters' delays, in ticks
+ * (read by a loop_delay field; kept across resets). */
+void fcemu_policy_configure(fcemu_policy_state *s, float loop_delay_ticks);
 /* Start of flight (arming): the next observation fills the whole history. */
 void fcemu_policy_reset(fcemu_policy_state *s);
 /* sizeof(fcemu_policy_state), for callers that allocate the state outside C. */
@@ -171,6 +178,10 @@ void {NET_FUNCTION}(const float observation[1][FCEMU_OBS_SIZE], float action[1][
 
 static float clampf(float x, float lo, float hi) {{
     return x < lo ? lo : (x > hi ? hi : x);
+}}
+
+void fcemu_policy_configure(fcemu_policy_state *s, float loop_delay_ticks) {{
+    s->loop_delay_ticks = loop_delay_ticks;
 }}
 
 void fcemu_policy_reset(fcemu_policy_state *s) {{

@@ -23,6 +23,7 @@ from fcemu.firmware.neural import NeuralRateController
 from fcemu.firmware.observation import (
     FIELDS,
     INTEGRAL,
+    LOOP_DELAY,
     MOTOR_OUTPUT,
     RMS,
     ObservationHistory,
@@ -139,3 +140,38 @@ def test_motor_output_field_feeds_back_the_last_pwm_as_the_onnx_policy_does(tmp_
         gap = ours.update(setpoint, frame, 1e-3) - theirs.update(setpoint, frame, 1e-3)
         worst = max(worst, float(np.abs(gap).max()))
     assert worst < 0.05  # µs
+
+
+def test_a_loop_delay_policy_reads_the_delay_its_airframe_is_configured_with(tmp_path) -> None:
+    """The C state holds the configured delay across resets, as the ONNX policy's controller does;
+    airframes of different delays fly the same frames differently, each alike in C and ONNX (none
+    given: 0 ticks in both)."""
+    from dataclasses import replace
+
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    require_codegen()
+    spec = Spec(memory=3, fields=(*FIELDS, LOOP_DELAY, MOTOR_OUTPUT))
+    _policy(tmp_path / "p.onnx", spec, "throttle")
+    export_c(tmp_path / "p.onnx", tmp_path / "c", parity_samples=200)
+    iris = airframe_spec("iris_realistic")
+    assert iris.loop_delay_ticks == 3  # ESC 1 + gyro 2
+    outputs = []
+    for airframe in (iris, replace(iris, loop_delay_ticks=0), None):
+        ours, theirs = CPolicyController(tmp_path / "c", airframe=airframe), \
+            NeuralRateController(tmp_path / "p.onnx", airframe=airframe)
+        rng = np.random.default_rng(7)
+        flown = []
+        for k in range(100):
+            if k == 50:
+                ours.reset()
+                theirs.reset()
+            setpoint = RateSetpoint(rng.uniform(-3, 3, 3), float(rng.uniform(0.2, 0.8)))
+            frame = SensorFrame(k * 1000, rng.uniform(-3, 3, 3), np.array([0.0, 0.0, -9.81]),
+                                rng.uniform(0, 1100, 4))
+            pwm = ours.update(setpoint, frame, 1e-3)
+            assert np.abs(pwm - theirs.update(setpoint, frame, 1e-3)).max() < 0.05  # µs
+            flown.append(pwm)
+        outputs.append(np.array(flown))
+    assert np.abs(outputs[0] - outputs[1]).max() > 1.0
+    np.testing.assert_array_equal(outputs[1], outputs[2])

@@ -10,6 +10,7 @@ from fcemu.firmware.observation import (
     FIELD_DEFS,
     FIELDS,
     INTEGRAL,
+    LOOP_DELAY,
     MOTOR_OUTPUT,
     RATE,
     RATE_ERROR,
@@ -169,3 +170,26 @@ def test_motor_output_is_the_previous_output_and_at_a_start_the_rotors_steady_st
         assert np.array_equal(out[0], given[i])
         observe_step(spec, setpoint[i], gyro[i], rotor[i], out=out)
         assert np.array_equal(out[0], start[i])
+
+
+def test_loop_delay_is_the_configured_ticks_scaled_in_every_row_and_both_paths():
+    """Without motor_output before it, the plain-float path still finds the delay's source column."""
+    spec = Spec(memory=2, fields=(*FIELDS, LOOP_DELAY))
+    assert spec.step_size == 8 and spec.reads_loop_delay and not Spec().reads_loop_delay
+    assert ObservationSpec.from_json(spec.to_json()) == spec
+    assert "loop_delay_scale" in spec.to_json() and "loop_delay_scale" not in Spec().to_json()
+    rng = np.random.default_rng(2)
+    setpoint, gyro = rng.uniform(-5, 5, (2, 50, 3))
+    rotor = rng.uniform(0, 1100, (50, 4))
+    delay = rng.integers(0, 6, 50).astype(float)
+    batch = observe_step(spec, setpoint, gyro, rotor, loop_delay=delay)
+    np.testing.assert_array_equal(batch[:, spec.columns[LOOP_DELAY]][:, 0], (delay * 0.2).astype(np.float32))
+    np.testing.assert_array_equal(batch[:, :7], observe_step(Spec(), setpoint, gyro, rotor))
+    out = np.zeros((1, spec.step_size), dtype=np.float32)
+    for i in range(50):
+        observe_step(spec, setpoint[i], gyro[i], rotor[i], out=out, loop_delay=delay[i])
+        assert np.array_equal(out[0], batch[i])
+    one = observe_step(spec, setpoint, gyro, rotor, loop_delay=3.0)  # one delay for the whole batch
+    assert np.all(one[:, 7] == np.float32(0.6))
+    with pytest.raises(ValueError, match="loop's delay"):
+        observe_step(spec, setpoint, gyro, rotor)

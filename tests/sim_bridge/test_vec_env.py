@@ -42,6 +42,12 @@ CONFIGS = {
         "esc_telemetry_loss": {"nominal": 0, "range": [0, 0.4], "unit": "share", "source": "test"},
         "gyro_delay_ticks": {"nominal": 0, "range": [0, 3], "unit": "ticks", "source": "test"}}}),
         randomize_share=0.7, action_mapping="throttle", inflight_share=0.5, episode_s=0.3),
+    # each copy's loop delay as its firmware is configured with it, drawn per episode; some nominal
+    "loop-delay": dict(randomize=parse_randomization({"airframe": "iris", "parameters": {
+        "esc_delay_ticks": {"nominal": 0, "range": [0, 2], "unit": "ticks", "source": "test"},
+        "gyro_delay_ticks": {"nominal": 0, "range": [0, 3], "unit": "ticks", "source": "test"}}}),
+        randomize_share=0.7, memory=2, obs_fields=("rate_error", "rotor_speed", "loop_delay"),
+        action_mapping="throttle", episode_s=0.05),
 }
 
 
@@ -176,3 +182,17 @@ def test_an_episode_in_flight_starts_with_every_rotor_at_the_throttles_speed():
     assert 0 < sum(starts) < len(starts)
     with pytest.raises(ValueError, match="inflight_share"):
         RateControlEnv(inflight_share=1.5)
+
+
+def test_the_loop_delay_field_is_each_copys_drawn_esc_and_gyro_delay():
+    kw = CONFIGS["loop-delay"]
+    env = BatchedRateEnv(8, **kw)
+    seen = set()
+    obs, _ = env.reset(seed=3)
+    for _ in range(600):
+        drawn = [f.get("esc_delay_ticks", 0) + f.get("gyro_delay_ticks", 0) for f in env.episode_factors]
+        np.testing.assert_array_equal(obs[:, 7], np.float32(0.2) * np.array(drawn, dtype=np.float32))
+        np.testing.assert_array_equal(obs[:, 15], obs[:, 7])  # the same in every step of the memory
+        seen.update(drawn)
+        obs, *_ = env.step(np.zeros((8, 4), np.float32))
+    assert seen == {0, 1, 2, 3, 4, 5}
