@@ -28,6 +28,7 @@ from torch import nn
 
 from fcemu import __version__
 from fcemu.firmware.airframe_spec import AirframeSpec, Envelope
+from fcemu.firmware.contract import MAX_LOOP_DELAY_TICKS
 from fcemu.firmware.neural import META_PREFIX, NeuralRateController
 from fcemu.firmware.observation import ObservationSpec, observe_step
 from fcemu.sim_bridge.airframe import DEFAULT_AIRFRAME
@@ -182,14 +183,16 @@ def build_actor(model, checkpoint: Checkpoint, spec: ObservationSpec) -> Determi
 
 def parity_observations(spec: ObservationSpec, n: int, max_rotor_speed: float, seed: int = 0) -> np.ndarray:
     """Observations spread over what flight produces: errors to ±2× the command bound, any rotor
-    speed up to the airframe's `max_rotor_speed`."""
+    speed up to the airframe's `max_rotor_speed`, loop delays of 0-5 ticks."""
     rng = np.random.default_rng(seed)
     steps = []
+    # one per flight, as configured; drawn only where read, so other specs' samples stay as they were
+    delay = rng.integers(0, MAX_LOOP_DELAY_TICKS + 1, n).astype(float) if spec.reads_loop_delay else None
     for _ in range(spec.memory):
         setpoint = rng.uniform(-10.5, 10.5, (n, 3))
         gyro = rng.uniform(-10.5, 10.5, (n, 3))
         rotor = rng.uniform(0.0, max_rotor_speed, (n, 4))
-        steps.append(observe_step(spec, setpoint, gyro, rotor))
+        steps.append(observe_step(spec, setpoint, gyro, rotor, loop_delay=delay))
     return np.concatenate(steps, axis=-1).astype(np.float32)
 
 

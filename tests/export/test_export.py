@@ -70,6 +70,26 @@ def test_integral_and_rms_observation_exports_and_flies(tmp_path):
     assert ctrl.spec == spec
 
 
+def test_a_loop_delay_run_trains_exports_and_flies_each_airframe_with_its_own_delay(tmp_path):
+    """Trained end to end (`fcemu train --loop-delay`); the export's parity samples draw delays."""
+    from dataclasses import replace
+
+    from fcemu.firmware.controller import RateSetpoint
+    from fcemu.firmware.sensors import SensorFrame
+
+    run = _tiny_run(tmp_path, "ppo", 2, 1024, {"n_steps": 64, "batch_size": 64}, loop_delay=True,
+                    airframe="iris_realistic")
+    info = export_policy(run, tmp_path / "p.onnx", parity_samples=2000)
+    assert info["parity_max_abs_diff"] <= 1e-4
+    spec = ObservationSpec.from_json(read_metadata(tmp_path / "p.onnx")["observation"])
+    assert spec.fields[-1] == "loop_delay" and spec.size == 16
+    frame = SensorFrame(0, np.array([0.3, -0.2, 0.1]), np.array([0.0, 0.0, -9.81]), np.full(4, 600.0))
+    realistic = airframe_spec("iris_realistic")  # ESC 1 + gyro 2 ticks
+    flown = {d: NeuralRateController(tmp_path / "p.onnx", airframe=replace(realistic, loop_delay_ticks=d))
+             .update(RateSetpoint(np.zeros(3), 0.5), frame, 1e-3) for d in (0, 3)}
+    assert not np.array_equal(flown[0], flown[3])
+
+
 @pytest.mark.parametrize("algo", ["ppo", "sac", "td3"])
 def test_parity_and_metadata_round_trip(runs, algo, tmp_path):
     run = runs[algo]
