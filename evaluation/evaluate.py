@@ -15,7 +15,7 @@ from fcemu.evaluation.metrics import AXES, EvalMetrics, compute_metrics
 from fcemu.evaluation.perturb import PerturbedAirframe, PerturbedResult, fly_perturbed, perturbed_airframes
 from fcemu.evaluation.report import ControllerResult, write_report
 from fcemu.evaluation.runner import EvalConfig, run_controller
-from fcemu.firmware.controllers import is_policy
+from fcemu.firmware.controllers import is_policy, resolve
 from fcemu.sim_bridge.randomization import RandomizationError, ranges_for
 from fcemu.sitl.traces import Traces, save_traces
 
@@ -143,8 +143,11 @@ def eval_command(args) -> int:
 
 def _fly_fault(spec: str, cfg: EvalConfig, fault, nominal: Traces, progress: bool) -> fault_eval.FaultResult:
     plan = fault_eval.FaultPlan(fault, cfg.seed, cfg.episodes, cfg.n_ticks, cfg.warmup_ticks)
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
     faulted = run_controller(spec, cfg, progress=progress, faults=plan)
-    return fault_eval.fault_result(plan, faulted, nominal, 1.0 / cfg.rate_hz, policy=is_policy(spec))
+    flown = resolve(spec, airframe_spec(cfg.airframe))
+    return fault_eval.fault_result(plan, faulted, nominal, 1.0 / cfg.rate_hz, policy=is_policy(flown))
 
 
 def _first(traces: Traces | None) -> Traces | None:

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from fcemu.firmware.controller import RateController, RateSetpoint
 from fcemu.firmware.controllers import FALLBACK_CONTROLLER as FALLBACK
-from fcemu.firmware.controllers import load_controller
+from fcemu.firmware.controllers import load_controller, resolve
 from fcemu.firmware.health import HealthMonitor, HealthRules
 from fcemu.firmware.loop import Command, FlightLoop, TickSample
 from fcemu.firmware.sensors import SensorFrame
@@ -147,7 +147,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
                    on_episode: Callable[[int], None] | None = None,
                    airframe: Airframe | None = None, faults: FaultPlan | None = None,
                    controller: RateController | None = None) -> Traces:
-    """Fly `spec` (pid, pid:<preset>, FILE.onnx) over the evaluation set; return its traces.
+    """Fly `spec` (default, pid, pid:<preset>, FILE.onnx) over the evaluation set; return its traces.
 
     `airframe` replaces the nominal Iris (e.g. a perturbed one) for the firmware and the twin alike;
     `cfg.twin`, for the twin alone. The twin's hover throttle is flown unless `cfg.throttle` is set.
@@ -158,6 +158,7 @@ def run_controller(spec: str, cfg: EvalConfig, progress: bool = True,
     from fcemu.sim_bridge.airframe_spec import airframe_spec
 
     configured = airframe_spec(airframe or cfg.airframe)  # what the firmware is set up for
+    spec = resolve(spec, configured)  # `default`: what the firmware flies on this airframe
     controllers = {"main": controller or load_controller(spec, cfg.rate_hz, configured)}
     neural = controller is None and not spec.startswith("pid")
     if neural:

@@ -1,4 +1,5 @@
-"""Controllers by name: `pid` (the airframe's tune), `pid:<preset>`, an ONNX policy, an exported C policy."""
+"""Controllers by name: `default` (what the firmware flies where none is named), `pid` (the airframe's
+tune), `pid:<preset>`, an ONNX policy, an exported C policy."""
 
 from __future__ import annotations
 
@@ -14,6 +15,12 @@ from fcemu.firmware.pid_controller import PRESET_DIR
 # Package data, so an installed wheel flies it as a checkout does.
 DEFAULT_POLICY = Path(str(files("fcemu.firmware") / "policies" / "iris_rate_ppo.onnx"))
 FALLBACK_CONTROLLER = "pid"  # what flies when a policy faults, and in LAND and HOLD
+DEFAULT = "default"  # `default_for` the airframe the firmware is configured with
+# The longest loop (ESC + gyro delay, ticks: AirframeSpec.loop_delay_ticks) the shipped policy holds
+# in flight on perturbed airframes; on a longer one its gains ring, and a PID tuned for the latency
+# holds (docs/results/robustness.md, "the default by the loop's delay").
+DEFAULT_POLICY_LONGEST_LOOP_TICKS = 3
+LATENCY_PRESET = "pid_{}_robust.json"  # an airframe's tune for a long loop, where one ships
 PROPS_OUT = "props spin out (motor 1 counter-clockwise) and a policy is made for props in"
 
 
@@ -24,6 +31,40 @@ class ControllerSpecError(UserError, ValueError):
 def default_controller() -> str:
     """The shipped policy when it is present, else the PID."""
     return str(DEFAULT_POLICY) if DEFAULT_POLICY.exists() else FALLBACK_CONTROLLER
+
+
+def default_for(airframe: AirframeSpec | None) -> str:
+    """The shipped policy (`default_controller`) where it holds `airframe`; else the airframe's PID: on a
+    loop longer than the policy holds, its tune for latency (`pid_<name>_robust`, where one ships). A
+    flight controller knows its loop's delay: its gyro filters and ESC protocol are its configuration."""
+    policy = default_controller()
+    if airframe is None or policy == FALLBACK_CONTROLLER:
+        return policy
+    if default_refusal(airframe) is not None:
+        return FALLBACK_CONTROLLER
+    if airframe.loop_delay_ticks <= DEFAULT_POLICY_LONGEST_LOOP_TICKS:
+        return policy
+    name = airframe.tune_of or airframe.name
+    latency_tune = PRESET_DIR / LATENCY_PRESET.format(name)
+    return f"pid:{latency_tune.stem.removeprefix('pid_')}" if latency_tune.exists() else FALLBACK_CONTROLLER
+
+
+def default_refusal(airframe: AirframeSpec) -> str | None:
+    """Why the shipped policy does not fly `airframe` (outside the envelope it was made for), or None."""
+    from fcemu.firmware.contract import PolicyContract, PolicyContractError
+    from fcemu.firmware.neural import read_metadata
+
+    try:
+        contract = PolicyContract.from_metadata(read_metadata(DEFAULT_POLICY), str(DEFAULT_POLICY))
+        contract.check_airframe(airframe, str(DEFAULT_POLICY.name))
+    except PolicyContractError as exc:
+        return str(exc)
+    return None
+
+
+def resolve(spec: str, airframe: AirframeSpec | None) -> str:
+    """`spec` with `default` resolved for `airframe`; any other name as it is."""
+    return default_for(airframe) if spec == DEFAULT else spec
 
 
 def is_policy(spec: str) -> bool:
@@ -91,6 +132,7 @@ def load_controller(spec: str, loop_rate_hz: float | None = None,
     """`loop_rate_hz`: the rate the loop will run it at; a policy trained for another rate is refused.
     `airframe`: the one it will fly: `pid` is that airframe's tune, and a policy whose envelope does
     not hold it is refused. Without one nothing is checked and `pid` is the default preset."""
+    spec = resolve(spec, airframe)
     if spec == "pid" or spec.startswith("pid:"):
         from fcemu.firmware.pid_controller import DEFAULT_PRESET, PIDRateController
 

@@ -117,10 +117,26 @@ def scripted_flight(rig: str, controller: str = "pid", hover: float | None = Non
     return ScriptedCommander(schedule, controller=controller)
 
 
-def flying_line(controller: str) -> str:
-    """One line for the console saying which controller flies and from where."""
-    from fcemu.firmware.controllers import DEFAULT_POLICY, is_policy
+def flying_line(controller: str, airframe: AirframeSpec | None = None) -> str:
+    """One line for the console saying which controller flies and from where (`default`, as
+    resolved for `airframe`)."""
+    from fcemu.firmware.controllers import (
+        DEFAULT,
+        DEFAULT_POLICY,
+        DEFAULT_POLICY_LONGEST_LOOP_TICKS,
+        default_refusal,
+        is_policy,
+        resolve,
+    )
 
+    if controller == DEFAULT and airframe is not None and not is_policy(resolve(controller, airframe)) \
+            and DEFAULT_POLICY.exists():
+        refusal = default_refusal(airframe)
+        why = f"the shipped policy refuses it: {refusal}" if refusal else (
+            f"on a loop of {airframe.loop_delay_ticks} ticks; the shipped policy holds loops of up to "
+            f"{DEFAULT_POLICY_LONGEST_LOOP_TICKS}")
+        return f"fcemu: flying {resolve(controller, airframe)} (the default for {airframe.name}, {why})"
+    controller = resolve(controller, airframe)
     if is_policy(controller):
         kind = "neural" if controller.endswith(".onnx") else "c_policy"
         return f"fcemu: flying {kind}:{Path(controller).stem} ({controller})"
@@ -135,8 +151,9 @@ def load_controllers(controller: str, rate_hz: float, airframe: AirframeSpec,
     each for `airframe` (a policy outside its envelope, or `pid` where none is tuned, is refused).
     `fallback`: the PID a policy hands over to, and CTRL_SEL's pid (None: the one the policy names,
     as `fcemu fit`'s does its DIR/pid.json, else the airframe's own tune)."""
-    from fcemu.firmware.controllers import is_policy, resolve_fallback
+    from fcemu.firmware.controllers import is_policy, resolve, resolve_fallback
 
+    controller = resolve(controller, airframe)
     if is_policy(controller):
         pid = resolve_fallback(fallback, [controller], lambda: airframe)
         return {"neural": load_controller(controller, rate_hz, airframe),
@@ -311,11 +328,11 @@ def stop_on_sigint() -> None:
 
 
 def sitl_command(args) -> int:
-    from fcemu.firmware.controllers import default_controller
+    from fcemu.firmware.controllers import DEFAULT, resolve
 
     stop_on_sigint()
 
-    controller = args.controller or default_controller()
+    controller = args.controller or DEFAULT
     speed = parse_speed(args.speed)
     own_core = owns_a_core(args.instance)
     spin_us = None if own_core else SHARED_SPIN_US
@@ -344,7 +361,7 @@ def sitl_command(args) -> int:
             print(load_warning(vs.params_file, vs.param_problems), file=sys.stderr)
     if ulog is not None:
         sitl.loop.sinks.append(ulog)
-    print(flying_line(controller), file=sys.stderr)
+    print(flying_line(controller, sitl.airframe), file=sys.stderr)
     extra = None
     if vs is not None:
         veh = vs.vehicle
@@ -361,6 +378,7 @@ def sitl_command(args) -> int:
     if status is not None:
         sys.stderr.write("\n")
     summary = sitl.loop.stats.summary()
+    controller = resolve(controller, sitl.airframe)  # what flew, `default` resolved
     written = None
     if ulog is not None and len(ulog):
         written = ulog.write(args.ulog, {"ver_hw": f"fcemu SITL {args.airframe}"})
