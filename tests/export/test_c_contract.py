@@ -128,18 +128,24 @@ def test_motor_output_field_feeds_back_the_last_pwm_as_the_onnx_policy_does(tmp_
     _policy(tmp_path / "p.onnx", spec, mapping)
     export_c(tmp_path / "p.onnx", tmp_path / "c", parity_samples=200)
     ours, theirs = CPolicyController(tmp_path / "c"), NeuralRateController(tmp_path / "p.onnx")
+    _, worst = _side_by_side(ours, theirs, 400)
+    assert worst < 0.05  # µs
+
+
+def _side_by_side(ours, theirs, ticks: int) -> tuple[np.ndarray, float]:
+    """Both controllers on the same random frames, both reset halfway: our PWM and the largest gap."""
     rng = np.random.default_rng(7)
-    worst = 0.0
-    for k in range(400):
-        if k == 200:
+    flown, worst = [], 0.0
+    for k in range(ticks):
+        if k == ticks // 2:
             ours.reset()
             theirs.reset()
         setpoint = RateSetpoint(rng.uniform(-3, 3, 3), float(rng.uniform(0.2, 0.8)))
         frame = SensorFrame(k * 1000, rng.uniform(-3, 3, 3), np.array([0.0, 0.0, -9.81]),
                             rng.uniform(0, 1100, 4))
-        gap = ours.update(setpoint, frame, 1e-3) - theirs.update(setpoint, frame, 1e-3)
-        worst = max(worst, float(np.abs(gap).max()))
-    assert worst < 0.05  # µs
+        flown.append(ours.update(setpoint, frame, 1e-3))
+        worst = max(worst, float(np.abs(flown[-1] - theirs.update(setpoint, frame, 1e-3)).max()))
+    return np.array(flown), worst
 
 
 def test_a_loop_delay_policy_reads_the_delay_its_airframe_is_configured_with(tmp_path) -> None:
@@ -158,20 +164,9 @@ def test_a_loop_delay_policy_reads_the_delay_its_airframe_is_configured_with(tmp
     assert iris.loop_delay_ticks == 3  # ESC 1 + gyro 2
     outputs = []
     for airframe in (iris, replace(iris, loop_delay_ticks=0), None):
-        ours, theirs = CPolicyController(tmp_path / "c", airframe=airframe), \
-            NeuralRateController(tmp_path / "p.onnx", airframe=airframe)
-        rng = np.random.default_rng(7)
-        flown = []
-        for k in range(100):
-            if k == 50:
-                ours.reset()
-                theirs.reset()
-            setpoint = RateSetpoint(rng.uniform(-3, 3, 3), float(rng.uniform(0.2, 0.8)))
-            frame = SensorFrame(k * 1000, rng.uniform(-3, 3, 3), np.array([0.0, 0.0, -9.81]),
-                                rng.uniform(0, 1100, 4))
-            pwm = ours.update(setpoint, frame, 1e-3)
-            assert np.abs(pwm - theirs.update(setpoint, frame, 1e-3)).max() < 0.05  # µs
-            flown.append(pwm)
-        outputs.append(np.array(flown))
+        flown, worst = _side_by_side(CPolicyController(tmp_path / "c", airframe=airframe),
+                                     NeuralRateController(tmp_path / "p.onnx", airframe=airframe), 100)
+        assert worst < 0.05  # µs
+        outputs.append(flown)
     assert np.abs(outputs[0] - outputs[1]).max() > 1.0
     np.testing.assert_array_equal(outputs[1], outputs[2])
