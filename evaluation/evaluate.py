@@ -142,9 +142,9 @@ def eval_command(args) -> int:
 
 
 def _fly_fault(spec: str, cfg: EvalConfig, fault, nominal: Traces, progress: bool) -> fault_eval.FaultResult:
-    plan = fault_eval.FaultPlan(fault, cfg.seed, cfg.episodes, cfg.n_ticks, cfg.warmup_ticks)
     from fcemu.sim_bridge.airframe_spec import airframe_spec
 
+    plan = fault_eval.FaultPlan(fault, cfg.seed, cfg.episodes, cfg.n_ticks, cfg.warmup_ticks)
     faulted = run_controller(spec, cfg, progress=progress, faults=plan)
     flown = resolve(spec, airframe_spec(cfg.airframe))
     return fault_eval.fault_result(plan, faulted, nominal, 1.0 / cfg.rate_hz, policy=is_policy(flown))

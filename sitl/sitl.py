@@ -129,14 +129,14 @@ def flying_line(controller: str, airframe: AirframeSpec | None = None) -> str:
         resolve,
     )
 
-    if controller == DEFAULT and airframe is not None and not is_policy(resolve(controller, airframe)) \
-            and DEFAULT_POLICY.exists():
+    flown = resolve(controller, airframe)
+    if controller == DEFAULT and airframe is not None and not is_policy(flown) and DEFAULT_POLICY.exists():
         refusal = default_refusal(airframe)
         why = f"the shipped policy refuses it: {refusal}" if refusal else (
             f"on a loop of {airframe.loop_delay_ticks} ticks; the shipped policy holds loops of up to "
             f"{DEFAULT_POLICY_LONGEST_LOOP_TICKS}")
-        return f"fcemu: flying {resolve(controller, airframe)} (the default for {airframe.name}, {why})"
-    controller = resolve(controller, airframe)
+        return f"fcemu: flying {flown} (the default for {airframe.name}, {why})"
+    controller = flown
     if is_policy(controller):
         kind = "neural" if controller.endswith(".onnx") else "c_policy"
         return f"fcemu: flying {kind}:{Path(controller).stem} ({controller})"
