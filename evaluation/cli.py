@@ -11,7 +11,8 @@ from fcemu.sim_bridge.tasks import EVAL_TASKS
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("eval", help="the paper's metrics for --controller pid|FILE.onnx (repeatable)")
     p.add_argument("--controller", action="append", default=None,
-                   help="pid, pid:<preset> or a policy .onnx; repeat to compare (default: pid)")
+                   help="default, pid, pid:<preset> or a policy .onnx; repeat to compare (default: pid). "
+                        "default: what the firmware flies without --controller, per airframe")
     p.add_argument("--episodes", type=int, default=1000, help="commands flown by each controller")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the commands, and of the twin's sensor noise and the faults' times: the "

@@ -98,7 +98,9 @@ def add_mavlink_options(p: argparse.ArgumentParser) -> None:
 def register(sub: argparse._SubParsersAction) -> None:
     sitl = sub.add_parser("sitl", help="fly the twin with the firmware loop (software in the loop)")
     sitl.add_argument("--controller", default=None,
-                      help="pid, pid:<preset> or a policy .onnx (default: the shipped policy)")
+                      help="pid, pid:<preset> or a policy .onnx (default: `default`, the shipped policy "
+                           "where it holds the airframe, else its PID; on a loop over 3 ticks, its "
+                           "tune for latency)")
     sitl.add_argument("--fallback", default=None,
                       help="under a policy, the PID it hands over to and CTRL_SEL=0 selects: pid (the "
                            "airframe's own tune) or pid:<preset|FILE> (default: the one the policy names, "
