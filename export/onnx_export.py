@@ -209,9 +209,21 @@ def _write_graph(module: nn.Module, size: int, out: Path, obs: np.ndarray, expec
 
 def trained_on(cfg: dict) -> tuple[AirframeSpec, Envelope]:
     """The airframe a run's config names and the envelope its randomisation spanned (± a margin
-    where the run names no randomisation file)."""
+    where the run names no randomisation file); for a run over a pool of quads, the pool's first
+    airframe, named for the pool, and the envelope around the pool."""
     airframe = cfg.get("airframe", DEFAULT_AIRFRAME)
     randomize = cfg.get("randomize")
+    pool = (cfg.get("env") or {}).get("airframe_pool")
+    if pool is not None:
+        from dataclasses import replace
+
+        from fcemu.sim_bridge.airframe_draw import airframe_pool
+
+        try:
+            specs = [airframe_spec(a) for a in airframe_pool(str(pool))]
+        except (OSError, ValueError, KeyError) as exc:
+            raise ExportError(f"the run's airframe pool {pool!r}: {exc}") from None
+        return replace(specs[0], name=f"the pool {pool}"), Envelope.around(specs)
     try:
         return airframe_spec(airframe), envelope(airframe, randomize if isinstance(randomize, str) else None)
     except (OSError, ValueError, KeyError) as exc:

@@ -38,7 +38,8 @@ LEGACY_SCALE_TOLERANCE = 0.01
 # outputs beyond this bound was not trained for this action space.
 OUTPUT_LIMIT = 100.0
 MAX_LOOP_DELAY_TICKS = 5  # the longest loop the randomisation ranges draw (ESC 2 + gyro 3): the probes' span
-_SPEC_KEYS = {"memory", "rate_scale", "rotor_speed_scale", "fields", "version", "loop_delay_scale", *LEAKS}
+_SPEC_KEYS = {"memory", "rate_scale", "rotor_speed_scale", "fields", "version", "loop_delay_scale",
+              "per_airframe_rotor_speed", *LEAKS}
 # The PID a policy was fitted against (`fcemu fit`: pid.json), a path relative to the policy file, so
 # that the folder can be moved: what it hands over to unless --fallback names another.
 FALLBACK_META = "fallback"
@@ -92,7 +93,7 @@ class PolicyContract:
     def check_airframe(self, airframe: AirframeSpec, where: str = "policy") -> None:
         """Refuse, in one line, to fly an airframe outside the envelope the policy was trained across."""
         made_for = self.airframe or "an airframe it does not name"
-        if self.envelope is None:
+        if self.envelope is None and not self.observation.per_airframe_rotor_speed:
             top = 1.0 / self.observation.rotor_speed_scale
             if abs(self.observation.rotor_speed_scale * airframe.max_rotor_speed - 1.0) \
                     > LEGACY_SCALE_TOLERANCE:
@@ -100,6 +101,8 @@ class PolicyContract:
                     f"policy {where} records no envelope and was made for a top rotor speed of "
                     f"{top:,.0f} rad/s; "
                     f"{airframe.name}'s is {airframe.max_rotor_speed:,.0f} rad/s")
+            return
+        if self.envelope is None:  # scaled by the flown airframe's top speed, trained across any
             return
         outside = self.envelope.outside(airframe)
         if outside:
@@ -212,6 +215,8 @@ def _observation(text: str, where: str, top_rotor_speed: float | None) -> Observ
                                   f"known: {sorted(FIELD_DEFS)}, each at most once)")
     if "rotor_speed_scale" not in raw:
         raise PolicyContractError(f"{where}: observation spec lacks rotor_speed_scale")
+    if raw.get("per_airframe_rotor_speed") is True:  # the scale is the flown airframe's, not the envelope's
+        top_rotor_speed = None
     for key, physical in (("rate_scale", RATE_BOUND), ("rotor_speed_scale", top_rotor_speed)):
         value = raw.get(key, _DEFAULTS[key])
         lo, hi = SCALED_RANGE
@@ -231,9 +236,14 @@ def _observation(text: str, where: str, top_rotor_speed: float | None) -> Observ
     if not _finite(delay_scale) or not 0.0 < delay_scale <= 1.0:
         raise PolicyContractError(f"{where}: observation loop_delay_scale {_short(delay_scale)} "
                                   "is not in (0, 1]")
+    per_airframe = raw.get("per_airframe_rotor_speed", False)
+    if not isinstance(per_airframe, bool):
+        raise PolicyContractError(f"{where}: observation per_airframe_rotor_speed {_short(per_airframe)} "
+                                  "is not true or false")
     return ObservationSpec(memory=memory, rate_scale=float(raw.get("rate_scale", _DEFAULTS["rate_scale"])),
                            rotor_speed_scale=float(raw["rotor_speed_scale"]), fields=tuple(fields),
-                           version=version, loop_delay_scale=float(delay_scale), **leaks)
+                           version=version, loop_delay_scale=float(delay_scale),
+                           per_airframe_rotor_speed=per_airframe, **leaks)
 
 
 def _loop_rate(text: str, where: str) -> float:

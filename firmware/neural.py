@@ -76,6 +76,8 @@ class NeuralRateController:
         if airframe is not None:
             self.contract.check_airframe(airframe, str(self.path))
         self.spec, self.action_mapping = self.contract.observation, self.contract.action_mapping
+        if airframe is not None:
+            self.spec = self.spec.for_airframe(airframe.max_rotor_speed)
         # a `loop_delay` field's ticks: the airframe's configured delays (none given: 0, a nominal twin's)
         self.loop_delay = float(airframe.loop_delay_ticks) if airframe is not None else 0.0
         self.trained_rate_hz = self.contract.loop_rate_hz

@@ -35,7 +35,7 @@ with any leading shape), with the same IEEE operations.
 from __future__ import annotations
 
 import json
-from dataclasses import InitVar, asdict, dataclass
+from dataclasses import InitVar, asdict, dataclass, replace
 from functools import cached_property
 from operator import itemgetter, mul
 
@@ -110,6 +110,10 @@ class ObservationSpec:
     integral_leak: float = DEFAULT_LEAK  # only with INTEGRAL
     rms_leak: float = DEFAULT_RMS_LEAK  # only with RMS
     loop_delay_scale: float = DEFAULT_LOOP_DELAY_SCALE  # only with LOOP_DELAY
+    # The rotor speeds as shares of the flown airframe's own top speed, whatever airframe that is: a
+    # policy trained across many quads. rotor_speed_scale is then the trained airframe's, and the
+    # firmware takes the flown one's (`for_airframe`).
+    per_airframe_rotor_speed: bool = False
     max_rotor_speed: InitVar[float | None] = None  # rad/s: sets rotor_speed_scale = 1 / it
 
     def __post_init__(self, max_rotor_speed: float | None) -> None:
@@ -184,11 +188,20 @@ class ObservationSpec:
         """Per integrated field in order: its columns within one step, its λ, whether RMS."""
         return tuple((cols, float(getattr(self, d.leak)), d.rms) for cols, d, _ in self.layout if d.leak)
 
+    def for_airframe(self, max_rotor_speed: float) -> ObservationSpec:
+        """The spec as the firmware flies it on an airframe of this top rotor speed: its own scale where
+        the rotor speeds are shares of the flown airframe's (`per_airframe_rotor_speed`), else itself."""
+        if not self.per_airframe_rotor_speed:
+            return self
+        return replace(self, rotor_speed_scale=1.0 / max_rotor_speed)
+
     def to_json(self) -> str:
         raw = asdict(self)
         used = {a for f in self.fields for a in (FIELD_DEFS[f].leak, FIELD_DEFS[f].scale)}
         for attribute in OPTIONAL_ATTRIBUTES - used:
             del raw[attribute]
+        if not self.per_airframe_rotor_speed:  # as older readers know the spec
+            del raw["per_airframe_rotor_speed"]
         return json.dumps(raw, sort_keys=True)
 
     @classmethod

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from fcemu.firmware.errors import UserError
-from fcemu.sim_bridge.airframe import airframe_of
+from fcemu.sim_bridge.airframe import Airframe, airframe_of, load_airframe
 from fcemu.sim_bridge.airframe_file import GRAVITY, QUAD_X_SIGNS
 from fcemu.sim_bridge.relative_ranges import inflow_damping, motor_torque_bound, rotor_drag_damping_yaw
 
@@ -134,6 +134,31 @@ def draw_airframes(seed: int, count: int, ranges: AirframeRanges = AirframeRange
     """`count` airframes of draw `seed`, named drawn_<seed>_<i>: the same seed, the same files."""
     rng = np.random.default_rng(seed)
     return [draw_airframe(rng, f"drawn_{seed}_{i}", ranges) for i in range(count)]
+
+
+DRAW_PREFIX = "draw:"
+
+
+def airframe_pool(value: str) -> tuple[Airframe, ...]:
+    """The airframes `value` names: `draw:COUNT:SEED` (`draw_airframes`, nothing written), or a folder of
+    airframe files (every *.json in it but randomisation ranges), or files separated by commas."""
+    if value.startswith(DRAW_PREFIX):
+        parts = value[len(DRAW_PREFIX):].split(":")
+        try:
+            count, seed = (int(p) for p in parts)
+        except ValueError:
+            raise UserError(f"airframe pool {value!r}: draw:COUNT:SEED, two integers") from None
+        if count < 1:
+            raise UserError(f"airframe pool {value!r}: COUNT must be at least 1")
+        return tuple(airframe_of(Path(f"{raw['name']}.json"), raw) for raw in draw_airframes(seed, count))
+    folder = Path(value)
+    if folder.is_dir():
+        files = sorted(p for p in folder.glob("*.json") if not p.name.endswith(".randomization.json"))
+        if not files:
+            raise UserError(f"airframe pool {value!r}: no airframe files (*.json) in the folder")
+    else:
+        files = [Path(p) for p in value.split(",") if p]
+    return tuple(load_airframe(f) for f in files)
 
 
 def figures(raw: dict[str, Any]) -> dict[str, Any]:

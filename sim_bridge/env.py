@@ -120,6 +120,9 @@ class RateTask:
         self._command = np.zeros((*batch_shape, 3))
         # each copy's loop delay as its firmware is configured with it (ticks): the `loop_delay` field
         self.loop_delay = np.full(batch_shape, float(cfg.base_airframe.loop_delay_ticks))
+        # Flying a pool of quads: each copy's rotor speeds × its reference's top speed / its own, so the
+        # spec's scale (the reference's) observes them as shares of the copy's own top speed.
+        self.rotor_gain = np.ones((*batch_shape, 1)) if cfg.airframe_pool else None
 
     def pwm(self, action: np.ndarray, throttle: np.ndarray | float) -> np.ndarray:
         return action_to_pwm(self.config.action_mapping, np.asarray(action, dtype=np.float32), throttle)
@@ -136,6 +139,10 @@ class RateTask:
         if self._relative:
             self._command[at], self._step_size[at] = setpoint, np.abs(setpoint - gyro)
         delay = self.loop_delay if rows is None else self.loop_delay[rows]
+        if self.rotor_gain is not None:
+            gain = self.rotor_gain if rows is None else self.rotor_gain[rows]
+            rotor_speed = rotor_speed * gain
+            on_time = None if on_time is None else (on_time[0], on_time[1] * gain)
         if self.on_time is not None:
             self._start(self.on_time, observe_step(self.spec, setpoint, *on_time, loop_delay=delay), rows)
         step = observe_step(self.spec, setpoint, gyro, rotor_speed, loop_delay=delay)
@@ -183,6 +190,9 @@ class RateTask:
         reward, terms = self.reward(setpoint, rate, u, self._previous_u, self._settled(setpoint),
                                     self._command_step(setpoint, rate))
         self._previous_u = u
+        if self.rotor_gain is not None:
+            rotor_speed = rotor_speed * self.rotor_gain
+            on_time = None if on_time is None else (on_time[0], on_time[1] * self.rotor_gain)
         obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed, motor_output=u,
                                              loop_delay=self.loop_delay))
         if self.on_time is not None:
@@ -209,6 +219,9 @@ class RateControlEnv(gym.Env[np.ndarray, np.ndarray]):
         """`config`, or EnvConfig's fields as keywords (`RateControlEnv(memory=3)`); `on_time_view`:
         keep `on_time_observation` too."""
         self.config = with_options(config, options)
+        if self.config.airframe_pool is not None:
+            raise ValueError("a pool of airframes is flown by the batched environment (BatchedRateEnv); "
+                             "a single environment flies one airframe")
         self.obs_spec = self.config.observation_spec
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (self.obs_spec.size,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (4,), np.float32)

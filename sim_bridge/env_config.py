@@ -130,6 +130,12 @@ class EnvConfig:
         cli=float)
     randomize_share: float = env_option(1.0, "with --randomize: the share of episodes drawn from the ranges; "
                                              "the others fly the nominal airframe", cli=float)
+    airframe_pool: tuple[Airframe, ...] | str | None = env_option(
+        None, "fly many quads: each episode's airframe drawn from a pool (draw:COUNT:SEED: COUNT quads of "
+              "`fcemu twin draw`'s distribution; a folder of airframe files; files separated by commas), "
+              "each with its own sensor effects; rotor speeds observed as shares of each one's top speed. "
+              "--airframe is then only the reference the twins are built from",
+        cli=str | None, metavar="draw:COUNT:SEED|DIR|FILES", parse=parse_ranges)
     # the action-rate penalty only once the setpoint has been held this long (s): a settled
     # response must be quiet, a step may be sharp (0: every step, Neuroflight's penalty)
     action_rate_after_s: float = env_option(
@@ -161,6 +167,14 @@ class EnvConfig:
             raise ValueError("a randomised share below 1 needs randomisation ranges (e.g. randomize='iris')")
         if isinstance(self.randomize, Randomization):
             self.randomize.check_airframe(self.airframe)
+        if isinstance(self.airframe_pool, str | Path):
+            from fcemu.sim_bridge.airframe_draw import airframe_pool
+
+            object.__setattr__(self, "airframe_pool", airframe_pool(str(self.airframe_pool)))
+        if isinstance(self.airframe_pool, list):
+            object.__setattr__(self, "airframe_pool", tuple(self.airframe_pool))
+        if self.airframe_pool is not None:
+            self._check_pool()
         if self.noise is None and self.base_airframe.gyro_noise_std:  # the airframe's own gyro noise
             object.__setattr__(self, "noise", SensorNoise(gyro_std=self.base_airframe.gyro_noise_std))
         throttle = parse_throttle(self.throttle)
@@ -176,6 +190,22 @@ class EnvConfig:
         if not (math.isfinite(self.action_rate_after_s) and self.action_rate_after_s >= 0.0):
             raise ValueError(f"action_rate_after_s must be finite and >= 0, got {self.action_rate_after_s}")
 
+    def _check_pool(self) -> None:
+        if not self.airframe_pool:
+            raise ValueError("an airframe pool needs at least one airframe")
+        if self.randomize:
+            raise ValueError("an airframe pool draws each episode's airframe: give it or --randomize ranges, "
+                             "not both")
+        pwm = (self.base_airframe.motor.pwm_min, self.base_airframe.motor.pwm_max)
+        odd = [a.name for a in self.airframe_pool if (a.motor.pwm_min, a.motor.pwm_max) != pwm]
+        if odd:
+            raise ValueError(f"the pool's airframes share the reference's PWM range {pwm[0]:g}-{pwm[1]:g} "
+                             f"µs; {', '.join(odd[:3])} do not")
+
+    def _pool_has(self, effect: Any) -> bool:
+        """Whether some airframe of the pool has `effect` (a predicate of an airframe)."""
+        return any(effect(a) for a in self.airframe_pool or ())
+
     @property
     def base_airframe(self) -> Airframe:
         assert isinstance(self.airframe, Airframe)
@@ -189,7 +219,8 @@ class EnvConfig:
     def observation_spec(self) -> ObservationSpec:
         return ObservationSpec(memory=self.memory, fields=tuple(self.obs_fields),
                                rotor_speed_scale=1.0 / self.base_airframe.motor.max_rotor_speed,
-                               integral_leak=self.integral_leak, rms_leak=self.rms_leak)
+                               integral_leak=self.integral_leak, rms_leak=self.rms_leak,
+                               per_airframe_rotor_speed=self.airframe_pool is not None)
 
     @property
     def noisy(self) -> bool:
@@ -203,24 +234,28 @@ class EnvConfig:
         late = BUS_PARAMETERS | {"gyro_delay_ticks"}
         drawn = isinstance(self.randomize, Randomization) and any(key in self.randomize for key in late)
         base = self.base_airframe
-        return drawn or bool(base.gyro_delay_ticks) or base.telemetry_effects
+        return (drawn or bool(base.gyro_delay_ticks) or base.telemetry_effects
+                or self._pool_has(lambda a: a.gyro_delay_ticks or a.telemetry_effects))
 
     @property
     def loses_telemetry(self) -> bool:
         """Whether some episode's ESC telemetry may lose frames (each episode then draws a seed for it)."""
         drawn = isinstance(self.randomize, Randomization) and "esc_telemetry_loss" in self.randomize
-        return drawn or bool(self.base_airframe.esc_telemetry_loss)
+        pool = self._pool_has(lambda a: a.esc_telemetry_loss)
+        return drawn or bool(self.base_airframe.esc_telemetry_loss) or pool
 
     @property
     def draws_gyro_noise(self) -> bool:
         """The randomisation draws each episode's gyro noise (it replaces `noise.gyro_std`)."""
-        return isinstance(self.randomize, Randomization) and self.randomize.draws_gyro_noise
+        drawn = isinstance(self.randomize, Randomization) and self.randomize.draws_gyro_noise
+        return drawn or self._pool_has(lambda a: a.gyro_noise_std)
 
     @property
     def gyro_is_not_rate(self) -> bool:
         """Whether some episode's gyro may read other than the rate: noise, vibration or delay."""
         drawn = isinstance(self.randomize, Randomization) and self.randomize.draws_gyro_effects
-        return self.noisy or self.base_airframe.gyro_effects or drawn
+        pool = self._pool_has(lambda a: a.gyro_effects)
+        return self.noisy or self.base_airframe.gyro_effects or drawn or pool
 
     def episode_noise(self, airframe: Airframe) -> SensorNoise | None:
         """The sensor noise of an episode flying `airframe` (a draw of the randomisation)."""

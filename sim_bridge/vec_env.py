@@ -40,6 +40,7 @@ from fcemu.sim_bridge.twin import Twin, hover_state
 FULL_PHYSICS = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
 NOISE_BLOCK = 256  # steps of sensor noise drawn at a time per copy
 MAX_DELAY_TICKS = 32  # the longest ESC, gyro or telemetry delay a copy's airframe may have
+POOL_STREAM = 0x9001  # the second word of a copy's pool-draw seed: a stream apart from its episodes
 CTRL_AND_TORQUE = mujoco.mjtState.mjSTATE_CTRL.value | mujoco.mjtState.mjSTATE_QFRC_APPLIED.value
 
 
@@ -80,15 +81,20 @@ class BatchedRateEnv(VectorEnv):
         nq, nv = self._model.nq, self._model.nv
         self._qvel = slice(1 + nq, 1 + nq + 3)  # FULLPHYSICS: time, qpos, qvel, ...
         self._control = np.zeros((n, 1, 4 + nv))  # ctrl, qfrc_applied: with body torques
-        self._per_model = bool(set(cfg.randomize or {}) & {"mass", "inertia", "km"})
+        # Each episode's airframe from a pool of quads (`EnvConfig.airframe_pool`), its MjModel built once.
+        self._pool_airframes = cfg.airframe_pool or ()
+        self._pool_models: dict[int, mujoco.MjModel] = {}
+        self._per_model = bool(set(cfg.randomize or {}) & {"mass", "inertia", "km"} or self._pool_airframes)
 
         self._n_steps, self._noisy = cfg.n_steps, cfg.noisy
         self._rows = np.arange(n)
         self._models = [self._model] * n
         # Per copy, what a randomised airframe changes in the motors and the gyro noise.
         self._kf = np.full((n, 1), self._motors.kf)
+        per_copy = {"speed_per_us": np.full((n, 1), self._motors.speed_per_us)} if self._pool_airframes \
+            else {}
         self._motors = replace(self._motors, alpha_up=np.full((n, 1), self._motors.alpha_up),
-                               alpha_down=np.full((n, 1), self._motors.alpha_down))
+                               alpha_down=np.full((n, 1), self._motors.alpha_down), **per_copy)
         self._gyro_std = np.full((n, 1), cfg.noise.gyro_std if cfg.noise is not None else 0.0)
         self._state = np.tile(self._state0, (n, 1))
         self._next = np.empty((n, 1, self._state0.size))
@@ -101,6 +107,9 @@ class BatchedRateEnv(VectorEnv):
         self._truth_view = truth_view and on_time_view
         self._task = RateTask(cfg, (n,), on_time_view, always=self._truth_view)
         self._rngs = [np.random.default_rng() for _ in range(n)]
+        # which airframe of the pool each copy flies, drawn apart from `draw_episode`'s draws
+        self._picks = [np.random.default_rng() for _ in range(n)]
+        self._flown = [cfg.base_airframe] * n
         self._factors: list[dict[str, float]] = [{} for _ in range(n)]
         self._noise = NoiseStreams(n, SensorModel.DRAWS, NOISE_BLOCK) if self._noisy else None
         self._lost = NoiseStreams(n, 4, NOISE_BLOCK, uniform=True) if cfg.loses_telemetry else None
@@ -118,6 +127,7 @@ class BatchedRateEnv(VectorEnv):
             for i, s in enumerate(seeds):
                 if s is not None:
                     self._rngs[i] = np.random.default_rng(s)
+                    self._picks[i] = np.random.default_rng([s, POOL_STREAM])
         obs = self._reset_rows(np.ones(self.num_envs, dtype=bool))
         info = {"setpoint": self._sched[:, 0].copy(), "throttle": self._throttle.copy()}
         return obs, info
@@ -169,6 +179,11 @@ class BatchedRateEnv(VectorEnv):
         return self._throttle.copy()
 
     @property
+    def episode_airframes(self) -> list[Airframe]:
+        """The airframe each copy flies this episode: the pool's draw, else the reference."""
+        return list(self._flown)
+
+    @property
     def episode_factors(self) -> list[dict[str, float]]:
         """Each copy's airframe scale factors for its current episode."""
         return [dict(f) for f in self._factors]
@@ -186,31 +201,47 @@ class BatchedRateEnv(VectorEnv):
             self._sched[i] = ep.setpoints
             self._throttle[i] = ep.throttle
             self._factors[i] = ep.factors
-            if ep.factors:
+            if self._pool_airframes:
+                pool = self._pool_airframes
+                k = int(self._picks[i].integers(len(pool))) if len(pool) > 1 else 0
+                self._set_airframe(i, pool[k], k)
+                # the throttle as far from the copy's hover as from the reference's
+                reference = self.config.base_airframe.hover_throttle()
+                self._throttle[i] = pool[k].hover_throttle() * (ep.throttle / reference)
+            elif ep.factors:
                 self._set_airframe(i, self.config.base_airframe.scaled(**ep.factors))
             if self._noise is not None:
                 self._noise.reseed(i, ep.noise_seed)
             if self._lost is not None:
                 self._lost.reseed(i, ep.telemetry_seed)
             if ep.in_flight:  # as RateControlEnv's twin starts from `hover_state`
-                motor = self.config.base_airframe.motor
-                self._omega[i] = hover_state(self.config.base_airframe, ep.throttle).rotor_speed
+                motor = self._flown[i].motor
+                self._omega[i] = hover_state(self._flown[i], self._throttle[i]).rotor_speed
                 start_pwm[row] = motor.pwm_for_rotor_speed(self._omega[i])
         self._fx.reset(start_pwm, idx)
         gyro, rotor, sent = self._measure(self._sens[idx, 0, self._gyro] * FLU_FROM_FRD, idx, True)
         return self._task.reset(self._sched[idx, 0], gyro, rotor, rows, sent)
 
-    def _set_airframe(self, i: int, airframe: Airframe) -> None:
+    def _set_airframe(self, i: int, airframe: Airframe, pool_index: int | None = None) -> None:
+        self._flown[i] = airframe
         self._kf[i] = airframe.motor.kf
         lag = MotorModel.from_spec(airframe.motor, self.config.dt)  # the single twin's arithmetic
         self._motors.alpha_up[i], self._motors.alpha_down[i] = lag.alpha_up, lag.alpha_down
+        if pool_index is not None:
+            self._motors.speed_per_us[i] = lag.speed_per_us
+            top = self.config.base_airframe.motor.max_rotor_speed
+            self._task.rotor_gain[i] = top / airframe.motor.max_rotor_speed
         if self.config.draws_gyro_noise:
             self._gyro_std[i] = airframe.gyro_noise_std
         self._fx.set_row(i, airframe)
         self._task.loop_delay[i] = airframe.loop_delay_ticks
         if not self._per_model:
             return
-        model = mujoco.MjModel.from_xml_string(build_mjcf(airframe, "rig", self.config.dt))
+        model = self._pool_models.get(pool_index) if pool_index is not None else None
+        if model is None:
+            model = mujoco.MjModel.from_xml_string(build_mjcf(airframe, "rig", self.config.dt))
+            if pool_index is not None:
+                self._pool_models[pool_index] = model
         self._models[i] = model
         d = self._scratch  # the same sizes as every model in the batch
         mujoco.mj_setState(model, d, self._state0, FULL_PHYSICS)

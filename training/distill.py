@@ -28,7 +28,7 @@ import json
 import sys
 import time
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -283,6 +283,8 @@ def distill(cfg: DistillConfig) -> dict[str, Any]:
             raise DistillError(f"--{name.replace('_', '-')} must be finite and >= 0, got {value}")
     if cfg.gain_weight and not cfg.gain_step:
         raise DistillError("--gain-weight needs a --gain-step above 0")
+    if cfg.airframe_pool is not None:  # a pool's twins fly other quads than --airframe: each its own teacher
+        cfg = replace(cfg, per_twin=True, gain_weight=0.0)
     if cfg.per_twin and cfg.gain_weight:
         raise DistillError("--per-twin teaches without the gain match (--gain-weight 0): its nudged samples "
                            "are labelled after the rounds, when the twins' airframes are drawn anew")

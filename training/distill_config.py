@@ -73,7 +73,8 @@ class DistillConfig:
                "`inversion` reads the true rates and rotor speeds, without noise or vibration either")
     per_twin: bool = option(
         False, "the model-based teacher (`inversion`) built for each twin's airframe as drawn this episode "
-               "(its motors, delays and damping), not once for --airframe; without the gain match")
+               "(its motors, delays and damping), not once for --airframe; without the gain match. Always "
+               "so with --airframe-pool, and there without the gain match")
     foreign_teacher: bool = option(False, "distil a teacher made for another airframe than --airframe "
                                           "(its fcemu.airframe); refused unless given")
     seed: int = option(0, "seed of the twins (their commands, drawn airframes and noise), of which "
@@ -94,7 +95,10 @@ class DistillConfig:
                 setattr(self, name, tuple(getattr(self, name)))
 
     def ranges(self) -> str | None:
-        """The ranges the twins draw from: `--randomize`, or by default the airframe's training ranges."""
+        """The ranges the twins draw from: `--randomize`, or by default the airframe's training ranges
+        (none where the twins fly a pool of quads, each as it is)."""
+        if self.airframe_pool is not None and self.randomize == OWN_RANGES:
+            return None
         if self.randomize != OWN_RANGES:
             return self.randomize
         return training_ranges(self.airframe)

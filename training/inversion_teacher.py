@@ -37,7 +37,7 @@ A student fitted to it by DAgger is the policy (`fcemu fit`; its figures: docs/r
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -215,7 +215,9 @@ class InversionTeacher:
         obs = np.asarray(obs, dtype=np.float64)
         spec, columns = self.spec, self.spec.columns
         error = obs[:, columns[RATE_ERROR]] / spec.rate_scale
-        rotor = obs[:, columns[ROTOR_SPEED]] / spec.rotor_speed_scale
+        rotor = obs[:, columns[ROTOR_SPEED]]  # shares of each row's own top speed, or scaled by the spec's
+        rotor = rotor * self.law().rows.w_max if spec.per_airframe_rotor_speed \
+            else rotor / spec.rotor_speed_scale
         rates = obs[:, columns[RATE]] / spec.rate_scale
         return pwm_to_action(self.action_mapping, self.pwm(error, rates, rotor))
 
@@ -329,34 +331,44 @@ class InversionTeacher:
 
 class DrawnInversionTeacher(InversionTeacher):
     """The teacher of each twin's airframe as drawn this episode, a row each (`follow`): on randomised
-    twins it knows the delays, damping and motors of the twin it labels, not only the nominal's."""
+    twins it knows the delays, damping and motors of the twin it labels, not only the nominal's; on
+    twins of a pool of quads (`EnvConfig.airframe_pool`), each one's airframe."""
 
     def __init__(self, make: Callable[[Airframe], InversionTeacher], base: Airframe) -> None:
         self.__dict__.update(make(base).__dict__)  # the nominal teacher's spec, law and options
         self._make, self._base = make, base
         self._env: Any = None
-        self._laws: dict[tuple, Law] = {}
-        self._keys: list[tuple] = []
+        self._laws: dict[Any, Law] = {}
+        self._keys: list[Any] = []
         self._drawn: Law | None = None
 
     def follow(self, env: Any) -> None:
         """Label the rows of `env` (a `BatchedRateEnv`), each with its airframe as drawn from its base."""
         self._env, self._base = env, env.config.base_airframe
+        if env.config.airframe_pool is not None:  # the twins observe shares of their own top speeds
+            self.spec = replace(self.spec, per_airframe_rotor_speed=True)
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        if self._env is not None:
-            self._draw([tuple(sorted(f.items())) for f in self._env.episode_factors])
+        if self._env is not None and self.spec.per_airframe_rotor_speed:
+            flown = {id(a): a for a in self._env.episode_airframes}
+            self._draw([id(a) for a in self._env.episode_airframes], flown.__getitem__, keep=True)
+        elif self._env is not None:
+            self._draw([tuple(sorted(f.items())) for f in self._env.episode_factors],
+                       lambda key: self._base.scaled(**dict(key)) if key else self._base)
         return super().act(obs)
 
     def law(self) -> Law:
         return super().law() if self._drawn is None else self._drawn
 
-    def _draw(self, keys: list[tuple]) -> None:
+    def _draw(self, keys: list[Any], airframe_of: Callable[[Any], Airframe], keep: bool = False) -> None:
+        """The rows' laws for `keys`, each built once; `keep`: also the laws of airframes no twin flies
+        now (a pool's, flown again), else only the present ones (drawn afresh each episode)."""
         if keys == self._keys:
             return
         for key in set(keys) - set(self._laws):
-            self._laws[key] = self._make(self._base.scaled(**dict(key)) if key else self._base).law()
-        self._laws = {key: self._laws[key] for key in keys}  # only the twins' present airframes
+            self._laws[key] = self._make(airframe_of(key)).law()
+        if not keep:
+            self._laws = {key: self._laws[key] for key in keys}
         self._keys, self._drawn = keys, Law.stack([self._laws[key] for key in keys])
 
 

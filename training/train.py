@@ -212,8 +212,14 @@ def check_references(cfg: TrainConfig) -> None:
     load_controller(PID_PRESETS[0], airframe=airframe_spec(cfg.airframe))
 
 
+POOL_REFUSED = ("--airframe-pool: `fcemu train` races and evaluates one airframe against its tuned PID; "
+                "`fcemu distill inversion --airframe-pool` trains one policy across quads")
+
+
 def train(cfg: TrainConfig, race: PidRaceCallback | None = None) -> dict[str, Any]:
     """Train, save, export, evaluate; returns the summary (also in runs/NAME/summary.json)."""
+    if cfg.airframe_pool is not None:
+        raise ValueError(POOL_REFUSED)
     check_references(cfg)
     torch.set_num_threads(cfg.threads)
     out = Path(cfg.out)
@@ -358,6 +364,8 @@ def train_command(args) -> int:
         cfg = from_args(args)
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    if cfg.airframe_pool is not None:
+        raise UserError(POOL_REFUSED)
     try:
         summary = train(cfg)
     except InitError as exc:

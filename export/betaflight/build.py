@@ -87,6 +87,10 @@ def check_contract(model: Path) -> dict:
             f"{model}: trained for a {contract.loop_rate_hz:g} Hz loop; the Betaflight build runs the "
             f"policy in its PID loop at {LOOP_RATE_HZ:g} Hz (gyro {GYRO_RATE_HZ / 1000:g} kHz, "
             f"pid_process_denom {round(GYRO_RATE_HZ / LOOP_RATE_HZ)})")
+    if contract.spec.per_airframe_rotor_speed:
+        raise BetaflightExportError(f"{model} observes rotor speeds as shares of the flown airframe's top "
+                                    "speed; the Betaflight build takes one airframe's top speed (a policy "
+                                    "of one airframe exports)")
     missing = [f for f in contract.spec.fields if FIELD_DEFS[f].source not in FIRMWARE_SOURCES]
     if missing:
         raise BetaflightExportError(

@@ -149,6 +149,20 @@ def test_a_policy_without_an_envelope_flies_an_airframe_of_its_top_rotor_speed(t
         NeuralRateController(legacy, airframe=_airframe("x500"))
 
 
+def test_rotor_speeds_as_shares_of_the_flown_airframes_top_speed_take_its_scale(tmp_path: Path) -> None:
+    shares = lying_copy(tmp_path / "shares.onnx", {"envelope": None, "airframe": None,
+                                                    "observation": obs(per_airframe_rotor_speed=True)})
+    x500 = _airframe("x500")  # another top speed than the policy's airframe: no longer refused
+    controller = NeuralRateController(shares, airframe=x500)
+    assert controller.spec.rotor_speed_scale == 1.0 / x500.max_rotor_speed
+    assert NeuralRateController(shares).spec.rotor_speed_scale == SPEC["rotor_speed_scale"]  # none given
+    assert json.loads(controller.contract.observation.to_json())["per_airframe_rotor_speed"] is True
+    assert "per_airframe_rotor_speed" not in json.loads(NeuralRateController(DEFAULT_POLICY).spec.to_json())
+    with pytest.raises(PolicyContractError, match="per_airframe_rotor_speed 'yes' is not true or false"):
+        NeuralRateController(lying_copy(tmp_path / "bad.onnx",
+                                        {"observation": obs(per_airframe_rotor_speed="yes")}))
+
+
 def test_pid_is_the_airframe_s_own_tune(untuned_airframe: Path) -> None:
     from fcemu.firmware.controllers import ControllerSpecError
 

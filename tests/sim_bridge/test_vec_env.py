@@ -196,3 +196,41 @@ def test_the_loop_delay_field_is_each_copys_drawn_esc_and_gyro_delay():
         seen.update(drawn)
         obs, *_ = env.step(np.zeros((8, 4), np.float32))
     assert seen == {0, 1, 2, 3, 4, 5}
+
+
+def test_a_copy_of_a_pool_of_quads_is_the_single_env_of_the_quad_it_drew():
+    from fcemu.sim_bridge.airframe_draw import airframe_pool
+
+    pool = airframe_pool("draw:3:5")  # different sizes, each with its own sensor effects
+    kw = dict(action_mapping="throttle", inflight_share=0.5, memory=2, episode_s=0.2)
+    batch = BatchedRateEnv(6, airframe_pool=pool, **kw)
+    batch.reset(seed=10)
+    flown = batch.episode_airframes
+    assert len({a.name for a in flown}) > 1
+    singles = [RateControlEnv(airframe=a, **kw) for a in flown]
+    assert _assert_matches_single_envs(batch, singles, 10, 199) == 0  # the first episode: one quad each
+    spec = batch.obs_spec
+    assert spec.per_airframe_rotor_speed and singles[0].obs_spec.rotor_speed_scale != spec.rotor_speed_scale
+
+
+def test_each_episode_of_a_pool_draws_its_quad_and_observes_shares_of_its_top_speed():
+    env = BatchedRateEnv(4, airframe_pool="draw:5:2", action_mapping="throttle", inflight_share=1.0,
+                         episode_s=0.01)
+    obs, _ = env.reset(seed=0)
+    seen = set()
+    for _ in range(100):
+        flown = env.episode_airframes
+        seen.update(a.name for a in flown)
+        hover = np.array([a.hover_throttle() for a in flown])
+        # in flight at each quad's own hover: its rotors at that share of its own top speed
+        np.testing.assert_allclose(obs[:, 3:7], np.repeat(hover[:, None], 4, 1), rtol=1e-5)
+        for _ in range(10):
+            obs, *_ = env.step(np.zeros((4, 4), np.float32))
+    assert seen == {f"drawn_2_{i}" for i in range(5)}
+
+
+def test_a_pool_is_refused_with_ranges_or_by_a_single_env():
+    with pytest.raises(ValueError, match="not both"):
+        BatchedRateEnv(2, airframe_pool="draw:2:1", randomize="iris")
+    with pytest.raises(ValueError, match="batched environment"):
+        RateControlEnv(airframe_pool="draw:2:1")

@@ -271,3 +271,48 @@ def test_a_teacher_per_twin_is_the_model_based_ones_and_teaches_without_the_gain
     with pytest.raises(DistillError, match="gain-weight 0"):
         distill(DistillConfig(teacher=INVERSION, out=str(tmp_path / "o"), per_twin=True, gain_weight=0.1,
                               threads=1, progress=False))
+
+
+def test_on_a_pool_of_quads_each_twin_is_labelled_by_its_own_quads_teacher():
+    """The twins observe rotor speeds as shares of their own top speeds; each row's label is what the
+    teacher built for that quad would give on the observation its own firmware builds."""
+    from fcemu.sim_bridge.airframe_draw import airframe_pool
+
+    pool = airframe_pool("draw:4:3")
+    teacher = make_teacher(INVERSION, "iris", privileged=True, per_twin=True)
+    env = BatchedRateEnv(4, on_time_view=True, truth_view=True, airframe_pool=pool, memory=1,
+                         obs_fields=teacher.spec.fields, action_mapping="throttle", episode_s=0.02)
+    teacher.follow(env)
+    env.reset(seed=2)
+    own = {a.name: make_teacher(INVERSION, a, privileged=True) for a in pool}
+    seen = set()
+    for _ in range(3 * 20):
+        truth = env.on_time_observation
+        labels = teacher.act(truth)
+        for i, quad in enumerate(env.episode_airframes):
+            single = own[quad.name]  # its own firmware's scale is 1 / its top speed: the same shares
+            assert single.spec.rotor_speed_scale == 1.0 / quad.motor.max_rotor_speed
+            np.testing.assert_allclose(labels[i], single.act(truth[i:i + 1])[0], atol=1e-6)
+            seen.add(quad.name)
+        env.step(labels.astype(np.float32))
+    assert len(seen) >= 3
+
+
+def test_a_student_of_a_pool_flies_each_quad_on_its_own_top_speed_and_is_not_exported_to_c(tmp_path):
+    from fcemu.export.c.build import CExportError, export_c
+    from fcemu.sim_bridge.airframe_draw import airframe_pool
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    out = tmp_path / "shared"
+    distill(DistillConfig(teacher=INVERSION, out=str(out), airframe_pool="draw:6:4", memory=2,
+                          net_arch=(16, 16), rounds=2, steps=40, envs=6, fit_steps=20, batch_size=256,
+                          threads=1, progress=False))
+    policy = out / "policy.onnx"
+    for quad in airframe_pool("draw:6:4")[:2]:
+        controller = NeuralRateController(policy, airframe=airframe_spec(quad))
+        assert controller.spec.per_airframe_rotor_speed
+        assert controller.spec.rotor_speed_scale == 1.0 / quad.motor.max_rotor_speed
+    assert "the pool draw:6:4" in NeuralRateController(policy).contract.airframe
+    with pytest.raises(CExportError, match="shares of the flown airframe's top speed"):
+        export_c(policy, tmp_path / "c")
+    assert not (tmp_path / "c").exists()

@@ -315,3 +315,9 @@ def test_init_refuses_a_run_of_another_observation_or_algorithm(run, tmp_path):
     with pytest.raises(InitError, match="no such checkpoint"):
         missing = src / "checkpoints" / "ppo_1_steps.zip"
         train(TrainConfig(algo="ppo", out=str(tmp_path / "none"), init=str(missing), **base))
+
+
+def test_a_pool_of_quads_is_refused_before_anything_is_written(tmp_path):
+    with pytest.raises(ValueError, match="distill inversion --airframe-pool"):
+        train(TrainConfig(airframe_pool="draw:2:1", out=str(tmp_path / "run")))
+    assert not (tmp_path / "run").exists()
