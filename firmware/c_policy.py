@@ -61,9 +61,10 @@ class CPolicyController:
         self._step.restype = ctypes.c_int
         self._lib.fcemu_policy_reset.argtypes = [ctypes.c_void_p]
         self._state = ctypes.create_string_buffer(self._lib.fcemu_policy_state_bytes())
-        if contract.observation.reads_loop_delay:  # none given: 0 ticks, as the NeuralRateController's
-            self._lib.fcemu_policy_configure.argtypes = [ctypes.c_void_p, ctypes.c_float]
-            self._lib.fcemu_policy_configure(self._state, float(airframe.loop_delay_ticks if airframe else 0))
+        if airframe is not None:  # as NeuralRateController reads them; none: 0 ticks, the trained top speed
+            self._lib.fcemu_policy_configure.argtypes = [ctypes.c_void_p, ctypes.c_float, ctypes.c_float]
+            self._lib.fcemu_policy_configure(self._state, float(airframe.loop_delay_ticks),
+                                             float(airframe.max_rotor_speed))
         self._setpoint, self._gyro = (ctypes.c_float * 3)(), (ctypes.c_float * 3)()
         self._rotor, self._pwm = (ctypes.c_float * 4)(), (ctypes.c_float * 4)()
         self.trained_rate_hz = trained_rate

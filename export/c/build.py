@@ -161,10 +161,6 @@ def export_c(model: str | Path, out_dir: str | Path, parity_samples: int = 10_00
     if tanh not in TANH_CHOICES:
         raise CExportError(f"--tanh must be one of {', '.join(TANH_CHOICES)}, got {tanh!r}")
     contract, metadata = load_contract(model)
-    if contract.spec.per_airframe_rotor_speed:
-        raise CExportError(f"{model} observes rotor speeds as shares of the flown airframe's top speed; "
-                           "the C export builds one airframe's top speed in (a policy of one airframe "
-                           "exports)")
     out_dir.mkdir(parents=True, exist_ok=True)
     run_emx(model, out_dir / "fcemu_net.c")
     choose_tanh(out_dir / "fcemu_net.c", tanh)

@@ -48,9 +48,11 @@ _STATE_C = {"integral_leak": ("integral", "FCEMU_INTEGRAL_LEAK"),
             "rms_leak": ("mean_square", "FCEMU_RMS_LEAK")}
 
 
-def _field_code(name: str, k: int) -> str:
+def _field_code(name: str, k: int, spec: ObservationSpec) -> str:
     field = FIELD_DEFS[name]
     value = _SOURCE_C[field.source] + ("" if field.scale is None else f" * {_SCALE_C[field.scale]}")
+    if spec.per_airframe_rotor_speed:  # the flown airframe's, set at boot (`fcemu_policy_configure`)
+        value = value.replace("FCEMU_ROTOR_SPEED_SCALE", "s->rotor_speed_scale")
     if not field.leak:
         return f"        step[{k} + i] = {value};"
     state, leak = _STATE_C[field.leak]
@@ -98,7 +100,7 @@ def contract_sources(contract: Contract) -> dict[str, str]:
     for name in spec.fields:
         n = FIELD_DEFS[name].size
         loop = f"    for (int i = 0; i < {n}; ++i) {{  /* {name} */\n"
-        fields.append(loop + _field_code(name, k) + "\n    }")
+        fields.append(loop + _field_code(name, k, spec) + "\n    }")
         k += n
     constants = {
         "FCEMU_OBS_VERSION": str(spec.version),
@@ -108,6 +110,7 @@ def contract_sources(contract: Contract) -> dict[str, str]:
         "FCEMU_ACTION_SIZE": str(ACTION_SIZE),
         "FCEMU_RATE_SCALE": c_float(spec.rate_scale),
         "FCEMU_ROTOR_SPEED_SCALE": c_float(spec.rotor_speed_scale),
+        "FCEMU_PER_AIRFRAME_ROTOR_SPEED": str(int(spec.per_airframe_rotor_speed)),
         "FCEMU_INTEGRAL_LEAK": c_float(spec.integral_leak),
         "FCEMU_RMS_LEAK": c_float(spec.rms_leak),
         "FCEMU_LOOP_DELAY_SCALE": c_float(spec.loop_delay_scale),
@@ -138,12 +141,15 @@ typedef struct {{
     float mean_square[3];
     float motor_output[4];  /* the last tick's PWM as 0..1, for a motor_output field */
     float loop_delay_ticks;  /* the configured ESC + gyro filter delay, for a loop_delay field */
+    float rotor_speed_scale;  /* 1 / the flown top rotor speed, where the policy reads shares of it */
     int fresh;
 }} fcemu_policy_state;
 
 /* At boot, from the configuration: the ESC protocol's and the gyro filters' delays, in ticks
- * (read by a loop_delay field; kept across resets). */
-void fcemu_policy_configure(fcemu_policy_state *s, float loop_delay_ticks);
+ * (read by a loop_delay field), and the motors' top rotor speed in rad/s (read where the policy
+ * observes rotor speeds as shares of it, FCEMU_PER_AIRFRAME_ROTOR_SPEED; 0: the trained airframe's).
+ * Kept across resets. */
+void fcemu_policy_configure(fcemu_policy_state *s, float loop_delay_ticks, float max_rotor_speed);
 /* Start of flight (arming): the next observation fills the whole history. */
 void fcemu_policy_reset(fcemu_policy_state *s);
 /* sizeof(fcemu_policy_state), for callers that allocate the state outside C. */
@@ -180,11 +186,13 @@ static float clampf(float x, float lo, float hi) {{
     return x < lo ? lo : (x > hi ? hi : x);
 }}
 
-void fcemu_policy_configure(fcemu_policy_state *s, float loop_delay_ticks) {{
+void fcemu_policy_configure(fcemu_policy_state *s, float loop_delay_ticks, float max_rotor_speed) {{
     s->loop_delay_ticks = loop_delay_ticks;
+    s->rotor_speed_scale = max_rotor_speed > 0.0f ? 1.0f / max_rotor_speed : FCEMU_ROTOR_SPEED_SCALE;
 }}
 
 void fcemu_policy_reset(fcemu_policy_state *s) {{
+    if (!(s->rotor_speed_scale > 0.0f)) s->rotor_speed_scale = FCEMU_ROTOR_SPEED_SCALE;  /* unconfigured */
     s->fresh = 1;
 }}
 

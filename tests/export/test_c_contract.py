@@ -170,3 +170,26 @@ def test_a_loop_delay_policy_reads_the_delay_its_airframe_is_configured_with(tmp
         outputs.append(flown)
     assert np.abs(outputs[0] - outputs[1]).max() > 1.0
     np.testing.assert_array_equal(outputs[1], outputs[2])
+
+
+def test_a_policy_of_shares_of_the_top_rotor_speed_reads_the_top_speed_configured(tmp_path) -> None:
+    """A policy trained across quads scales rotor speeds by the flown airframe's top speed, set once at
+    boot in C as the ONNX policy's controller takes it from the airframe; quads of different top speeds
+    fly the same frames differently, each alike in C and ONNX (none given: the trained airframe's)."""
+    from dataclasses import replace
+
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    require_codegen()
+    spec = Spec(memory=2, fields=(*FIELDS, MOTOR_OUTPUT), per_airframe_rotor_speed=True)
+    _policy(tmp_path / "p.onnx", spec, "throttle")
+    export_c(tmp_path / "p.onnx", tmp_path / "c", parity_samples=200)
+    iris = airframe_spec("iris")
+    outputs = []
+    for airframe in (replace(iris, max_rotor_speed=TOP / 2), replace(iris, max_rotor_speed=TOP), None):
+        flown, worst = _side_by_side(CPolicyController(tmp_path / "c", airframe=airframe),
+                                     NeuralRateController(tmp_path / "p.onnx", airframe=airframe), 100)
+        assert worst < 0.05  # µs
+        outputs.append(flown)
+    assert np.abs(outputs[0] - outputs[1]).max() > 1.0
+    np.testing.assert_allclose(outputs[1], outputs[2], atol=0.05)

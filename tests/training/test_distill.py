@@ -298,8 +298,8 @@ def test_on_a_pool_of_quads_each_twin_is_labelled_by_its_own_quads_teacher():
     assert len(seen) >= 3
 
 
-def test_a_student_of_a_pool_flies_each_quad_on_its_own_top_speed_and_is_not_exported_to_c(tmp_path):
-    from fcemu.export.c.build import CExportError, export_c
+def test_a_student_of_a_pool_flies_each_quad_on_its_own_top_speed_and_not_in_betaflight(tmp_path):
+    from fcemu.export.betaflight.build import BetaflightExportError, check_contract
     from fcemu.sim_bridge.airframe_draw import airframe_pool
     from fcemu.sim_bridge.airframe_spec import airframe_spec
 
@@ -313,6 +313,5 @@ def test_a_student_of_a_pool_flies_each_quad_on_its_own_top_speed_and_is_not_exp
         assert controller.spec.per_airframe_rotor_speed
         assert controller.spec.rotor_speed_scale == 1.0 / quad.motor.max_rotor_speed
     assert "the pool draw:6:4" in NeuralRateController(policy).contract.airframe
-    with pytest.raises(CExportError, match="shares of the flown airframe's top speed"):
-        export_c(policy, tmp_path / "c")
-    assert not (tmp_path / "c").exists()
+    with pytest.raises(BetaflightExportError, match="shares of the flown airframe's top speed"):
+        check_contract(policy)
