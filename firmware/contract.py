@@ -39,7 +39,7 @@ LEGACY_SCALE_TOLERANCE = 0.01
 OUTPUT_LIMIT = 100.0
 MAX_LOOP_DELAY_TICKS = 5  # the longest loop the randomisation ranges draw (ESC 2 + gyro 3): the probes' span
 _SPEC_KEYS = {"memory", "rate_scale", "rotor_speed_scale", "fields", "version", "loop_delay_scale",
-              "per_airframe_rotor_speed", *LEAKS}
+              "per_airframe_rotor_speed", "authority_scale", *LEAKS}
 # The PID a policy was fitted against (`fcemu fit`: pid.json), a path relative to the policy file, so
 # that the folder can be moved: what it hands over to unless --fallback names another.
 FALLBACK_META = "fallback"
@@ -236,6 +236,10 @@ def _observation(text: str, where: str, top_rotor_speed: float | None) -> Observ
     if not _finite(delay_scale) or not 0.0 < delay_scale <= 1.0:
         raise PolicyContractError(f"{where}: observation loop_delay_scale {_short(delay_scale)} "
                                   "is not in (0, 1]")
+    authority_scale = raw.get("authority_scale", _DEFAULTS["authority_scale"])
+    if not _finite(authority_scale) or not authority_scale > 0.0:
+        raise PolicyContractError(f"{where}: observation authority_scale {_short(authority_scale)} "
+                                  "is not a finite number > 0")
     per_airframe = raw.get("per_airframe_rotor_speed", False)
     if not isinstance(per_airframe, bool):
         raise PolicyContractError(f"{where}: observation per_airframe_rotor_speed {_short(per_airframe)} "
@@ -243,6 +247,7 @@ def _observation(text: str, where: str, top_rotor_speed: float | None) -> Observ
     return ObservationSpec(memory=memory, rate_scale=float(raw.get("rate_scale", _DEFAULTS["rate_scale"])),
                            rotor_speed_scale=float(raw["rotor_speed_scale"]), fields=tuple(fields),
                            version=version, loop_delay_scale=float(delay_scale),
+                           authority_scale=float(authority_scale),
                            per_airframe_rotor_speed=per_airframe, **leaks)
 
 

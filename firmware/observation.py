@@ -16,6 +16,13 @@ Optional field `loop_delay` (1): the loop's delay in ticks beyond the sample's o
 protocol's and the gyro filters' delays a flight controller is configured with; `AirframeSpec.
 loop_delay_ticks`), times `loop_delay_scale`: the same in every step of a flight, it is what lets one
 network lower its gain where the loop is long, which a 16-step history does not show.
+Optional field `authority` (3): per axis, the angular acceleration the quad gives per unit of
+its torque command, estimated in flight from its own gyro and ESC telemetry: the leaky
+least-squares slope of the gyro's change per tick, y, on the mixer's differential of the rotors'
+thrust shares, x = Σ_i T_ia·(ω_i/ω_top)² (`mixer.BETAFLIGHT_QUAD_X`), each centred on its leaky
+mean, cov(x, y) / (var(x) + ε), times `authority_scale` (0 until the motors have moved). What a
+policy flying any quad must learn of the one it flies, and what changes with a payload or a weak
+motor; a short history shows it only while the motors move within it.
 Optional field `motor_output` (4): the motor outputs u = (PWM − 1000) / 1000 the
 controller commanded on the previous tick. A penalty on |Δu| in the reward depends on them,
 and the rotor speeds show them only through the motors' lag; at a start there is no previous tick, and u is
@@ -53,6 +60,7 @@ RMS = "rate_error_rms"
 MOTOR_OUTPUT = "motor_output"
 RATE = "rate"
 LOOP_DELAY = "loop_delay"
+AUTHORITY = "authority"
 # The signals a field can read, as columns of one source vector: the rate error
 # setpoint − gyro (rad/s, FRD), the rotor speeds (rad/s, motor order), the gyro (rad/s,
 # FRD), the previous tick's motor outputs (0..1, motor order), the loop's configured delay (ticks).
@@ -74,6 +82,7 @@ class FieldDef:
     scale: str | None
     leak: str | None = None
     rms: bool = False
+    slope: bool = False  # the in-flight authority estimate of its source (the gyro): `ObservationHistory`
 
     @property
     def integrated(self) -> bool:
@@ -92,10 +101,15 @@ FIELD_DEFS: dict[str, FieldDef] = {
     MOTOR_OUTPUT: FieldDef("motor_output", None),
     RATE: FieldDef("gyro", "rate_scale"),
     LOOP_DELAY: FieldDef("loop_delay", "loop_delay_scale"),
+    AUTHORITY: FieldDef("gyro", "rate_scale", leak="authority_leak", slope=True),
 }
 LEAKS = frozenset(d.leak for d in FIELD_DEFS.values() if d.leak)  # the spec's λ attributes
 # Spec attributes only some fields use: a spec serialises them only with their fields (older readers).
-OPTIONAL_ATTRIBUTES = LEAKS | {"loop_delay_scale"}
+OPTIONAL_ATTRIBUTES = LEAKS | {"loop_delay_scale", "authority_scale"}
+DEFAULT_AUTHORITY_LEAK = 0.998  # τ = 500 steps: several of the slowest motor lags' transients
+# The slope in scaled rate per tick per share²: an Iris's roll about 0.02, a whoop's about 0.2.
+DEFAULT_AUTHORITY_SCALE = 10.0
+AUTHORITY_EPSILON = 1e-4  # share⁴: the variance of x under which the slope stays near 0 (motors still)
 
 
 @dataclass(frozen=True)
@@ -110,6 +124,8 @@ class ObservationSpec:
     integral_leak: float = DEFAULT_LEAK  # only with INTEGRAL
     rms_leak: float = DEFAULT_RMS_LEAK  # only with RMS
     loop_delay_scale: float = DEFAULT_LOOP_DELAY_SCALE  # only with LOOP_DELAY
+    authority_leak: float = DEFAULT_AUTHORITY_LEAK  # only with AUTHORITY
+    authority_scale: float = DEFAULT_AUTHORITY_SCALE  # only with AUTHORITY
     # The rotor speeds as shares of the flown airframe's own top speed, whatever airframe that is: a
     # policy trained across many quads. rotor_speed_scale is then the trained airframe's, and the
     # firmware takes the flown one's (`for_airframe`).
@@ -186,7 +202,15 @@ class ObservationSpec:
     @cached_property
     def integrators(self) -> tuple[tuple[slice, float, bool], ...]:
         """Per integrated field in order: its columns within one step, its λ, whether RMS."""
-        return tuple((cols, float(getattr(self, d.leak)), d.rms) for cols, d, _ in self.layout if d.leak)
+        return tuple((cols, float(getattr(self, d.leak)), d.rms) for cols, d, _ in self.layout
+                     if d.leak and not d.slope)
+
+    @cached_property
+    def slope(self) -> tuple[slice, slice] | None:
+        """The authority field's columns and the rotor speeds' (None: no such field)."""
+        if AUTHORITY not in self.fields:
+            return None
+        return self.columns[AUTHORITY], self.columns[ROTOR_SPEED]
 
     def for_airframe(self, max_rotor_speed: float) -> ObservationSpec:
         """The spec as the firmware flies it on an airframe of this top rotor speed: its own scale where
@@ -198,6 +222,7 @@ class ObservationSpec:
     def to_json(self) -> str:
         raw = asdict(self)
         used = {a for f in self.fields for a in (FIELD_DEFS[f].leak, FIELD_DEFS[f].scale)}
+        used |= {"authority_scale"} if AUTHORITY in self.fields else set()
         for attribute in OPTIONAL_ATTRIBUTES - used:
             del raw[attribute]
         if not self.per_airframe_rotor_speed:  # as older readers know the spec
@@ -281,16 +306,20 @@ class ObservationHistory:
         self._integrators = [(cols, np.float32(lam), rms,
                               np.zeros((*batch_shape, cols.stop - cols.start), dtype=np.float32))
                              for cols, lam, rms in spec.integrators]
+        self._slope = None if spec.slope is None else AuthorityEstimate(spec, batch_shape)
 
     def start(self, step: np.ndarray, mask: np.ndarray | None = None) -> None:
         """Fill the whole history with one step (the episode start); `mask` picks batch rows."""
         if mask is not None:
             kept_steps = self._buf.copy()
             kept_states = [state.copy() for *_, state in self._integrators]
+            kept_slope = None if self._slope is None else self._slope.state.copy()
             self.start(step)
             self._buf[~mask] = kept_steps[~mask]
             for (*_, state), kept in zip(self._integrators, kept_states, strict=True):
                 state[~mask] = kept[~mask]
+            if self._slope is not None:
+                self._slope.state[~mask] = kept_slope[~mask]
             return
         if step is not self._newest:
             self._newest[...] = step
@@ -323,3 +352,41 @@ class ObservationHistory:
             carried = np.float32(0.0) if restart else lam * state
             state[...] = carried + (np.float32(1.0) - lam) * (x * x if rms else x)
             self._newest[..., cols] = np.sqrt(state) if rms else state
+        if self._slope is not None:
+            self._slope.update(self._newest, restart)
+
+
+class AuthorityEstimate:
+    """The `authority` field's state, one per batch row: the last scaled gyro and the leaky means of
+    x, y, x·y and x² per axis (module docstring), all float32 as on a flight controller."""
+
+    def __init__(self, spec: ObservationSpec, batch_shape: tuple[int, ...]) -> None:
+        from fcemu.firmware.mixer import BETAFLIGHT_QUAD_X
+
+        self.cols, self.rotor = spec.slope  # type: ignore[misc]
+        self.lam = np.float32(spec.authority_leak)
+        self.scale = np.float32(spec.authority_scale)
+        self.mix = np.asarray(BETAFLIGHT_QUAD_X, dtype=np.float32)  # (4 motors, 3 axes)
+        self.state = np.zeros((*batch_shape, 5, 3), dtype=np.float32)  # gyro, x̄, ȳ, x·y‾, x²‾
+
+    def update(self, newest: np.ndarray, restart: bool) -> None:
+        """Read the newest step's scaled gyro (in the field's columns) and rotor shares; write the slope."""
+        gyro = newest[..., self.cols].copy()
+        thrust = newest[..., self.rotor] ** 2  # the shares' squares, motor by motor in a fixed order:
+        x = thrust[..., 0:1] * self.mix[0]  # a matrix product would sum differently per batch shape
+        for i in range(1, 4):
+            x = x + thrust[..., i:i + 1] * self.mix[i]
+        st = self.state
+        if restart:
+            st[..., 0, :], st[..., 1, :], st[..., 2:, :] = gyro, x, np.float32(0.0)
+            st[..., 4, :] = x * x
+        else:
+            y = gyro - st[..., 0, :]
+            st[..., 0, :] = gyro
+            keep, new = self.lam, np.float32(1.0) - self.lam
+            for k, value in ((1, x), (2, y), (3, x * y), (4, x * x)):
+                st[..., k, :] = keep * st[..., k, :] + new * value
+        mean_x, mean_y = st[..., 1, :], st[..., 2, :]
+        cov = st[..., 3, :] - mean_x * mean_y
+        var = st[..., 4, :] - mean_x * mean_x
+        newest[..., self.cols] = self.scale * cov / (var + np.float32(AUTHORITY_EPSILON))

@@ -144,6 +144,9 @@ class TrainConfig:
     loop_delay: bool = option(False, "add the loop's configured delay to the observation (loop_delay: "
                                      "the ESC's and the gyro filters' ticks): what lets the gain fall "
                                      "where the loop is long")
+    authority: bool = option(False, "add each axis's angular acceleration per unit of torque command, "
+                                    "estimated in flight from the gyro and the rotor speeds (authority): "
+                                    "what tells one quad from another")
     squash: bool = option(False, "PPO/TRPO: tanh-squashed actions (gSDE's squash_output); what lets "
                                  "--action-rate-penalty smooth the motors instead of saturating them")
     envs: int | None = option(None, "parallel twins (default: per algorithm)")
@@ -263,11 +266,19 @@ class TrainConfig:
 
     @property
     def obs_fields(self) -> tuple[str, ...]:
-        from fcemu.firmware.observation import FIELDS, INTEGRAL, LOOP_DELAY, MOTOR_OUTPUT, RATE, RMS
+        from fcemu.firmware.observation import (
+            AUTHORITY,
+            FIELDS,
+            INTEGRAL,
+            LOOP_DELAY,
+            MOTOR_OUTPUT,
+            RATE,
+            RMS,
+        )
 
         return (*FIELDS, *((INTEGRAL,) if self.integral else ()), *((RMS,) if self.error_rms else ()),
                 *((MOTOR_OUTPUT,) if self.motor_output else ()), *((RATE,) if self.rate else ()),
-                *((LOOP_DELAY,) if self.loop_delay else ()))
+                *((LOOP_DELAY,) if self.loop_delay else ()), *((AUTHORITY,) if self.authority else ()))
 
     @property
     def obs_leaks(self) -> dict[str, float]:

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from fcemu.firmware.observation import FIELDS, INTEGRAL, MOTOR_OUTPUT, RATE, RMS
+from fcemu.firmware.observation import AUTHORITY, FIELDS, INTEGRAL, MOTOR_OUTPUT, RATE, RMS
 from fcemu.training.distill_config import DistillConfig, from_args
 from fcemu.training.distill_teacher import (
     INVERSION,
@@ -51,7 +51,8 @@ __all__ = ["INVERSION", "DistillConfig", "DistillError", "Teacher", "columns", "
            "student_train_config", "union_spec"]
 
 COLLECTIVE_WEIGHT = 0.1
-OPTIONAL_FIELDS = {INTEGRAL: "integral", RMS: "error_rms", MOTOR_OUTPUT: "motor_output", RATE: "rate"}
+OPTIONAL_FIELDS = {INTEGRAL: "integral", RMS: "error_rms", MOTOR_OUTPUT: "motor_output", RATE: "rate",
+                   AUTHORITY: "authority"}
 
 
 def student_train_config(cfg: DistillConfig, teacher: Teacher):

@@ -30,7 +30,7 @@ from fcemu.export.c.contract import (
 )
 from fcemu.export.c.tanh import DEFAULT_TANH, FAST_TANH_HEADER, TANH_CHOICES, TANH_HEADER, use_fast_tanh
 from fcemu.firmware.neural import NeuralRateController, PolicyContractError
-from fcemu.firmware.observation import FIELD_DEFS
+from fcemu.firmware.observation import AUTHORITY, FIELD_DEFS
 
 SOURCES = ("fcemu_net.c", "fcemu_policy.c", "fcemu_golden.c")
 HOST_LIBRARY = "libfcemu_policy.so"
@@ -161,6 +161,9 @@ def export_c(model: str | Path, out_dir: str | Path, parity_samples: int = 10_00
     if tanh not in TANH_CHOICES:
         raise CExportError(f"--tanh must be one of {', '.join(TANH_CHOICES)}, got {tanh!r}")
     contract, metadata = load_contract(model)
+    if AUTHORITY in contract.spec.fields:
+        raise CExportError(f"{model} reads the in-flight authority estimate (authority), which the C export "
+                           "does not build yet")
     out_dir.mkdir(parents=True, exist_ok=True)
     run_emx(model, out_dir / "fcemu_net.c")
     choose_tanh(out_dir / "fcemu_net.c", tanh)

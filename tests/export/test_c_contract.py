@@ -193,3 +193,13 @@ def test_a_policy_of_shares_of_the_top_rotor_speed_reads_the_top_speed_configure
         outputs.append(flown)
     assert np.abs(outputs[0] - outputs[1]).max() > 1.0
     np.testing.assert_allclose(outputs[1], outputs[2], atol=0.05)
+
+
+def test_the_authority_estimate_is_refused_by_the_c_export_before_anything_is_written(tmp_path) -> None:
+    from fcemu.export.c.build import CExportError
+    from fcemu.firmware.observation import AUTHORITY
+
+    _policy(tmp_path / "p.onnx", Spec(fields=(*FIELDS, AUTHORITY)), "throttle")
+    with pytest.raises(CExportError, match="authority"):
+        export_c(tmp_path / "p.onnx", tmp_path / "c")
+    assert not (tmp_path / "c").exists()

@@ -7,6 +7,7 @@ import pytest
 from fcemu.firmware.controllers import DEFAULT_POLICY
 from fcemu.firmware.neural import META_PREFIX
 from fcemu.firmware.observation import (
+    AUTHORITY,
     FIELD_DEFS,
     FIELDS,
     INTEGRAL,
@@ -193,3 +194,41 @@ def test_loop_delay_is_the_configured_ticks_scaled_in_every_row_and_both_paths()
     assert np.all(one[:, 7] == np.float32(0.6))
     with pytest.raises(ValueError, match="loop's delay"):
         observe_step(spec, setpoint, gyro, rotor)
+
+
+def test_the_authority_field_is_the_slope_of_the_gyros_change_on_the_mixers_thrust_differential():
+    """A quad whose rates change by k_a per tick per unit of the mixer's thrust-share differential
+    on each axis: the estimate converges to k_a × authority_scale once the motors have moved, per
+    row of a batch as for one vehicle, and a masked reset starts only that row's over."""
+    from fcemu.firmware.mixer import BETAFLIGHT_QUAD_X
+
+    spec = Spec(memory=2, fields=(*FIELDS, AUTHORITY))
+    mix = np.asarray(BETAFLIGHT_QUAD_X)
+    slope = np.array([[0.02, 0.03, 0.004], [0.2, 0.15, 0.01]])  # scaled rad/s per tick per share²
+    batch, one = ObservationHistory(spec, (2,)), ObservationHistory(spec, (1,))
+    rng = np.random.default_rng(0)
+    gyro = np.zeros((2, 3))
+    cols = spec.columns[AUTHORITY]
+    for k in range(3000):
+        share = 0.5 + 0.2 * np.sin(k / 40.0 + np.arange(4)) * rng.uniform(0.5, 1.0, (2, 4))
+        gyro = gyro + slope * ((share**2) @ mix - 0.02) / spec.rate_scale  # an offset the centring removes
+        step = observe_step(spec, np.zeros((2, 3)), gyro, share * TOP)
+        if k == 0:
+            obs, first = batch.reset(step), one.reset(step[1:])
+            np.testing.assert_array_equal(obs[:, cols], 0.0)  # the motors have not moved yet
+        else:
+            obs, first = batch.push(step), one.push(step[1:])
+        np.testing.assert_array_equal(obs[1:], first)
+    np.testing.assert_allclose(obs[:, cols], slope * spec.authority_scale, rtol=0.02)
+    obs = batch.reset(step, np.array([True, False]))
+    np.testing.assert_array_equal(obs[0, cols], 0.0)
+    np.testing.assert_allclose(obs[1, cols], slope[1] * spec.authority_scale, rtol=0.02)
+
+
+def test_the_authority_spec_round_trips_with_its_scale_and_leak():
+    spec = Spec(fields=(*FIELDS, AUTHORITY), authority_scale=5.0, authority_leak=0.99)
+    again = ObservationSpec.from_json(spec.to_json())
+    assert again == spec and '"authority_scale": 5.0' in spec.to_json()
+    assert "authority" not in Spec().to_json()
+    with pytest.raises(ValueError, match="authority_leak"):
+        Spec(fields=(*FIELDS, AUTHORITY), authority_leak=1.0)

@@ -42,6 +42,9 @@ CONFIGS = {
         "esc_telemetry_loss": {"nominal": 0, "range": [0, 0.4], "unit": "share", "source": "test"},
         "gyro_delay_ticks": {"nominal": 0, "range": [0, 3], "unit": "ticks", "source": "test"}}}),
         randomize_share=0.7, action_mapping="throttle", inflight_share=0.5, episode_s=0.3),
+    # the in-flight authority estimate: its state per copy, started over on each copy's auto-reset
+    "authority-m2": dict(memory=2, obs_fields=("rate_error", "rotor_speed", "authority"),
+                         action_mapping="throttle", inflight_share=0.5, episode_s=0.05),
     # each copy's loop delay as its firmware is configured with it, drawn per episode; some nominal
     "loop-delay": dict(randomize=parse_randomization({"airframe": "iris", "parameters": {
         "esc_delay_ticks": {"nominal": 0, "range": [0, 2], "unit": "ticks", "source": "test"},
