@@ -149,6 +149,8 @@ class ObservationSpec:
             raise ValueError(f"unknown observation fields {sorted(unknown)}")
         if len(set(self.fields)) != len(self.fields):
             raise ValueError(f"repeated observation fields {self.fields}")
+        if AUTHORITY in self.fields and ROTOR_SPEED not in self.fields:
+            raise ValueError("the authority field reads the rotor speeds: give rotor_speed too")
         for leak in LEAKS:
             if not 0.0 <= getattr(self, leak) < 1.0:
                 raise ValueError(f"{leak} must be in [0, 1), got {getattr(self, leak)}")

@@ -139,14 +139,19 @@ class RateTask:
         if self._relative:
             self._command[at], self._step_size[at] = setpoint, np.abs(setpoint - gyro)
         delay = self.loop_delay if rows is None else self.loop_delay[rows]
-        if self.rotor_gain is not None:
-            gain = self.rotor_gain if rows is None else self.rotor_gain[rows]
-            rotor_speed = rotor_speed * gain
-            on_time = None if on_time is None else (on_time[0], on_time[1] * gain)
+        rotor_speed, on_time = self._as_shares(rotor_speed, on_time, rows)
         if self.on_time is not None:
             self._start(self.on_time, observe_step(self.spec, setpoint, *on_time, loop_delay=delay), rows)
         step = observe_step(self.spec, setpoint, gyro, rotor_speed, loop_delay=delay)
         return self._start(self.history, step, rows)
+
+    def _as_shares(self, rotor_speed: np.ndarray, on_time: tuple[np.ndarray, np.ndarray] | None,
+                   rows: np.ndarray | None = None) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """The rotor speeds (and the on-time view's) × `rotor_gain`, flying a pool; else as they are."""
+        if self.rotor_gain is None:
+            return rotor_speed, on_time
+        gain = self.rotor_gain if rows is None else self.rotor_gain[rows]
+        return rotor_speed * gain, None if on_time is None else (on_time[0], on_time[1] * gain)
 
     def _start(self, history: ObservationHistory, step: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
         if rows is None:
@@ -190,9 +195,7 @@ class RateTask:
         reward, terms = self.reward(setpoint, rate, u, self._previous_u, self._settled(setpoint),
                                     self._command_step(setpoint, rate))
         self._previous_u = u
-        if self.rotor_gain is not None:
-            rotor_speed = rotor_speed * self.rotor_gain
-            on_time = None if on_time is None else (on_time[0], on_time[1] * self.rotor_gain)
+        rotor_speed, on_time = self._as_shares(rotor_speed, on_time)
         obs = self.history.push(observe_step(self.spec, setpoint, gyro, rotor_speed, motor_output=u,
                                              loop_delay=self.loop_delay))
         if self.on_time is not None:
