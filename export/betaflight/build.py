@@ -30,7 +30,7 @@ from fcemu.export.c.build import CExportError, export_c, load_contract
 from fcemu.export.c.contract import c_float
 from fcemu.firmware.airframe_spec import AirframeSpec
 from fcemu.firmware.health import HealthRules, read_ahead_ticks
-from fcemu.firmware.observation import AUTHORITY, FIELD_DEFS
+from fcemu.firmware.observation import FIELD_DEFS
 
 PATCH = Path(__file__).with_name("neural.patch")
 POLICY_SOURCES = ("fcemu_net.c", "fcemu_policy.c", "fcemu_policy.h", "fcemu_golden.c", "fcemu_tanh.h")
@@ -91,9 +91,6 @@ def check_contract(model: Path) -> dict:
         raise BetaflightExportError(f"{model} observes rotor speeds as shares of the flown airframe's top "
                                     "speed; the Betaflight build takes one airframe's top speed (a policy "
                                     "of one airframe exports)")
-    if AUTHORITY in contract.spec.fields:
-        raise BetaflightExportError(f"{model} reads the in-flight authority estimate (authority), which the "
-                                    "C export does not build yet")
     missing = [f for f in contract.spec.fields if FIELD_DEFS[f].source not in FIRMWARE_SOURCES]
     if missing:
         raise BetaflightExportError(

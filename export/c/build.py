@@ -30,7 +30,7 @@ from fcemu.export.c.contract import (
 )
 from fcemu.export.c.tanh import DEFAULT_TANH, FAST_TANH_HEADER, TANH_CHOICES, TANH_HEADER, use_fast_tanh
 from fcemu.firmware.neural import NeuralRateController, PolicyContractError
-from fcemu.firmware.observation import AUTHORITY, FIELD_DEFS
+from fcemu.firmware.observation import FIELD_DEFS
 
 SOURCES = ("fcemu_net.c", "fcemu_policy.c", "fcemu_golden.c")
 HOST_LIBRARY = "libfcemu_policy.so"
@@ -44,12 +44,12 @@ class CExportError(ValueError):
 
 def sample_observations(spec, n: int, seed: int = 0) -> np.ndarray:
     """Observations over and beyond the flown range: scaled rate errors in ±3, rotor speeds
-    0..1.2 of the maximum, motor outputs over their whole range 0..1, loop delays 0..6 ticks (the
-    policy's input clip sits inside these)."""
+    0..1.2 of the maximum, motor outputs over their whole range 0..1, loop delays 0..6 ticks, authority
+    estimates −0.5..3 (a whoop's roll reads about 2; the policy's input clip sits inside these)."""
     rng = np.random.default_rng(seed)
     ranges = {"rate_error": (-3.0, 3.0), "rotor_speed": (0.0, 1.2), "rate_error_integral": (-3.0, 3.0),
               "rate_error_rms": (0.0, 3.0), "motor_output": (0.0, 1.0), "rate": (-3.0, 3.0),
-              "loop_delay": (0.0, 1.2)}
+              "loop_delay": (0.0, 1.2), "authority": (-0.5, 3.0)}
     cols = [rng.uniform(*ranges[f], size=(n, spec.memory, FIELD_DEFS[f].size)) for f in spec.fields]
     return np.concatenate(cols, axis=-1).reshape(n, spec.size).astype(np.float32)
 
@@ -161,9 +161,6 @@ def export_c(model: str | Path, out_dir: str | Path, parity_samples: int = 10_00
     if tanh not in TANH_CHOICES:
         raise CExportError(f"--tanh must be one of {', '.join(TANH_CHOICES)}, got {tanh!r}")
     contract, metadata = load_contract(model)
-    if AUTHORITY in contract.spec.fields:
-        raise CExportError(f"{model} reads the in-flight authority estimate (authority), which the C export "
-                           "does not build yet")
     out_dir.mkdir(parents=True, exist_ok=True)
     run_emx(model, out_dir / "fcemu_net.c")
     choose_tanh(out_dir / "fcemu_net.c", tanh)

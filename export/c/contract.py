@@ -14,7 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from fcemu.firmware.action import ACTION_MAPPINGS, DIFFERENTIAL_GAIN, PWM_MIN, PWM_SPAN
-from fcemu.firmware.observation import FIELD_DEFS, ObservationSpec
+from fcemu.firmware.mixer import BETAFLIGHT_QUAD_X
+from fcemu.firmware.observation import AUTHORITY_EPSILON, FIELD_DEFS, ObservationSpec
 
 NET_FUNCTION = "fcemu_net"
 ACTION_SIZE = 4
@@ -53,7 +54,7 @@ def _field_code(name: str, k: int, spec: ObservationSpec) -> str:
     value = _SOURCE_C[field.source] + ("" if field.scale is None else f" * {_SCALE_C[field.scale]}")
     if spec.per_airframe_rotor_speed:  # the flown airframe's, set at boot (`fcemu_policy_configure`)
         value = value.replace("FCEMU_ROTOR_SPEED_SCALE", "s->rotor_speed_scale")
-    if not field.leak:
+    if not field.leak or field.slope:  # the slope's input: `_authority_code` turns it into the estimate
         return f"        step[{k} + i] = {value};"
     state, leak = _STATE_C[field.leak]
     update = "x * x" if field.rms else "x"
@@ -91,6 +92,40 @@ _ACTION_CODE = {
 }
 
 
+def _authority_code(spec: ObservationSpec) -> str:
+    """`observation.AuthorityEstimate` in float32, in the same order of operations: after the step's
+    fields (the authority columns hold the scaled gyro), before the history takes the step."""
+    if spec.slope is None:
+        return ""
+    cols, rotor = spec.slope
+    mix = ", ".join("{" + ", ".join(c_float(v) for v in row) + "}" for row in BETAFLIGHT_QUAD_X)
+    terms = "; ".join(f"x = x + thrust[{i}] * mix[{i}][a]" for i in range(1, 4))
+    return f"""
+    {{  /* authority: the leaky least-squares slope of the gyro's change on the mixer's thrust differential */
+        static const float mix[4][3] = {{{mix}}};
+        const float keep = FCEMU_AUTHORITY_LEAK, fresh = 1.0f - FCEMU_AUTHORITY_LEAK;
+        float thrust[4];
+        for (int i = 0; i < 4; ++i) thrust[i] = step[{rotor.start} + i] * step[{rotor.start} + i];
+        for (int a = 0; a < 3; ++a) {{
+            float x = thrust[0] * mix[0][a]; {terms};
+            const float g = step[{cols.start} + a];
+            float *m = s->slope[a];  /* gyro, x, y, x·y, x² */
+            if (s->fresh) {{
+                m[0] = g; m[1] = x; m[2] = 0.0f; m[3] = 0.0f; m[4] = x * x;
+            }} else {{
+                const float y = g - m[0];
+                m[0] = g;
+                m[1] = keep * m[1] + fresh * x;
+                m[2] = keep * m[2] + fresh * y;
+                m[3] = keep * m[3] + fresh * (x * y);
+                m[4] = keep * m[4] + fresh * (x * x);
+            }}
+            const float cov = m[3] - m[1] * m[2], var = m[4] - m[1] * m[1];
+            step[{cols.start} + a] = FCEMU_AUTHORITY_SCALE * cov / (var + FCEMU_AUTHORITY_EPSILON);
+        }}
+    }}"""
+
+
 def contract_sources(contract: Contract) -> dict[str, str]:
     """`fcemu_policy.h` and `fcemu_policy.c` for one policy's contract."""
     spec = contract.spec
@@ -114,6 +149,9 @@ def contract_sources(contract: Contract) -> dict[str, str]:
         "FCEMU_INTEGRAL_LEAK": c_float(spec.integral_leak),
         "FCEMU_RMS_LEAK": c_float(spec.rms_leak),
         "FCEMU_LOOP_DELAY_SCALE": c_float(spec.loop_delay_scale),
+        "FCEMU_AUTHORITY_LEAK": c_float(spec.authority_leak),
+        "FCEMU_AUTHORITY_SCALE": c_float(spec.authority_scale),
+        "FCEMU_AUTHORITY_EPSILON": c_float(AUTHORITY_EPSILON),
         "FCEMU_DIFFERENTIAL_GAIN": c_float(DIFFERENTIAL_GAIN),
         "FCEMU_PWM_MIN": c_float(PWM_MIN),
         "FCEMU_PWM_SPAN": c_float(PWM_SPAN),
@@ -142,6 +180,7 @@ typedef struct {{
     float motor_output[4];  /* the last tick's PWM as 0..1, for a motor_output field */
     float loop_delay_ticks;  /* the configured ESC + gyro filter delay, for a loop_delay field */
     float rotor_speed_scale;  /* 1 / the flown top rotor speed, where the policy reads shares of it */
+    float slope[3][5];  /* per axis, the authority estimate's last gyro and leaky means of x, y, x·y, x² */
     int fresh;
 }} fcemu_policy_state;
 
@@ -203,7 +242,7 @@ int fcemu_policy_state_bytes(void) {{
 void fcemu_observe(fcemu_policy_state *s, const float setpoint[3], const float gyro[3],
                    const float rotor_speed[4], float obs[FCEMU_OBS_SIZE]) {{
     float step[FCEMU_OBS_STEP_SIZE];
-{chr(10).join(fields)}
+{chr(10).join(fields)}{_authority_code(spec)}
     if (s->fresh) {{
         for (int m = 0; m < FCEMU_OBS_MEMORY; ++m)
             for (int i = 0; i < FCEMU_OBS_STEP_SIZE; ++i) s->history[m][i] = step[i];

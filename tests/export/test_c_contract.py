@@ -195,11 +195,20 @@ def test_a_policy_of_shares_of_the_top_rotor_speed_reads_the_top_speed_configure
     np.testing.assert_allclose(outputs[1], outputs[2], atol=0.05)
 
 
-def test_the_authority_estimate_is_refused_by_the_c_export_before_anything_is_written(tmp_path) -> None:
-    from fcemu.export.c.build import CExportError
-    from fcemu.firmware.observation import AUTHORITY
+def test_the_authority_estimate_in_c_is_the_python_one_across_a_reset(tmp_path) -> None:
+    """The in-flight slope in C keeps its state per tick and starts over on reset, as the ONNX policy's
+    controller does, on a quad whose top speed is configured (the rotor shares it reads)."""
+    from dataclasses import replace
 
-    _policy(tmp_path / "p.onnx", Spec(fields=(*FIELDS, AUTHORITY)), "throttle")
-    with pytest.raises(CExportError, match="authority"):
-        export_c(tmp_path / "p.onnx", tmp_path / "c")
-    assert not (tmp_path / "c").exists()
+    from fcemu.firmware.observation import AUTHORITY, RATE
+    from fcemu.sim_bridge.airframe_spec import airframe_spec
+
+    require_codegen()
+    spec = Spec(memory=2, fields=(*FIELDS, RATE, AUTHORITY), per_airframe_rotor_speed=True)
+    _policy(tmp_path / "p.onnx", spec, "throttle")
+    export_c(tmp_path / "p.onnx", tmp_path / "c", parity_samples=200)
+    quad = replace(airframe_spec("iris"), max_rotor_speed=2 * TOP)
+    ours, theirs = CPolicyController(tmp_path / "c", airframe=quad), NeuralRateController(tmp_path / "p.onnx",
+                                                                                        airframe=quad)
+    _, worst = _side_by_side(ours, theirs, 400)
+    assert worst < 0.05  # µs
