@@ -103,7 +103,7 @@ def _authority_code(spec: ObservationSpec) -> str:
     return f"""
     {{  /* authority: the leaky least-squares slope of the gyro's change on the mixer's thrust differential */
         static const float mix[4][3] = {{{mix}}};
-        const float keep = FCEMU_AUTHORITY_LEAK, fresh = 1.0f - FCEMU_AUTHORITY_LEAK;
+        const float keep = FCEMU_AUTHORITY_LEAK, take = 1.0f - FCEMU_AUTHORITY_LEAK;
         float thrust[4];
         for (int i = 0; i < 4; ++i) thrust[i] = step[{rotor.start} + i] * step[{rotor.start} + i];
         for (int a = 0; a < 3; ++a) {{
@@ -115,10 +115,10 @@ def _authority_code(spec: ObservationSpec) -> str:
             }} else {{
                 const float y = g - m[0];
                 m[0] = g;
-                m[1] = keep * m[1] + fresh * x;
-                m[2] = keep * m[2] + fresh * y;
-                m[3] = keep * m[3] + fresh * (x * y);
-                m[4] = keep * m[4] + fresh * (x * x);
+                m[1] = keep * m[1] + take * x;
+                m[2] = keep * m[2] + take * y;
+                m[3] = keep * m[3] + take * (x * y);
+                m[4] = keep * m[4] + take * (x * x);
             }}
             const float cov = m[3] - m[1] * m[2], var = m[4] - m[1] * m[1];
             step[{cols.start} + a] = FCEMU_AUTHORITY_SCALE * cov / (var + FCEMU_AUTHORITY_EPSILON);
