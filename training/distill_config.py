@@ -74,7 +74,7 @@ class DistillConfig:
     per_twin: bool = option(
         False, "the model-based teacher (`inversion`) built for each twin's airframe as drawn this episode "
                "(its motors, delays and damping), not once for --airframe; without the gain match. Always "
-               "so with --airframe-pool, and there without the gain match")
+               "so with --airframe-pool")
     foreign_teacher: bool = option(False, "distil a teacher made for another airframe than --airframe "
                                           "(its fcemu.airframe); refused unless given")
     seed: int = option(0, "seed of the twins (their commands, drawn airframes and noise), of which "

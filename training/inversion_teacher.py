@@ -350,8 +350,8 @@ class DrawnInversionTeacher(InversionTeacher):
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         if self._env is not None and self.spec.per_airframe_rotor_speed:
-            flown = {id(a): a for a in self._env.episode_airframes}
-            self._draw([id(a) for a in self._env.episode_airframes], flown.__getitem__, keep=True)
+            flown = self._env.episode_airframes  # looked up only for a quad not met before
+            self._draw([id(a) for a in flown], lambda key: next(a for a in flown if id(a) == key), keep=True)
         elif self._env is not None:
             self._draw([tuple(sorted(f.items())) for f in self._env.episode_factors],
                        lambda key: self._base.scaled(**dict(key)) if key else self._base)
